@@ -1,0 +1,181 @@
+"""A smooth synthetic walk with exact IMU readings, noisy IMU and GNSS.
+
+The walk: a person holds the device still for ``stationary_s`` seconds, then walks
+a closed, non-square loop (a Fourier-series curve of about ``perimeter_m``) at
+about ``speed_mps``, with walking bounce and hand sway, device pointing forward and
+slightly down. Position and orientation are closed-form functions of time (the
+speed ramp is a C³ polynomial smoothstep), so velocity, acceleration and angular
+rate come from ``torch.func.jacfwd`` exactly, and the ideal IMU readings are exact
+derivatives of the trajectory.
+
+Body (IMU) frame: x forward, y left, z up; world frame: local ENU.
+This is the small generator the filter's tests and the INS+GNSS demo use; the
+full scene simulator with images builds on it.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+from torch.func import jacfwd, vmap
+
+from flowins.geometry import quaternion as quat
+from flowins.ins.mechanization import STANDARD_GRAVITY_MPS2
+
+# Fourier coefficients of the loop (unit scale): a rounded, non-square block
+_LOOP_X = ((1, 1.0, 0.0), (3, -0.09, 0.0), (2, 0.06, 0.05))
+_LOOP_Y = ((1, 0.0, 0.72), (3, 0.0, 0.07), (2, -0.04, 0.03))
+
+
+def _smoothstep_integral(x: Tensor) -> Tensor:
+    """``∫₀ˣ S₇``, ``S₇ = 35x⁴ - 84x⁵ + 70x⁶ - 20x⁷`` clamped to [0, 1] (C³ ramp)."""
+    xc = x.clamp(0.0, 1.0)
+    ramp = 7 * xc**5 - 14 * xc**6 + 10 * xc**7 - 2.5 * xc**8
+    return ramp + (x - 1.0).clamp_min(0.0)  # slope 1 after the ramp
+
+
+def _smoothstep(x: Tensor) -> Tensor:
+    xc = x.clamp(0.0, 1.0)
+    return 35 * xc**4 - 84 * xc**5 + 70 * xc**6 - 20 * xc**7
+
+
+@dataclass(frozen=True)
+class WalkConfig:
+    duration_s: float = 300.0
+    stationary_s: float = 5.0
+    ramp_s: float = 3.0
+    perimeter_m: float = 360.0
+    speed_mps: float = 1.2
+    height_m: float = 1.5
+    pitch_rad: float = math.radians(-12.0)
+    bounce_m: float = 0.03
+    step_hz: float = 1.8
+    sway_rad: float = math.radians(3.0)
+
+
+class Walk:
+    """Closed-form pose ``(p(t), R(t))`` of the walk; batched over times."""
+
+    def __init__(self, config: WalkConfig = WalkConfig()):
+        self.config = config
+        s = torch.linspace(0, 2 * math.pi, 4001, dtype=torch.float64)
+        pts = self._curve(s)
+        unit_perimeter = float((pts[1:] - pts[:-1]).norm(dim=-1).sum())
+        self.scale = config.perimeter_m / unit_perimeter
+
+    @staticmethod
+    def _curve(s: Tensor) -> Tensor:
+        x = sum(a * torch.cos(k * s) + b * torch.sin(k * s) for k, a, b in _LOOP_X)
+        y = sum(a * torch.cos(k * s) + b * torch.sin(k * s) for k, a, b in _LOOP_Y)
+        return torch.stack((x, y), -1)
+
+    def _activity(self, t: Tensor) -> Tensor:
+        c = self.config
+        return _smoothstep((t - c.stationary_s) / c.ramp_s)
+
+    def _arc(self, t: Tensor) -> Tensor:
+        c = self.config
+        distance = c.speed_mps * c.ramp_s * _smoothstep_integral((t - c.stationary_s) / c.ramp_s)
+        return 2 * math.pi * distance / c.perimeter_m
+
+    def position(self, t: Tensor) -> Tensor:
+        """``(..., 3)`` ENU position of the IMU at times ``t`` ``(...)``."""
+        c = self.config
+        s = self._arc(t)
+        xy = self.scale * (self._curve(s) - self._curve(torch.zeros_like(s)))
+        z = c.height_m + c.bounce_m * self._activity(t) * torch.sin(2 * math.pi * c.step_hz * t)
+        return torch.cat((xy, z.unsqueeze(-1)), -1)
+
+    def _angles(self, t: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        c = self.config
+        s = self._arc(t)
+        tangent = jacfwd(self._curve)(s) if s.ndim == 0 else vmap(jacfwd(self._curve))(s.reshape(-1)).reshape(*s.shape, 2)
+        yaw = torch.atan2(tangent[..., 1], tangent[..., 0])
+        act = self._activity(t)
+        roll = c.sway_rad * act * torch.sin(math.pi * c.step_hz * t)
+        pitch = c.pitch_rad + 0.5 * c.sway_rad * act * torch.sin(2 * math.pi * c.step_hz * t + 0.7)
+        return roll, pitch, yaw
+
+    def quaternion(self, t: Tensor) -> Tensor:
+        """``(..., 4)`` body->world orientation at times ``t``."""
+        return quat.from_euler(*self._angles(t))
+
+    def rotation(self, t: Tensor) -> Tensor:
+        return quat.to_matrix(self.quaternion(t))
+
+    def velocity(self, t: Tensor) -> Tensor:
+        return vmap(jacfwd(self.position))(t.reshape(-1)).reshape(*t.shape, 3)
+
+    def imu(self, t: Tensor, gravity_mps2: float = STANDARD_GRAVITY_MPS2) -> tuple[Tensor, Tensor]:
+        """Exact specific force ``(N, 3)`` (m/s²) and body angular rate ``(N, 3)`` (rad/s)."""
+        t = t.reshape(-1)
+        acc_world = vmap(jacfwd(jacfwd(self.position)))(t)
+        R = self.rotation(t)
+        R_dot = vmap(jacfwd(self.rotation))(t)
+        g = torch.tensor([0.0, 0.0, gravity_mps2], dtype=t.dtype)
+        f_body = (R.transpose(-1, -2) @ (acc_world + g).unsqueeze(-1)).squeeze(-1)
+        W = R.transpose(-1, -2) @ R_dot  # skew(ω_body)
+        omega = torch.stack((W[:, 2, 1], W[:, 0, 2], W[:, 1, 0]), -1)
+        return f_body, omega
+
+
+@dataclass(frozen=True)
+class ImuErrors:
+    """Consumer-grade MEMS errors (iPad-like defaults)."""
+
+    acc_noise: float = 3e-3  # m/s²/√Hz
+    gyro_noise: float = 2e-4  # rad/s/√Hz
+    acc_bias_std: float = 0.05  # m/s², turn-on
+    gyro_bias_std: float = 0.01  # rad/s, turn-on
+    acc_bias_walk: float = 1e-4  # m/s³/√Hz
+    gyro_bias_walk: float = 1e-5  # rad/s²/√Hz
+    acc_scale_std: float = 0.01  # relative, turn-on
+
+
+def sample_times(duration_s: float, rate_hz: float, jitter: float, generator: torch.Generator) -> Tensor:
+    """Non-equidistant sample times from 0 to about ``duration_s``; ``jitter`` is relative."""
+    n = int(round(duration_s * rate_hz))
+    dt = (1.0 + jitter * (2 * torch.rand(n, generator=generator, dtype=torch.float64) - 1)) / rate_hz
+    return torch.cat((torch.zeros(1, dtype=torch.float64), torch.cumsum(dt, 0)))
+
+
+def corrupt_imu(
+    t_s: Tensor, f_true: Tensor, w_true: Tensor, errors: ImuErrors, generator: torch.Generator
+) -> tuple[Tensor, Tensor, dict[str, Tensor]]:
+    """Noisy readings ``ã = f / T_a + b_a + n``, ``ω̃ = ω + b_ω + n`` and the true error states.
+
+    White noise of density σ sampled over Δt has standard deviation σ/√Δt;
+    biases start from a random turn-on value and random-walk.
+    """
+    n = t_s.shape[0]
+    dt = torch.diff(t_s, prepend=t_s[:1] - (t_s[1] - t_s[0]))
+
+    def randn(*shape: int) -> Tensor:
+        return torch.randn(*shape, generator=generator, dtype=torch.float64)
+
+    b_a = errors.acc_bias_std * randn(3) + torch.cumsum(errors.acc_bias_walk * dt.sqrt().unsqueeze(-1) * randn(n, 3), 0)
+    b_w = errors.gyro_bias_std * randn(3) + torch.cumsum(errors.gyro_bias_walk * dt.sqrt().unsqueeze(-1) * randn(n, 3), 0)
+    scale = 1.0 + errors.acc_scale_std * randn(3)  # T_a, the correction factor
+    acc = f_true / scale + b_a + errors.acc_noise / dt.sqrt().unsqueeze(-1) * randn(n, 3)
+    gyro = w_true + b_w + errors.gyro_noise / dt.sqrt().unsqueeze(-1) * randn(n, 3)
+    return acc, gyro, {"b_a": b_a, "b_w": b_w, "T_a": scale}
+
+
+def gnss_track(
+    walk: Walk, t_s: Tensor, generator: torch.Generator, *, min_acc_m: float = 3.0, max_acc_m: float = 25.0
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Noisy ENU fixes ``(G, 3)`` with horizontal/vertical 1-σ ``(G,)`` consistent with the noise.
+
+    The accuracy radius varies smoothly between ``min_acc_m`` and ``max_acc_m``.
+    Returns ``(true_enu, measured_enu, h_acc, v_acc)``.
+    """
+    truth = walk.position(t_s)
+    phase = torch.rand(3, generator=generator, dtype=torch.float64) * 2 * math.pi
+    u = 0.5 + 0.25 * torch.sin(2 * math.pi * t_s / 97.0 + phase[0]) + 0.25 * torch.sin(2 * math.pi * t_s / 41.0 + phase[1])
+    h_acc = min_acc_m + (max_acc_m - min_acc_m) * u**2
+    v_acc = 1.5 * h_acc
+    noise = torch.randn(t_s.shape[0], 3, generator=generator, dtype=torch.float64)
+    measured = truth + noise * torch.stack((h_acc, h_acc, v_acc), -1)
+    return truth, measured, h_acc, v_acc

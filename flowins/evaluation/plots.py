@@ -1,0 +1,174 @@
+"""Figures of evaluated trajectories (Agg canvas, written to PNG, nothing shown).
+
+:func:`plot_trajectory` follows Fig. 5 of Meronen et al. (2020): one top-view
+panel per track (e.g. filter and smoother) side by side, the track as points
+coloured by time (viridis, blue at the start to yellow at the end), ground
+truth as a red line, GNSS fixes as blue dots with a shaded circle of their
+accuracy radius.
+
+Figures are built on a ``matplotlib.figure.Figure`` with an explicit Agg canvas,
+never through ``pyplot``: no global backend switch, no figure registry to leak.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+from matplotlib import colormaps
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.collections import PatchCollection
+from matplotlib.colors import Normalize
+from matplotlib.figure import Figure
+from matplotlib.patches import Circle
+from torch import Tensor
+
+_GNSS_BLUE = "tab:blue"
+
+
+def _to_numpy(x, name: str, shape_tail: tuple[int, ...]) -> np.ndarray:
+    """Float64 ``(N, *shape_tail)`` array, or ``ValueError`` naming ``name`` and the first non-finite row."""
+    a = torch.as_tensor(x).detach().to(device="cpu", dtype=torch.float64).numpy()
+    if a.ndim != 1 + len(shape_tail) or tuple(a.shape[1:]) != shape_tail:
+        expected = "(N" + "".join(f", {d}" for d in shape_tail) + ")"
+        raise ValueError(f"{name} must have shape {expected}, got {tuple(a.shape)}")
+    if a.shape[0] == 0:
+        raise ValueError(f"{name} is empty")
+    bad = ~np.isfinite(a.reshape(a.shape[0], -1)).all(axis=-1)
+    if bad.any():
+        row = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"{name} contains NaN or inf; first bad row is {row}: {a[row].tolist()} (refusing to plot it)")
+    return a
+
+
+def _save(fig: Figure, path: str | os.PathLike, dpi: int) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    FigureCanvasAgg(fig)
+    fig.savefig(path, dpi=dpi, format="png")
+    return path
+
+
+def plot_trajectory(
+    path: str | os.PathLike,
+    *,
+    ground_truth_m: Tensor | None,
+    tracks: dict[str, tuple[Tensor, Tensor]],
+    gnss_m: Tensor | None = None,
+    gnss_radius_m: Tensor | None = None,
+    title: str = "",
+    panel_size_in: tuple[float, float] = (5.0, 4.5),
+    dpi: int = 120,
+) -> Path:
+    """Top view (East, North) of each track next to the ground truth; saves a PNG.
+
+    Args:
+        path: output PNG file.
+        ground_truth_m: ``(M, 3)`` ground-truth positions (m) drawn as a red line, or ``None``.
+        tracks: name → ``(t_s (N,), pos_m (N, 3))``; one panel per entry, in order.
+        gnss_m: ``(G, 3)`` GNSS fix positions (m), or ``None``.
+        gnss_radius_m: ``(G,)`` accuracy radius of each fix (m), drawn as a shaded circle.
+        title: figure title.
+        panel_size_in: ``(width, height)`` of one panel in inches; the figure is
+            ``(width * len(tracks), height)`` inches, i.e. that times ``dpi`` pixels.
+        dpi: resolution of the PNG.
+
+    Raises:
+        ValueError: no tracks, shapes that disagree, NaN/inf anywhere (named), or
+            a radius without fixes.
+    """
+    if not tracks:
+        raise ValueError("tracks is empty: give at least one name -> (t_s, pos_m)")
+    data = {}
+    for name, value in tracks.items():
+        if not (isinstance(value, (tuple, list)) and len(value) == 2):
+            raise ValueError(f"tracks[{name!r}] must be a tuple (t_s (N,), pos_m (N, 3))")
+        t = _to_numpy(value[0], f"tracks[{name!r}] t_s", ())
+        p = _to_numpy(value[1], f"tracks[{name!r}] pos_m", (3,))
+        if t.shape[0] != p.shape[0]:
+            raise ValueError(f"tracks[{name!r}]: t_s has {t.shape[0]} samples but pos_m has {p.shape[0]} rows")
+        data[name] = (t, p)
+    gt = None if ground_truth_m is None else _to_numpy(ground_truth_m, "ground_truth_m", (3,))
+    if gnss_radius_m is not None and gnss_m is None:
+        raise ValueError("gnss_radius_m given without gnss_m")
+    gnss = None if gnss_m is None else _to_numpy(gnss_m, "gnss_m", (3,))
+    radius = None
+    if gnss_radius_m is not None:
+        radius = _to_numpy(gnss_radius_m, "gnss_radius_m", ())
+        if radius.shape[0] != gnss.shape[0]:
+            raise ValueError(f"gnss_radius_m has {radius.shape[0]} entries but gnss_m has {gnss.shape[0]} rows")
+        if (radius < 0).any():
+            row = int(np.flatnonzero(radius < 0)[0])
+            raise ValueError(f"gnss_radius_m must be >= 0; row {row} is {radius[row]}")
+
+    # One colour scale for all panels, so equal colours mean equal times.
+    t_min = min(float(t.min()) for t, _ in data.values())
+    t_max = max(float(t.max()) for t, _ in data.values())
+    norm = Normalize(vmin=t_min, vmax=t_max if t_max > t_min else t_min + 1.0)
+    cmap = colormaps["viridis"]
+
+    width_in, height_in = panel_size_in
+    fig = Figure(figsize=(width_in * len(data), height_in), layout="constrained")
+    axes = fig.subplots(1, len(data), squeeze=False)[0]
+    for ax, (name, (t, p)) in zip(axes, data.items()):
+        if gnss is not None:
+            if radius is not None:
+                circles = [Circle((e, n), r) for (e, n), r in zip(gnss[:, :2], radius)]
+                ax.add_collection(
+                    PatchCollection(circles, facecolor=_GNSS_BLUE, edgecolor="none", alpha=0.15, zorder=1)
+                )
+            ax.scatter(gnss[:, 0], gnss[:, 1], s=4, color=_GNSS_BLUE, zorder=2, label="GNSS")
+        if gt is not None:
+            ax.plot(gt[:, 0], gt[:, 1], color="red", linewidth=1.2, zorder=3, label="ground truth")
+        points = ax.scatter(p[:, 0], p[:, 1], c=t, cmap=cmap, norm=norm, s=3, zorder=4, rasterized=True)
+        colorbar = fig.colorbar(points, ax=ax, shrink=0.9)
+        colorbar.set_label("time [s]")
+        ax.set_title(name)
+        ax.set_xlabel("East [m]")
+        ax.set_ylabel("North [m]")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.autoscale_view()
+        if gt is not None or gnss is not None:
+            ax.legend(loc="best", fontsize="small")
+    if title:
+        fig.suptitle(title)
+    return _save(fig, path, dpi)
+
+
+def plot_errors(
+    path: str | os.PathLike,
+    *,
+    series: dict[str, tuple[Tensor, Tensor]],
+    title: str = "",
+    figsize_in: tuple[float, float] = (8.0, 3.5),
+    dpi: int = 120,
+) -> Path:
+    """Position error (m) against time (s), one line per series; saves a PNG.
+
+    Args:
+        path: output PNG file.
+        series: name → ``(t_s (K,), errors_m (K,))``, e.g. ``TrajectoryErrors.t_s, .errors_m``.
+        title: axes title.
+        figsize_in: figure size (inches); the PNG is that times ``dpi`` pixels.
+        dpi: resolution of the PNG.
+    """
+    if not series:
+        raise ValueError("series is empty: give at least one name -> (t_s, errors_m)")
+    fig = Figure(figsize=figsize_in, layout="constrained")
+    ax = fig.subplots()
+    for name, value in series.items():
+        if not (isinstance(value, (tuple, list)) and len(value) == 2):
+            raise ValueError(f"series[{name!r}] must be a tuple (t_s (K,), errors_m (K,))")
+        t = _to_numpy(value[0], f"series[{name!r}] t_s", ())
+        e = _to_numpy(value[1], f"series[{name!r}] errors_m", ())
+        if t.shape[0] != e.shape[0]:
+            raise ValueError(f"series[{name!r}]: t_s has {t.shape[0]} samples but errors_m has {e.shape[0]}")
+        ax.plot(t, e, linewidth=1.0, label=name)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("position error [m]")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="best", fontsize="small")
+    if title:
+        ax.set_title(title)
+    return _save(fig, path, dpi)

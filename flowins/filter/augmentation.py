@@ -1,0 +1,108 @@
+"""Pose forgetting and pose augmentation, as the paper writes them (Sec. "Information Fusion").
+
+Forgetting (a linear Kalman prediction):
+
+    A⋆ = blkdiag(I₁₉, 0₇),   Q⋆ = blkdiag(0₁₉, σ²_{p,0} I₃, σ²_{q,0} I₄)
+
+Augmentation (a linear Kalman update "measuring" ``H⋆ x = 0``, i.e. ``p_prev = p``
+and ``q_prev = q``, with a small nugget noise):
+
+    H⋆ = [[I₃, 0, 0, …, -I₃, 0], [0, 0, I₄, …, 0, -I₄]]   (7 x 26)
+
+The forgetting step sets the mean of the old pose to zero and gives it the
+variances ``σ²_{p,0}``, ``σ²_{q,0}``; the augmentation then pulls it onto the current
+pose. With finite ``σ`` this shrinks the current pose towards the origin by a
+relative ``P_pp / σ²_{p,0}`` per frame; :func:`copy_pose` is the exact
+``σ → ∞`` limit, where the old pose becomes the current one plus the nugget noise.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from flowins.filter.ekf import ekf_update, linear_predict
+from flowins.state import CORE_DIM, STATE, STATE_DIM, normalize_quaternions, symmetrize
+
+
+def forgetting_matrices(
+    sigma_p0: float | Tensor, sigma_q0: float | Tensor, *, dtype: torch.dtype, device=None
+) -> tuple[Tensor, Tensor]:
+    """``(A⋆, Q⋆)``, each ``(26, 26)``."""
+    A = torch.zeros(STATE_DIM, STATE_DIM, dtype=dtype, device=device)
+    A[:CORE_DIM, :CORE_DIM] = torch.eye(CORE_DIM, dtype=dtype, device=device)
+    sp = torch.as_tensor(sigma_p0, dtype=dtype, device=device)
+    sq = torch.as_tensor(sigma_q0, dtype=dtype, device=device)
+    diag = torch.cat(
+        (
+            torch.zeros(CORE_DIM, dtype=dtype, device=device),
+            (sp * sp).expand(3),
+            (sq * sq).expand(4),
+        )
+    )
+    return A, torch.diag(diag)
+
+
+def augmentation_matrix(*, dtype: torch.dtype, device=None) -> Tensor:
+    """``H⋆`` ``(7, 26)``."""
+    H = torch.zeros(7, STATE_DIM, dtype=dtype, device=device)
+    eye3 = torch.eye(3, dtype=dtype, device=device)
+    eye4 = torch.eye(4, dtype=dtype, device=device)
+    H[0:3, STATE.p] = eye3
+    H[0:3, STATE.p_prev] = -eye3
+    H[3:7, STATE.q] = eye4
+    H[3:7, STATE.q_prev] = -eye4
+    return H
+
+
+def forget_pose(
+    mean: Tensor, cov: Tensor, *, sigma_p0: float | Tensor, sigma_q0: float | Tensor
+) -> tuple[Tensor, Tensor]:
+    """The pose forgetting step: ``m = A⋆ m``, ``P = A⋆ P A⋆ᵀ + Q⋆``."""
+    A, Q = forgetting_matrices(sigma_p0, sigma_q0, dtype=mean.dtype, device=mean.device)
+    return linear_predict(mean, cov, A, Q)
+
+
+def augment_pose(mean: Tensor, cov: Tensor, *, nugget_var: float | Tensor) -> tuple[Tensor, Tensor]:
+    """The pose augmentation step: linear update with ``H⋆``, ``z = 0``, ``R = nugget I₇``.
+
+    Not gated; quaternions are re-normalised afterwards like after every update.
+    """
+    H = augmentation_matrix(dtype=mean.dtype, device=mean.device)
+    innovation = -(H @ mean.unsqueeze(-1)).squeeze(-1)
+    R = torch.as_tensor(nugget_var, dtype=mean.dtype, device=mean.device) * torch.eye(
+        7, dtype=mean.dtype, device=mean.device
+    )
+    batch = mean.shape[:-1]
+    result = ekf_update(
+        mean,
+        cov,
+        innovation=innovation.reshape(*batch, 1, 7),
+        H=H.expand(*batch, 1, 7, STATE_DIM),
+        noise_cov=R.expand(*batch, 1, 7, 7),
+    )
+    return result.mean, result.cov
+
+
+def copy_matrices(
+    nugget_var: float | Tensor, *, dtype: torch.dtype, device=None
+) -> tuple[Tensor, Tensor]:
+    """``(T, Q)`` of :func:`copy_pose` as a linear step ``x = T x + w``, ``w ~ N(0, Q)``."""
+    T = torch.zeros(STATE_DIM, STATE_DIM, dtype=dtype, device=device)
+    T[:CORE_DIM, :CORE_DIM] = torch.eye(CORE_DIM, dtype=dtype, device=device)
+    T[STATE.p_prev, STATE.p] = torch.eye(3, dtype=dtype, device=device)
+    T[STATE.q_prev, STATE.q] = torch.eye(4, dtype=dtype, device=device)
+    nugget = torch.as_tensor(nugget_var, dtype=dtype, device=device)
+    Q = torch.zeros_like(T)
+    Q[CORE_DIM:, CORE_DIM:] = nugget * torch.eye(STATE_DIM - CORE_DIM, dtype=dtype, device=device)
+    return T, Q
+
+
+def copy_pose(mean: Tensor, cov: Tensor, *, nugget_var: float | Tensor) -> tuple[Tensor, Tensor]:
+    """The ``σ_{p,0}, σ_{q,0} → ∞`` limit of forgetting followed by augmentation.
+
+    ``p_prev := p``, ``q_prev := q`` with the covariance rows copied and the nugget
+    added to the old pose's own block; the core state is untouched.
+    """
+    T, Q = copy_matrices(nugget_var, dtype=mean.dtype, device=mean.device)
+    new_mean, new_cov = linear_predict(mean, cov, T, Q)
+    return normalize_quaternions(new_mean), symmetrize(new_cov)

@@ -1,0 +1,239 @@
+"""Running the EKF over a recording: IMU prediction between measurement events.
+
+The filter keeps a *chain of nodes*. A node is a time at which the filter reports
+its estimate: every ``output_every``-th IMU sample, every measurement event and the
+end of the run. Each node stores its predicted and filtered Gaussians and the
+transition ``Φ`` from the previous node's filtered state (the product of the
+step Jacobians in between). Events act on the newest node: an update replaces its
+filtered Gaussian; a linear prediction (pose forgetting) appends a new node at the
+same time. The RTS smoother (:mod:`flowins.filter.smoother`) runs on this chain,
+so it is exact through every prediction, forgetting and augmentation step.
+
+An event time between two IMU samples splits that sample's step in two (both parts
+use the sample, as the paper's ``ã_k`` drives the whole interval ``(t_{k-1}, t_k]``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Protocol, Sequence
+
+import torch
+from torch import Tensor
+from tqdm.auto import tqdm
+
+from flowins.filter.ekf import UpdateResult, linear_predict
+from flowins.filter.propagation import propagate_batched, propagate_reference
+from flowins.ins.mechanization import STANDARD_GRAVITY_MPS2, ProcessNoise
+from flowins.state import STATE_DIM, symmetrize
+
+
+class Event(Protocol):
+    """A measurement (or any filter operation) at ``time_s``."""
+
+    time_s: float
+    name: str
+
+    def apply(self, chain: "ChainBuilder") -> None: ...
+
+
+@dataclass
+class ChainBuilder:
+    """The growing node chain; events call :meth:`update` and :meth:`linear_predict`."""
+
+    t_s: list[float] = field(default_factory=list)
+    transition: list[Tensor] = field(default_factory=list)
+    pred_mean: list[Tensor] = field(default_factory=list)
+    pred_cov: list[Tensor] = field(default_factory=list)
+    mean_list: list[Tensor] = field(default_factory=list)
+    cov_list: list[Tensor] = field(default_factory=list)
+    log: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def mean(self) -> Tensor:
+        """Filtered mean of the newest node ``(26,)``."""
+        return self.mean_list[-1]
+
+    @property
+    def cov(self) -> Tensor:
+        return self.cov_list[-1]
+
+    @property
+    def time_s(self) -> float:
+        return self.t_s[-1]
+
+    def add_node(self, t_s: float, transition: Tensor, mean: Tensor, cov: Tensor) -> None:
+        self.t_s.append(float(t_s))
+        self.transition.append(transition)
+        self.pred_mean.append(mean)
+        self.pred_cov.append(cov)
+        self.mean_list.append(mean)
+        self.cov_list.append(cov)
+
+    def update(self, result: UpdateResult | tuple[Tensor, Tensor], **info: Any) -> None:
+        """Replace the newest node's filtered Gaussian by an update's result."""
+        mean, cov = result[0], result[1]
+        self.mean_list[-1] = mean
+        self.cov_list[-1] = cov
+        if info:
+            self.log.append({"t_s": self.time_s, **info})
+
+    def linear_predict(self, A: Tensor, Q: Tensor, **info: Any) -> None:
+        """Append a node at the same time: ``m = A m``, ``P = A P Aᵀ + Q``."""
+        mean, cov = linear_predict(self.mean, self.cov, A, Q)
+        self.add_node(self.time_s, A, mean, cov)
+        if info:
+            self.log.append({"t_s": self.time_s, **info})
+
+    def finish(self) -> "FilterTrack":
+        return FilterTrack(
+            t_s=torch.tensor(self.t_s, dtype=torch.float64),
+            transition=torch.stack(self.transition),
+            pred_mean=torch.stack(self.pred_mean),
+            pred_cov=torch.stack(self.pred_cov),
+            node_mean=torch.stack(self.mean_list),
+            node_cov=torch.stack(self.cov_list),
+            log=self.log,
+        )
+
+
+@dataclass
+class FilterTrack:
+    """The filter's node chain (``J`` nodes) and its outputs.
+
+    ``node_*`` hold every node; :attr:`mean`, :attr:`cov` and :attr:`t` keep the
+    last node at each time (a pose forgetting adds a second node at a frame time).
+    """
+
+    t_s: Tensor  # (J,) float64
+    transition: Tensor  # (J, 26, 26) Φ_j from node j-1 (identity for j = 0)
+    pred_mean: Tensor  # (J, 26)
+    pred_cov: Tensor  # (J, 26, 26)
+    node_mean: Tensor  # (J, 26) filtered
+    node_cov: Tensor  # (J, 26, 26) filtered
+    log: list[dict[str, Any]]
+
+    @property
+    def output_index(self) -> Tensor:
+        """Indices of the last node at each distinct time."""
+        t = self.t_s
+        last = torch.ones_like(t, dtype=torch.bool)
+        last[:-1] = t[1:] != t[:-1]
+        return torch.nonzero(last).squeeze(-1)
+
+    @property
+    def t(self) -> Tensor:
+        return self.t_s[self.output_index]
+
+    @property
+    def mean(self) -> Tensor:
+        return self.node_mean[self.output_index]
+
+    @property
+    def cov(self) -> Tensor:
+        return self.node_cov[self.output_index]
+
+
+def _step_grid(t_imu: Tensor, event_times: Tensor) -> tuple[Tensor, Tensor]:
+    """Merged step end times and, per step, the IMU sample that drives it."""
+    grid = torch.unique(torch.cat((t_imu[1:], event_times[event_times > t_imu[0]])))  # sorted
+    sample = torch.searchsorted(t_imu, grid, right=False)
+    return grid, sample
+
+
+def run_filter(
+    *,
+    t_s: Tensor,
+    acc_mps2: Tensor,
+    gyro_rps: Tensor,
+    mean0: Tensor,
+    cov0: Tensor,
+    noise: ProcessNoise,
+    events: Sequence[Event] = (),
+    output_every: int = 10,
+    gravity_mps2: float = STANDARD_GRAVITY_MPS2,
+    jacobians: str = "analytic",
+    scheme: str = "midpoint",
+    progress: bool = False,
+) -> FilterTrack:
+    """Run the EKF from ``(mean0, cov0)`` at ``t_s[0]`` through all IMU samples and events.
+
+    Args:
+        t_s ``(N,)`` IMU times (strictly increasing; validate with
+        :class:`flowins.data.ImuStream`), acc_mps2 / gyro_rps ``(N, 3)``.
+        mean0 ``(26,)``, cov0 ``(26, 26)``: the prior at ``t_s[0]``; their dtype is the
+            filter's dtype.
+        events: measurement events, each with ``time_s`` in ``[t_s[0], t_s[-1]]``;
+            events at the same time are applied in the given order.
+        output_every: a node every this many IMU samples (plus one at every event).
+        jacobians: ``"analytic"`` (fast, batched closed forms) or ``"autodiff"``
+            (the reference: per-sample ``torch.func.jacrev``).
+        scheme: mechanization scheme, ``"midpoint"`` or ``"paper"``
+            (see :mod:`flowins.ins.mechanization`).
+    """
+    if jacobians not in ("analytic", "autodiff"):
+        raise ValueError(f"jacobians must be 'analytic' or 'autodiff', got {jacobians!r}")
+    if output_every < 1:
+        raise ValueError(f"output_every must be >= 1, got {output_every}")
+    if mean0.shape != (STATE_DIM,) or cov0.shape != (STATE_DIM, STATE_DIM):
+        raise ValueError(
+            f"mean0 must be ({STATE_DIM},) and cov0 ({STATE_DIM}, {STATE_DIM}); got {tuple(mean0.shape)}, {tuple(cov0.shape)}"
+        )
+    dtype, device = mean0.dtype, mean0.device
+    t_imu = torch.as_tensor(t_s, dtype=torch.float64)
+    t0, t_end = float(t_imu[0]), float(t_imu[-1])
+    events = sorted(events, key=lambda e: e.time_s)  # stable: same-time order kept
+    for event in events:
+        if not t0 <= event.time_s <= t_end:
+            raise ValueError(
+                f"{event.name}: time {event.time_s:.6f} s is outside the IMU time span "
+                f"[{t0:.6f}, {t_end:.6f}] s; crop the stream or the IMU to overlap"
+            )
+    event_times = torch.tensor([e.time_s for e in events], dtype=torch.float64)
+    grid, sample = _step_grid(t_imu, event_times)
+    dt = torch.diff(grid, prepend=t_imu[:1]).to(dtype=dtype, device=device)
+    acc = torch.as_tensor(acc_mps2)[sample].to(dtype=dtype, device=device)
+    gyro = torch.as_tensor(gyro_rps)[sample].to(dtype=dtype, device=device)
+
+    # node flags per step: output grid, events, the end
+    is_node = torch.zeros(grid.shape[0], dtype=torch.bool)
+    on_sample = grid == t_imu[sample]
+    is_node |= on_sample & (sample % output_every == 0)
+    event_step = torch.searchsorted(grid, event_times[event_times > t0])
+    is_node[event_step] = True
+    is_node[-1] = True
+    # a segment ends at each event step (the mean must be recomputed after updates)
+    segment_ends = sorted(set(event_step.tolist()) | {grid.shape[0] - 1})
+    events_by_step: dict[int, list[Event]] = {}
+    for event in events:
+        if event.time_s > t0:
+            step = int(torch.searchsorted(grid, torch.tensor(event.time_s, dtype=torch.float64)))
+            events_by_step.setdefault(step, []).append(event)
+
+    chain = ChainBuilder()
+    eye = torch.eye(STATE_DIM, dtype=dtype, device=device)
+    chain.add_node(t0, eye, mean0, symmetrize(cov0))
+    for event in events:
+        if event.time_s <= t0:
+            event.apply(chain)
+    propagate = propagate_batched if jacobians == "analytic" else propagate_reference
+    node_index = torch.nonzero(is_node).squeeze(-1)
+    start = 0
+    for end in tqdm(segment_ends, desc="filter", unit="seg", disable=not progress, leave=False):
+        nodes = node_index[(node_index >= start) & (node_index <= end)] - start
+        out = propagate(
+            chain.mean,
+            chain.cov,
+            acc[start : end + 1],
+            gyro[start : end + 1],
+            dt[start : end + 1],
+            nodes,
+            noise=noise,
+            gravity_mps2=gravity_mps2,
+            scheme=scheme,
+        )
+        for j, step in enumerate((nodes + start).tolist()):
+            chain.add_node(float(grid[step]), out.transition[j], out.mean[j], out.cov[j])
+        for event in events_by_step.get(end, []):
+            event.apply(chain)
+        start = end + 1
+    return chain.finish()

@@ -1,0 +1,76 @@
+"""Extended Rauch-Tung-Striebel smoother over the filter's node chain.
+
+For nodes ``j = J-1, ..., 0`` with filtered ``(m_j, P_j)``, the next node's
+prediction ``(m⁻_{j+1}, P⁻_{j+1})`` and the transition ``Φ_{j+1}`` between them
+(product of EKF Jacobians, or ``A⋆`` for a pose forgetting):
+
+    G_j   = P_j Φ_{j+1}ᵀ (P⁻_{j+1})⁻¹
+    mˢ_j  = m_j + G_j (mˢ_{j+1} - m⁻_{j+1})
+    Pˢ_j  = P_j + G_j (Pˢ_{j+1} - P⁻_{j+1}) G_jᵀ
+
+(Särkkä 2013, Thm. 9.1 for the extended case). Updates at a node only change its
+filtered Gaussian, so the recursion is exact through every update, prediction,
+forgetting and augmentation step the filter recorded.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from flowins.filter.runner import FilterTrack
+from flowins.state import normalize_quaternions, symmetrize
+
+
+@dataclass
+class SmoothedTrack:
+    t_s: Tensor  # (J,) node times
+    node_mean: Tensor  # (J, 26)
+    node_cov: Tensor  # (J, 26, 26)
+    output_index: Tensor  # last node at each distinct time
+
+    @property
+    def t(self) -> Tensor:
+        return self.t_s[self.output_index]
+
+    @property
+    def mean(self) -> Tensor:
+        return self.node_mean[self.output_index]
+
+    @property
+    def cov(self) -> Tensor:
+        return self.node_cov[self.output_index]
+
+
+def rts_gains(track: FilterTrack) -> Tensor:
+    """Smoother gains ``G_j`` ``(J-1, 26, 26)``, all at once (batched solve)."""
+    P = track.node_cov[:-1]
+    Phi = track.transition[1:]
+    cross = Phi @ P  # Φ_{j+1} P_j = (P_j Φ_{j+1}ᵀ)ᵀ
+    P_pred = symmetrize(track.pred_cov[1:])
+    return torch.linalg.solve(P_pred, cross).transpose(-1, -2)
+
+
+def rts_smooth(track: FilterTrack, *, normalize: bool = True) -> SmoothedTrack:
+    """Smoothed means and covariances at every node of ``track``.
+
+    ``normalize`` re-normalises the quaternions of the smoothed means (the
+    covariances are left as the recursion gives them).
+    """
+    J = track.t_s.shape[0]
+    means = [track.node_mean[-1]]
+    covs = [track.node_cov[-1]]
+    if J > 1:
+        gains = rts_gains(track)
+        m_s, P_s = means[0], covs[0]
+        for j in range(J - 2, -1, -1):
+            G = gains[j]
+            m_s = track.node_mean[j] + G @ (m_s - track.pred_mean[j + 1])
+            P_s = symmetrize(track.node_cov[j] + G @ (P_s - track.pred_cov[j + 1]) @ G.T)
+            means.append(m_s)
+            covs.append(P_s)
+    mean = torch.stack(means[::-1])
+    if normalize:
+        mean = normalize_quaternions(mean)
+    return SmoothedTrack(track.t_s, mean, torch.stack(covs[::-1]), track.output_index)

@@ -1,0 +1,235 @@
+"""Unit quaternions and rotations, Hamilton convention, scalar first ``(w, x, y, z)``.
+
+All functions are pure, batched over any leading dimensions, work in float32
+and float64, and are differentiable everywhere (including at the identity):
+small-angle cases use ``torch.where`` between a Taylor series and the exact
+expression evaluated at a safe argument, never a Python ``if`` on tensor values.
+
+A quaternion ``q`` of the state maps body (IMU) vectors to the world frame:
+``v_world = q ⊙ v_body ⊙ q*`` (the paper's notation), i.e. ``R(q) @ v_body``.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+# Below this squared angle the Taylor series (exact to ~theta^6) replaces the
+# trigonometric expressions; both are accurate there, the series has a finite
+# derivative at zero.
+_SMALL_ANGLE_SQ = 1e-6
+
+
+def _check(q: Tensor, name: str = "q") -> None:
+    if q.shape[-1] != 4:
+        raise ValueError(f"{name} must have last dimension 4 (w, x, y, z), got shape {tuple(q.shape)}")
+
+
+def identity(*batch: int, dtype: torch.dtype | None = None, device=None) -> Tensor:
+    """The identity quaternion with the given batch shape."""
+    q = torch.zeros(*batch, 4, dtype=dtype, device=device)
+    q[..., 0] = 1.0
+    return q
+
+
+def multiply(a: Tensor, b: Tensor) -> Tensor:
+    """Hamilton product ``a ⊙ b`` of ``(..., 4)`` quaternions (broadcasting)."""
+    _check(a, "a")
+    _check(b, "b")
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack(
+        (
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ),
+        dim=-1,
+    )
+
+
+def conjugate(q: Tensor) -> Tensor:
+    """``q* = (w, -x, -y, -z)``; the inverse of a unit quaternion."""
+    _check(q)
+    return q * q.new_tensor([1.0, -1.0, -1.0, -1.0])
+
+
+def normalize(q: Tensor) -> Tensor:
+    """``q / |q|`` (a zero quaternion stays zero instead of becoming NaN)."""
+    _check(q)
+    return q / q.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(q.dtype).tiny ** 0.5)
+
+
+def left_matrix(q: Tensor) -> Tensor:
+    """``L(q)`` with ``q ⊙ p = L(q) @ p``; shape ``(..., 4, 4)``."""
+    _check(q)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack(
+        (
+            torch.stack((w, -x, -y, -z), -1),
+            torch.stack((x, w, -z, y), -1),
+            torch.stack((y, z, w, -x), -1),
+            torch.stack((z, -y, x, w), -1),
+        ),
+        dim=-2,
+    )
+
+
+def right_matrix(q: Tensor) -> Tensor:
+    """``R(q)`` with ``p ⊙ q = R(q) @ p``; shape ``(..., 4, 4)``."""
+    _check(q)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack(
+        (
+            torch.stack((w, -x, -y, -z), -1),
+            torch.stack((x, w, z, -y), -1),
+            torch.stack((y, -z, w, x), -1),
+            torch.stack((z, y, -x, w), -1),
+        ),
+        dim=-2,
+    )
+
+
+def to_matrix(q: Tensor) -> Tensor:
+    """Rotation matrix ``(..., 3, 3)`` of a quaternion, normalised first.
+
+    Normalising inside makes the matrix invariant to the quaternion's length, so
+    its Jacobian has no component along ``q`` (the over-parametrised radial
+    direction of the 4-vector state).
+    """
+    w, x, y, z = normalize(q).unbind(-1)
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz = x * y, x * z, y * z
+    wx, wy, wz = w * x, w * y, w * z
+    return torch.stack(
+        (
+            torch.stack((1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy)), -1),
+            torch.stack((2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx)), -1),
+            torch.stack((2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy)), -1),
+        ),
+        dim=-2,
+    )
+
+
+def rotate(q: Tensor, v: Tensor) -> Tensor:
+    """``q ⊙ v ⊙ q*`` for vectors ``v`` ``(..., 3)`` (``q`` normalised first)."""
+    if v.shape[-1] != 3:
+        raise ValueError(f"v must have last dimension 3, got shape {tuple(v.shape)}")
+    return (to_matrix(q) @ v.unsqueeze(-1)).squeeze(-1)
+
+
+def from_matrix(R: Tensor) -> Tensor:
+    """Unit quaternion ``(..., 4)`` with ``w >= 0`` from a rotation matrix ``(..., 3, 3)``.
+
+    Shepperd's method without branches: all four candidate solutions are
+    computed from clamped (hence finite) square roots and the best-conditioned
+    one is selected per batch element.
+    """
+    if R.shape[-2:] != (3, 3):
+        raise ValueError(f"R must have shape (..., 3, 3), got {tuple(R.shape)}")
+    m00, m11, m22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
+    trace = m00 + m11 + m22
+    tiny = torch.finfo(R.dtype).eps
+    # candidate k is computed from the largest of (w, x, y, z)
+    d = torch.stack((trace, m00 - m11 - m22, m11 - m00 - m22, m22 - m00 - m11), -1)
+    s = 2.0 * torch.sqrt((1.0 + d).clamp_min(tiny))  # 4 * component
+    r21, r12 = R[..., 2, 1], R[..., 1, 2]
+    r02, r20 = R[..., 0, 2], R[..., 2, 0]
+    r10, r01 = R[..., 1, 0], R[..., 0, 1]
+    cands = torch.stack(
+        (
+            torch.stack((0.25 * s[..., 0], (r21 - r12) / s[..., 0], (r02 - r20) / s[..., 0], (r10 - r01) / s[..., 0]), -1),
+            torch.stack(((r21 - r12) / s[..., 1], 0.25 * s[..., 1], (r01 + r10) / s[..., 1], (r02 + r20) / s[..., 1]), -1),
+            torch.stack(((r02 - r20) / s[..., 2], (r01 + r10) / s[..., 2], 0.25 * s[..., 2], (r12 + r21) / s[..., 2]), -1),
+            torch.stack(((r10 - r01) / s[..., 3], (r02 + r20) / s[..., 3], (r12 + r21) / s[..., 3], 0.25 * s[..., 3]), -1),
+        ),
+        dim=-2,
+    )
+    best = d.argmax(dim=-1, keepdim=True)
+    q = torch.gather(cands, -2, best.unsqueeze(-1).expand(*best.shape[:-1], 1, 4)).squeeze(-2)
+    q = torch.where(q[..., :1] < 0, -q, q)
+    return normalize(q)
+
+
+def _half_angle_terms(theta_sq: Tensor) -> tuple[Tensor, Tensor]:
+    """``(cos(θ/2), sin(θ/2)/θ)`` from ``θ²``, finite with finite gradient at 0."""
+    small = theta_sq < _SMALL_ANGLE_SQ
+    safe_sq = torch.where(small, torch.ones_like(theta_sq), theta_sq)
+    theta = torch.sqrt(safe_sq)
+    cos_exact = torch.cos(0.5 * theta)
+    sinc_exact = torch.sin(0.5 * theta) / theta
+    cos_taylor = 1.0 - theta_sq / 8.0 + theta_sq * theta_sq / 384.0
+    sinc_taylor = 0.5 - theta_sq / 48.0 + theta_sq * theta_sq / 3840.0
+    return torch.where(small, cos_taylor, cos_exact), torch.where(small, sinc_taylor, sinc_exact)
+
+
+def from_rotation_vector(rotvec: Tensor) -> Tensor:
+    """The paper's ``𝒬{ω}``: unit quaternion of the rotation vector ``(..., 3)``.
+
+    ``𝒬{θ} = (cos(|θ|/2), sin(|θ|/2) θ/|θ|)``, exact for any angle and smooth
+    (with finite gradients) at ``θ = 0``.
+    """
+    if rotvec.shape[-1] != 3:
+        raise ValueError(f"rotation vector must have last dimension 3, got shape {tuple(rotvec.shape)}")
+    theta_sq = (rotvec * rotvec).sum(-1)
+    c, s = _half_angle_terms(theta_sq)
+    return torch.cat((c.unsqueeze(-1), s.unsqueeze(-1) * rotvec), dim=-1)
+
+
+def to_rotation_vector(q: Tensor) -> Tensor:
+    """Inverse of :func:`from_rotation_vector` (the shortest rotation, angle in [0, π]).
+
+    ``θ = 2 atan2(|u|, w) u/|u|`` with ``q = (w, u)`` taken with ``w >= 0``;
+    the small-angle branch uses ``2 u / w (1 - |u|²/(3 w²))`` so the result and its
+    gradient are finite at the identity.
+    """
+    q = normalize(q)
+    q = torch.where(q[..., :1] < 0, -q, q)
+    w, u = q[..., 0], q[..., 1:]
+    n_sq = (u * u).sum(-1)
+    small = n_sq < _SMALL_ANGLE_SQ
+    n = torch.sqrt(torch.where(small, torch.ones_like(n_sq), n_sq))
+    w_safe = torch.where(small, w, torch.ones_like(w))
+    exact = 2.0 * torch.atan2(n, w) / n
+    taylor = 2.0 / w_safe * (1.0 - n_sq / (3.0 * w_safe * w_safe))
+    return torch.where(small, taylor, exact).unsqueeze(-1) * u
+
+
+def from_euler(roll: Tensor, pitch: Tensor, yaw: Tensor) -> Tensor:
+    """Quaternion of ``R = Rz(yaw) Ry(pitch) Rx(roll)`` (z-y-x intrinsic, aerospace)."""
+    ex = torch.stack((roll, torch.zeros_like(roll), torch.zeros_like(roll)), -1)
+    ey = torch.stack((torch.zeros_like(pitch), pitch, torch.zeros_like(pitch)), -1)
+    ez = torch.stack((torch.zeros_like(yaw), torch.zeros_like(yaw), yaw), -1)
+    return multiply(multiply(from_rotation_vector(ez), from_rotation_vector(ey)), from_rotation_vector(ex))
+
+
+def to_euler(q: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``(roll, pitch, yaw)`` of :func:`from_euler`'s convention."""
+    R = to_matrix(q)
+    yaw = torch.atan2(R[..., 1, 0], R[..., 0, 0])
+    pitch = torch.asin((-R[..., 2, 0]).clamp(-1.0, 1.0))
+    roll = torch.atan2(R[..., 2, 1], R[..., 2, 2])
+    return roll, pitch, yaw
+
+
+def angle_between(a: Tensor, b: Tensor) -> Tensor:
+    """Rotation angle (rad) of ``a* ⊙ b``, in [0, π]."""
+    return to_rotation_vector(multiply(conjugate(normalize(a)), normalize(b))).norm(dim=-1)
+
+
+def cumulative_product(q: Tensor) -> Tensor:
+    """Inclusive prefix products ``q_0, q_0⊙q_1, q_0⊙q_1⊙q_2, ...`` of ``(..., K, 4)``.
+
+    Computed as a log-depth (Hillis-Steele) scan, so a run of ``K`` steps costs
+    ``⌈log2 K⌉`` batched products rather than ``K`` sequential ones.
+    """
+    _check(q)
+    if q.ndim < 2:
+        raise ValueError(f"expected (..., K, 4) quaternions, got shape {tuple(q.shape)}")
+    q = q.movedim(-2, 0)
+    n = q.shape[0]
+    shift = 1
+    while shift < n:
+        q = torch.cat((q[:shift], multiply(q[:-shift], q[shift:])), dim=0)
+        shift *= 2
+    return q.movedim(0, -2)

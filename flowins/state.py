@@ -1,0 +1,168 @@
+"""The one state layout of flowins: the paper's 26-dimensional INS state.
+
+    x = (p, v, q, b_a, b_w, T_a, p_prev, q_prev)
+
+=========  ====  ======  =====================================================
+name       size  unit    meaning
+=========  ====  ======  =====================================================
+p          3     m       IMU position in the local world frame (ENU, z up)
+v          3     m/s     IMU velocity in the world frame
+q          4     -       orientation, unit quaternion (w, x, y, z), body->world
+b_a        3     m/s^2   additive accelerometer bias
+b_w        3     rad/s   additive gyroscope bias
+T_a        3     -       diagonal multiplicative accelerometer scale
+p_prev     3     m       augmented position of the previous camera frame
+q_prev     4     -       augmented orientation of the previous camera frame
+=========  ====  ======  =====================================================
+
+Every other module addresses the state through the names defined here
+(``STATE.p``, ``STATE.q_prev``, ...), never through index literals. The process
+noise vector has its own layout, :data:`NOISE`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """Named, contiguous slices of a flat vector."""
+
+    sizes: tuple[tuple[str, int], ...]
+
+    @property
+    def dim(self) -> int:
+        return sum(size for _, size in self.sizes)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(name for name, _ in self.sizes)
+
+    def slice(self, name: str) -> slice:
+        start = 0
+        for field, size in self.sizes:
+            if field == name:
+                return slice(start, start + size)
+            start += size
+        raise KeyError(f"no field {name!r} in layout; fields are {self.names}")
+
+    def __getattr__(self, name: str) -> slice:
+        if name.startswith("_") or name in ("sizes",):
+            raise AttributeError(name)
+        try:
+            return self.slice(name)
+        except KeyError as exc:
+            raise AttributeError(str(exc)) from None
+
+    def indices(self, *names: str) -> Tensor:
+        """Integer indices of the named fields, concatenated in the given order."""
+        return torch.cat([torch.arange(self.slice(n).start, self.slice(n).stop) for n in names])
+
+
+#: The paper's state layout (Sec. "Inertial Navigation").
+STATE = _Layout(
+    (
+        ("p", 3),
+        ("v", 3),
+        ("q", 4),
+        ("b_a", 3),
+        ("b_w", 3),
+        ("T_a", 3),
+        ("p_prev", 3),
+        ("q_prev", 4),
+    )
+)
+STATE_DIM: int = STATE.dim  # 26
+
+#: The "core" (non-augmented) part, the first 19 entries: A_star keeps these.
+CORE_DIM: int = STATE.slice("T_a").stop  # 19
+
+#: Process noise layout: white accelerometer and gyroscope input noise (the
+#: paper's epsilon^a, epsilon^omega) and optional random walks of the biases
+#: and of the accelerometer scale (off by default, as in the paper).
+NOISE = _Layout(
+    (
+        ("acc", 3),
+        ("gyro", 3),
+        ("b_a", 3),
+        ("b_w", 3),
+        ("T_a", 3),
+    )
+)
+NOISE_DIM: int = NOISE.dim  # 15
+
+
+class State(NamedTuple):
+    """The state split into named parts (each with the leading batch shape)."""
+
+    p: Tensor
+    v: Tensor
+    q: Tensor
+    b_a: Tensor
+    b_w: Tensor
+    T_a: Tensor
+    p_prev: Tensor
+    q_prev: Tensor
+
+
+def split(x: Tensor) -> State:
+    """Split ``x`` of shape ``(..., 26)`` into a :class:`State` of views."""
+    if x.shape[-1] != STATE_DIM:
+        raise ValueError(f"state must have last dimension {STATE_DIM}, got shape {tuple(x.shape)}")
+    return State(*(x[..., STATE.slice(name)] for name in STATE.names))
+
+
+def join(state: State) -> Tensor:
+    """Inverse of :func:`split`: concatenate the parts into ``(..., 26)``."""
+    parts = [getattr(state, name) for name in STATE.names]
+    shape = torch.broadcast_shapes(*(p.shape[:-1] for p in parts))
+    return torch.cat([p.expand(*shape, p.shape[-1]) for p in parts], dim=-1)
+
+
+def make_state(
+    *,
+    p: Tensor,
+    v: Tensor,
+    q: Tensor,
+    b_a: Tensor | None = None,
+    b_w: Tensor | None = None,
+    T_a: Tensor | None = None,
+    p_prev: Tensor | None = None,
+    q_prev: Tensor | None = None,
+) -> Tensor:
+    """Build a state vector; biases default to 0, scale to 1, the augmented pose to (p, q)."""
+    zeros = torch.zeros_like(p)
+    return join(
+        State(
+            p=p,
+            v=v,
+            q=q,
+            b_a=zeros if b_a is None else b_a,
+            b_w=zeros if b_w is None else b_w,
+            T_a=torch.ones_like(p) if T_a is None else T_a,
+            p_prev=p if p_prev is None else p_prev,
+            q_prev=q if q_prev is None else q_prev,
+        )
+    )
+
+
+def normalize_quaternions(x: Tensor) -> Tensor:
+    """Re-normalise the two quaternions ``q`` and ``q_prev`` of ``x`` ``(..., 26)``.
+
+    Out of place and differentiable; a zero quaternion is left at zero instead of
+    producing NaN (the norm is clamped away from zero).
+    """
+    parts = split(x)._asdict()
+    for name in ("q", "q_prev"):
+        q = parts[name]
+        parts[name] = q / q.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(q.dtype).tiny ** 0.5)
+    return join(State(**parts))
+
+
+def symmetrize(cov: Tensor) -> Tensor:
+    """``(P + P^T) / 2`` over the last two dimensions."""
+    return 0.5 * (cov + cov.transpose(-1, -2))
