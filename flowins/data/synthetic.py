@@ -179,3 +179,57 @@ def gnss_track(
     noise = torch.randn(t_s.shape[0], 3, generator=generator, dtype=torch.float64)
     measured = truth + noise * torch.stack((h_acc, h_acc, v_acc), -1)
     return truth, measured, h_acc, v_acc
+
+
+@dataclass(frozen=True)
+class Recording:
+    """A synthetic recording: sensor streams plus everything that is true."""
+
+    imu: "ImuStream"
+    gnss: "GnssStream"
+    truth: "PoseStream"
+    imu_errors: dict[str, Tensor]
+    walk: Walk
+
+
+def synthetic_walk_recording(
+    *,
+    duration_s: float = 300.0,
+    seed: int = 0,
+    imu_rate_hz: float = 100.0,
+    imu_jitter: float = 0.1,
+    gnss_rate_hz: float = 1.0,
+    truth_rate_hz: float = 10.0,
+    imu_errors: ImuErrors = ImuErrors(),
+    walk: WalkConfig | None = None,
+    origin: tuple[float, float, float] = (60.1699, 24.9384, 20.0),
+    gravity_mps2: float = STANDARD_GRAVITY_MPS2,
+) -> Recording:
+    """IMU (with MEMS errors), 1 Hz GNSS (lat/lon/alt around Helsinki) and the true poses.
+
+    Each IMU sample is the true specific force and rate at the middle of the
+    interval it ends (the sample represents its interval, as an integrating
+    sensor's does), corrupted by :func:`corrupt_imu`. Deterministic in ``seed``.
+    """
+    from flowins.data.streams import GnssStream, ImuStream, PoseStream
+    from flowins.geometry.geodesy import LocalTangentPlane
+
+    gen = torch.Generator().manual_seed(seed)
+    w = Walk(walk or WalkConfig(duration_s=duration_s))
+    t = sample_times(duration_s, imu_rate_hz, imu_jitter, gen)
+    t_mid = torch.cat((t[:1], 0.5 * (t[1:] + t[:-1])))
+    f_true, w_true = w.imu(t_mid, gravity_mps2)
+    acc, gyro, errors = corrupt_imu(t, f_true, w_true, imu_errors, gen)
+    t_gnss = torch.arange(1.0 / gnss_rate_hz, float(t[-1]), 1.0 / gnss_rate_hz, dtype=torch.float64)
+    _, enu, h_acc, v_acc = gnss_track(w, t_gnss, gen)
+    plane = LocalTangentPlane(*origin)
+    start = w.position(t[:1])[0]
+    lat, lon, alt = plane.to_geodetic(enu - start)  # the walk starts at the origin
+    t_truth = torch.arange(0.0, float(t[-1]), 1.0 / truth_rate_hz, dtype=torch.float64)
+    return Recording(
+        imu=ImuStream(t, acc, gyro, name="synthetic IMU"),
+        gnss=GnssStream(t_gnss, lat, lon, alt, h_acc, v_acc, name="synthetic GNSS"),
+        truth=PoseStream(t_truth, w.position(t_truth) - start, w.quaternion(t_truth), name="synthetic ground truth"),
+        imu_errors=errors,
+        walk=w,
+    )

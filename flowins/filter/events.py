@@ -15,7 +15,7 @@ from torch import Tensor
 from flowins.filter.augmentation import augment_pose, copy_matrices, forgetting_matrices
 from flowins.filter.ekf import Gate, ekf_update
 from flowins.filter.runner import ChainBuilder
-from flowins.measurements.gnss import gnss_jacobian, gnss_position
+from flowins.measurements.gnss import gnss_jacobian_analytic, gnss_position
 
 
 @dataclass(frozen=True)
@@ -32,7 +32,7 @@ class GnssFix:
     def apply(self, chain: ChainBuilder) -> None:
         mean, cov = chain.mean, chain.cov
         lever = mean.new_zeros(3) if self.lever_arm_m is None else self.lever_arm_m.to(mean)
-        H = gnss_jacobian(mean, lever)
+        H = gnss_jacobian_analytic(mean, lever)
         innovation = self.position_m.to(mean) - gnss_position(mean, lever)
         result = ekf_update(
             mean,

@@ -31,6 +31,18 @@ def gnss_jacobian(x: Tensor, lever_arm_m: Tensor) -> Tensor:
     return vmap(jac, in_dims=(0, None))(flat, lever_arm_m).reshape(*x.shape[:-1], 3, x.shape[-1])
 
 
+def gnss_jacobian_analytic(x: Tensor, lever_arm_m: Tensor) -> Tensor:
+    """Closed form of :func:`gnss_jacobian`: ``[I₃, 0, ∂(C(q)ℓ)/∂q, 0]`` ``(..., 3, 26)``."""
+    from flowins.ins.jacobians import rotate_jacobian  # closed form of ∂(C(q)a)/∂q
+    from flowins.state import STATE
+
+    s = split(x)
+    H = x.new_zeros(*x.shape[:-1], 3, x.shape[-1])
+    H[..., STATE.p] = torch.eye(3, dtype=x.dtype, device=x.device)
+    H[..., STATE.q] = rotate_jacobian(s.q, lever_arm_m.to(x.dtype).expand_as(s.p))
+    return H
+
+
 def gnss_noise(h_acc_m: Tensor, v_acc_m: Tensor, scale: float | Tensor = 1.0) -> Tensor:
     """``R`` ``(..., 3, 3)`` from horizontal and vertical 1-σ accuracies ``(...)``."""
     sigmas = torch.stack((h_acc_m, h_acc_m, v_acc_m), dim=-1) * scale

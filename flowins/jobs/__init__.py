@@ -1,0 +1,1 @@
+"""Jobs behind the top-level scripts (``evaluate.py``); the scripts only compose configs."""
