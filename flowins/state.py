@@ -119,7 +119,10 @@ def split(x: Tensor) -> State:
 def join(state: State) -> Tensor:
     """Inverse of :func:`split`: concatenate the parts into ``(..., 26)``."""
     parts = [getattr(state, name) for name in STATE.names]
-    shape = torch.broadcast_shapes(*(p.shape[:-1] for p in parts))
+    leading = {p.shape[:-1] for p in parts}
+    if len(leading) == 1:  # common case: no broadcasting needed
+        return torch.cat(parts, dim=-1)
+    shape = torch.broadcast_shapes(*leading)
     return torch.cat([p.expand(*shape, p.shape[-1]) for p in parts], dim=-1)
 
 
@@ -156,11 +159,19 @@ def normalize_quaternions(x: Tensor) -> Tensor:
     Out of place and differentiable; a zero quaternion is left at zero instead of
     producing NaN (the norm is clamped away from zero).
     """
-    parts = split(x)._asdict()
-    for name in ("q", "q_prev"):
-        q = parts[name]
-        parts[name] = q / q.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(q.dtype).tiny ** 0.5)
-    return join(State(**parts))
+    if x.shape[-1] != STATE_DIM:
+        raise ValueError(f"state must have last dimension {STATE_DIM}, got shape {tuple(x.shape)}")
+    tiny = torch.finfo(x.dtype).tiny ** 0.5
+    q, q_prev = x[..., STATE.q], x[..., STATE.q_prev]
+    return torch.cat(
+        (
+            x[..., : STATE.q.start],
+            q / q.norm(dim=-1, keepdim=True).clamp_min(tiny),
+            x[..., STATE.q.stop : STATE.q_prev.start],
+            q_prev / q_prev.norm(dim=-1, keepdim=True).clamp_min(tiny),
+        ),
+        dim=-1,
+    )
 
 
 def symmetrize(cov: Tensor) -> Tensor:

@@ -225,8 +225,13 @@ def ekf_update(
     dof = innovation.shape[-1]
     if sequential:
         nis_list, weight_list = [], []
+        prior_mean = mean
         for i in range(innovation.shape[-2]):
-            v, Hi, Ri = innovation[..., i : i + 1, :], H[..., i : i + 1, :, :], noise_cov[..., i : i + 1, :, :]
+            Hi, Ri = H[..., i : i + 1, :, :], noise_cov[..., i : i + 1, :, :]
+            # the innovation was formed at the prior mean; move it to the current one
+            # (first order: v_i - H_i (m - m_prior), exact for linear measurements)
+            shift = (Hi[..., 0, :, :] @ (mean - prior_mean).unsqueeze(-1)).squeeze(-1)
+            v = innovation[..., i : i + 1, :] - shift.unsqueeze(-2)
             result = ekf_update(mean, cov, innovation=v, H=Hi, noise_cov=Ri, gate=gate, normalize=False)
             mean, cov = result.mean, result.cov
             nis_list.append(result.nis)

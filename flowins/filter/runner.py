@@ -218,7 +218,7 @@ def run_filter(
     propagate = propagate_batched if jacobians == "analytic" else propagate_reference
     node_index = torch.nonzero(is_node).squeeze(-1)
     start = 0
-    for end in tqdm(segment_ends, desc="filter", unit="seg", disable=not progress, leave=False):
+    for end in tqdm(segment_ends, desc="filter", unit="update", disable=None if progress else True, leave=False):
         nodes = node_index[(node_index >= start) & (node_index <= end)] - start
         out = propagate(
             chain.mean,

@@ -150,11 +150,6 @@ def test_linear_system_matches_closed_form_kalman_filter(seed, D):
         torch.testing.assert_close(P, P_ref, rtol=0, atol=1e-9)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="suspected bug: ekf_update(sequential=True) reuses the prior innovation of later blocks "
-    "instead of v_i - H_i (m_now - m_prior); covariances agree, means do not",
-)
 @pytest.mark.parametrize("seed", [0, 1])
 def test_sequential_update_equals_stacked(seed):
     gen = torch.Generator().manual_seed(seed)
@@ -173,7 +168,7 @@ def test_sequential_update_equals_stacked(seed):
 
 
 def test_sequential_update_covariance_equals_stacked():
-    """The part of the sequential update that holds today (covariance only)."""
+    """The sequential covariance equals the textbook stacked update."""
     gen = torch.Generator().manual_seed(3)
     D, M, d = 6, 5, 2
     m = torch.randn(D, generator=gen, dtype=F64)
