@@ -96,21 +96,12 @@ class ChainBuilder:
         )
 
 
-@dataclass
-class FilterTrack:
-    """The filter's node chain (``J`` nodes) and its outputs.
+class _NodeOutputs:
+    """Outputs of a node chain: the last node at each distinct time."""
 
-    ``node_*`` hold every node; :attr:`mean`, :attr:`cov` and :attr:`t` keep the
-    last node at each time (a pose forgetting adds a second node at a frame time).
-    """
-
-    t_s: Tensor  # (J,) float64
-    transition: Tensor  # (J, 26, 26) Φ_j from node j-1 (identity for j = 0)
-    pred_mean: Tensor  # (J, 26)
-    pred_cov: Tensor  # (J, 26, 26)
-    node_mean: Tensor  # (J, 26) filtered
-    node_cov: Tensor  # (J, 26, 26) filtered
-    log: list[dict[str, Any]]
+    t_s: Tensor
+    node_mean: Tensor
+    node_cov: Tensor
 
     @property
     def output_index(self) -> Tensor:
@@ -131,6 +122,23 @@ class FilterTrack:
     @property
     def cov(self) -> Tensor:
         return self.node_cov[self.output_index]
+
+
+@dataclass
+class FilterTrack(_NodeOutputs):
+    """The filter's node chain (``J`` nodes) and its outputs.
+
+    ``node_*`` hold every node; :attr:`mean`, :attr:`cov` and :attr:`t` keep the
+    last node at each time (a pose forgetting adds a second node at a frame time).
+    """
+
+    t_s: Tensor  # (J,) float64
+    transition: Tensor  # (J, 26, 26) Φ_j from node j-1 (identity for j = 0)
+    pred_mean: Tensor  # (J, 26)
+    pred_cov: Tensor  # (J, 26, 26)
+    node_mean: Tensor  # (J, 26) filtered
+    node_cov: Tensor  # (J, 26, 26) filtered
+    log: list[dict[str, Any]]
 
 
 def _step_grid(t_imu: Tensor, event_times: Tensor) -> tuple[Tensor, Tensor]:

@@ -19,28 +19,15 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from flowins.filter.runner import FilterTrack
+from flowins.filter.runner import FilterTrack, _NodeOutputs
 from flowins.state import normalize_quaternions, symmetrize
 
 
 @dataclass
-class SmoothedTrack:
+class SmoothedTrack(_NodeOutputs):
     t_s: Tensor  # (J,) node times
     node_mean: Tensor  # (J, 26)
     node_cov: Tensor  # (J, 26, 26)
-    output_index: Tensor  # last node at each distinct time
-
-    @property
-    def t(self) -> Tensor:
-        return self.t_s[self.output_index]
-
-    @property
-    def mean(self) -> Tensor:
-        return self.node_mean[self.output_index]
-
-    @property
-    def cov(self) -> Tensor:
-        return self.node_cov[self.output_index]
 
 
 def rts_gains(track: FilterTrack) -> Tensor:
@@ -73,4 +60,4 @@ def rts_smooth(track: FilterTrack, *, normalize: bool = True) -> SmoothedTrack:
     mean = torch.stack(means[::-1])
     if normalize:
         mean = normalize_quaternions(mean)
-    return SmoothedTrack(track.t_s, mean, torch.stack(covs[::-1]), track.output_index)
+    return SmoothedTrack(track.t_s, mean, torch.stack(covs[::-1]))
