@@ -22,10 +22,20 @@ noise vector has its own layout, :data:`NOISE`.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
+
+
+@lru_cache(maxsize=None)
+def _slices(sizes: tuple[tuple[str, int], ...]) -> dict[str, slice]:
+    out, start = {}, 0
+    for field, size in sizes:
+        out[field] = slice(start, start + size)
+        start += size
+    return out
 
 
 @dataclass(frozen=True)
@@ -43,12 +53,10 @@ class _Layout:
         return tuple(name for name, _ in self.sizes)
 
     def slice(self, name: str) -> slice:
-        start = 0
-        for field, size in self.sizes:
-            if field == name:
-                return slice(start, start + size)
-            start += size
-        raise KeyError(f"no field {name!r} in layout; fields are {self.names}")
+        found = _slices(self.sizes).get(name)
+        if found is None:
+            raise KeyError(f"no field {name!r} in layout; fields are {self.names}")
+        return found
 
     def __getattr__(self, name: str) -> slice:
         if name.startswith("_") or name in ("sizes",):
@@ -78,8 +86,10 @@ STATE = _Layout(
 )
 STATE_DIM: int = STATE.dim  # 26
 
-#: The "core" (non-augmented) part, the first 19 entries: A_star keeps these.
-CORE_DIM: int = STATE.slice("T_a").stop  # 19
+#: The "core" (non-augmented) part, the first 19 entries: A_star keeps these, and
+#: the IMU propagation touches nothing else (the augmented pose is constant).
+CORE = _Layout(STATE.sizes[: STATE.names.index("T_a") + 1])
+CORE_DIM: int = CORE.dim  # 19
 
 #: Process noise layout: white accelerometer and gyroscope input noise (the
 #: paper's epsilon^a, epsilon^omega) and optional random walks of the biases

@@ -15,6 +15,7 @@ from torch import Tensor
 from flowins.filter.augmentation import augment_pose, copy_matrices, forgetting_matrices
 from flowins.filter.ekf import Gate, ekf_update
 from flowins.filter.runner import ChainBuilder
+from flowins.state import STATE
 from flowins.measurements.gnss import gnss_jacobian_analytic, gnss_position
 
 
@@ -31,9 +32,10 @@ class GnssFix:
 
     def apply(self, chain: ChainBuilder) -> None:
         mean, cov = chain.mean, chain.cov
-        lever = mean.new_zeros(3) if self.lever_arm_m is None else self.lever_arm_m.to(mean)
+        lever = None if self.lever_arm_m is None else self.lever_arm_m.to(mean)
         H = gnss_jacobian_analytic(mean, lever)
-        innovation = self.position_m.to(mean) - gnss_position(mean, lever)
+        predicted = mean[STATE.p] if lever is None else gnss_position(mean, lever)
+        innovation = self.position_m.to(mean) - predicted
         result = ekf_update(
             mean,
             cov,

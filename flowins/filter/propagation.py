@@ -24,7 +24,7 @@ from torch import Tensor
 
 from flowins.filter.ekf import dynamics_jacobians
 from flowins.geometry import quaternion as quat
-from flowins.ins.jacobians import mechanization_jacobians
+from flowins.ins.jacobians import StepPieces, core_jacobians_from_pieces, embed_core, pad_core, rotation_increments
 from flowins.ins.mechanization import ProcessNoise, check_scheme, gravity_vector, mechanize
 from flowins.state import NOISE_DIM, STATE_DIM, State, join, split, symmetrize
 
@@ -33,6 +33,48 @@ class Propagated(NamedTuple):
     mean: Tensor  # (m, 26) state at each node
     cov: Tensor  # (m, 26, 26)
     transition: Tensor  # (m, 26, 26) Φ_j from the previous node (or the start) to node j
+
+
+def _run_pieces(
+    x0: Tensor, acc_mps2: Tensor, gyro_rps: Tensor, dt_s: Tensor, gravity_mps2: float | Tensor, scheme: str
+) -> tuple[Tensor, StepPieces]:
+    """Noise-free states after each of ``K`` steps ``(K, 26)`` and the steps' :class:`StepPieces`.
+
+    With the noise at zero the biases and scale are constant over the run, so
+    ``q_k = q_0 ⊙ 𝒬_1 ⊙ ... ⊙ 𝒬_k`` is a prefix product and ``v``, ``p`` are
+    cumulative sums; the pieces (rotation increments, ``C(q_rot)``) are the ones the
+    closed-form Jacobians reuse.
+    """
+    s = split(x0)
+    dt = dt_s.unsqueeze(-1)
+    theta = (gyro_rps - s.b_w) * dt
+    E, E_rot = rotation_increments(theta, scheme)
+    q = quat.multiply(s.q, quat.cumulative_product(E))
+    q_before = torch.cat((s.q.unsqueeze(0), q[:-1]), dim=0)
+    q_rot = q if scheme == "paper" else quat.multiply(q_before, E_rot)
+    C = quat.to_matrix(q_rot)
+    acc_unbiased = acc_mps2 - s.b_a
+    a = s.T_a * acc_unbiased
+    acc_world = (C @ a.unsqueeze(-1)).squeeze(-1) - gravity_vector(gravity_mps2, like=x0)
+    v = s.v + torch.cumsum(acc_world * dt, dim=0)
+    v_before = torch.cat((s.v.unsqueeze(0), v[:-1]), dim=0)
+    v_step = v_before if scheme == "paper" else 0.5 * (v_before + v)
+    p = s.p + torch.cumsum(v_step * dt, dim=0)
+    K = dt_s.shape[0]
+    means = join(
+        State(
+            p=p,
+            v=v,
+            q=q,
+            b_a=s.b_a.expand(K, 3),
+            b_w=s.b_w.expand(K, 3),
+            T_a=s.T_a.expand(K, 3),
+            p_prev=s.p_prev.expand(K, 3),
+            q_prev=s.q_prev.expand(K, 4),
+        )
+    )
+    pieces = StepPieces(q_before, theta, E, E_rot, q_rot, C, acc_unbiased, a, s.T_a.expand(K, 3), dt)
+    return means, pieces
 
 
 def propagate_mean(
@@ -45,52 +87,76 @@ def propagate_mean(
 ) -> Tensor:
     """States after each of ``K`` steps ``(K, 26)`` from ``x0`` ``(26,)``, noise-free.
 
-    Equal to ``K`` sequential :func:`mechanize` calls: with the noise at zero the
-    biases and scale are constant over the run, so ``q_k = q_0 ⊙ 𝒬_1 ⊙ ... ⊙ 𝒬_k``
-    is a prefix product and ``v``, ``p`` are cumulative sums.
+    Equal to ``K`` sequential :func:`mechanize` calls, computed with a log-depth
+    quaternion scan and cumulative sums.
     """
-    s = split(x0)
-    dt = dt_s.unsqueeze(-1)
-    check_scheme(scheme)
-    theta = (gyro_rps - s.b_w) * dt
-    q = quat.multiply(s.q, quat.cumulative_product(quat.from_rotation_vector(theta)))
-    if scheme == "paper":
-        q_rot = q
-    else:
-        q_before = torch.cat((s.q.unsqueeze(0), q[:-1]), dim=0)
-        q_rot = quat.multiply(q_before, quat.from_rotation_vector(0.5 * theta))
-    acc_world = quat.rotate(q_rot, s.T_a * (acc_mps2 - s.b_a)) - gravity_vector(gravity_mps2, like=x0)
-    v = s.v + torch.cumsum(acc_world * dt, dim=0)
-    v_before = torch.cat((s.v.unsqueeze(0), v[:-1]), dim=0)
-    v_step = v_before if scheme == "paper" else 0.5 * (v_before + v)
-    p = s.p + torch.cumsum(v_step * dt, dim=0)
-    K = dt_s.shape[0]
-    return join(
-        State(
-            p=p,
-            v=v,
-            q=q,
-            b_a=s.b_a.expand(K, 3),
-            b_w=s.b_w.expand(K, 3),
-            T_a=s.T_a.expand(K, 3),
-            p_prev=s.p_prev.expand(K, 3),
-            q_prev=s.q_prev.expand(K, 4),
-        )
-    )
+    return _run_pieces(x0, acc_mps2, gyro_rps, dt_s, gravity_mps2, scheme)[0]
+
+
+def _compose(later: tuple[Tensor, Tensor], earlier: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor]:
+    """Step ``earlier`` then step ``later``: ``(F₂F₁, F₂ S₁ F₂ᵀ + S₂)``."""
+    (F2, S2), (F1, S1) = later, earlier
+    return F2 @ F1, F2 @ S1 @ F2.transpose(-1, -2) + S2
 
 
 def _compose_pairs(F: Tensor, S: Tensor) -> tuple[Tensor, Tensor]:
-    """Reduce ``(n, L, D, D)`` step transitions/noises to ``(n, D, D)`` by pairwise composition."""
+    """Reduce ``(n, L, D, D)`` step transitions/noises to ``(n, D, D)`` by pairwise composition.
+
+    A level of odd length sets its last (latest) element aside instead of padding
+    the whole level; the set-aside elements are applied after the tree, latest last.
+    """
+    aside = []
     while F.shape[1] > 1:
         if F.shape[1] % 2:
-            eye = torch.eye(F.shape[-1], dtype=F.dtype, device=F.device).expand(F.shape[0], 1, *F.shape[-2:])
-            F = torch.cat((F, eye), dim=1)
-            S = torch.cat((S, torch.zeros_like(S[:, :1])), dim=1)
-        F1, F2 = F[:, 0::2], F[:, 1::2]  # earlier, later
-        S1, S2 = S[:, 0::2], S[:, 1::2]
-        S = F2 @ S1 @ F2.transpose(-1, -2) + S2
-        F = F2 @ F1
-    return F[:, 0], S[:, 0]
+            aside.append((F[:, -1], S[:, -1]))
+            F, S = F[:, :-1], S[:, :-1]
+        F, S = _compose((F[:, 1::2], S[:, 1::2]), (F[:, 0::2], S[:, 0::2]))
+    out = (F[:, 0], S[:, 0])
+    for later in reversed(aside):  # set aside at a deeper level = earlier in time
+        out = _compose(later, out)
+    return out
+
+
+def _prefix_compose(F: Tensor, S: Tensor) -> tuple[Tensor, Tensor]:
+    """Inclusive prefix compositions of ``m`` steps ``(m, D, D)`` (a log-depth scan):
+    entry ``j`` maps the start to after step ``j``."""
+    shift = 1
+    m = F.shape[0]
+    while shift < m:
+        F_late, S_late = F[shift:], S[shift:]
+        S = torch.cat((S[:shift], F_late @ S[:-shift] @ F_late.transpose(-1, -2) + S_late), dim=0)
+        F = torch.cat((F[:shift], F_late @ F[:-shift]), dim=0)
+        shift *= 2
+    return F, S
+
+
+def _group_steps(pieces: StepPieces, node_steps: Tensor) -> StepPieces:
+    """The steps' pieces ``(K, ...)`` grouped into node intervals ``(m, L, ...)``.
+
+    Equal intervals are a free view; otherwise short intervals are padded with
+    ``Δt = 0`` steps, whose transition is the identity and whose noise is zero
+    (only the small per-step pieces are gathered, never the matrices).
+    """
+    K = node_steps[-1].item() + 1
+    m = node_steps.shape[0]
+    starts = torch.cat((node_steps.new_zeros(1), node_steps[:-1] + 1))
+    lengths = node_steps - starts + 1
+    if K % m == 0 and bool((lengths == K // m).all()):
+        return StepPieces(*(t.reshape(m, K // m, *t.shape[1:]) for t in pieces))
+    L = int(lengths.max())
+    offsets = torch.arange(L, device=node_steps.device)
+    index = starts.unsqueeze(1) + offsets.unsqueeze(0)  # (m, L)
+    pad = offsets.unsqueeze(0) >= lengths.unsqueeze(1)
+    index = torch.where(pad, index.new_zeros(()), index)
+    grouped = StepPieces(*(t[index] for t in pieces))
+    # a padding step repeats step 0's attitude with Δt = 0, θ = 0, E = 1: the identity map
+    dt = torch.where(pad.unsqueeze(-1), torch.zeros_like(grouped.dt), grouped.dt)
+    theta = torch.where(pad.unsqueeze(-1), torch.zeros_like(grouped.theta), grouped.theta)
+    one = torch.zeros_like(grouped.E)
+    one[..., 0] = 1.0
+    E = torch.where(pad.unsqueeze(-1), one, grouped.E)
+    E_rot = torch.where(pad.unsqueeze(-1), one, grouped.E_rot)
+    return grouped._replace(dt=dt, theta=theta, E=E, E_rot=E_rot)
 
 
 def _check_nodes(node_steps: Tensor, num_steps: int) -> None:
@@ -121,30 +187,16 @@ def propagate_batched(
     """
     K = dt_s.shape[0]
     _check_nodes(node_steps, K)
-    means = propagate_mean(x0, acc_mps2, gyro_rps, dt_s, gravity_mps2, scheme)
-    before = torch.cat((x0.unsqueeze(0), means[:-1]), dim=0)
-    F, G = mechanization_jacobians(before, acc_mps2, gyro_rps, dt_s, scheme)
-    W = (G * noise.variances(dt_s).unsqueeze(-2)) @ G.transpose(-1, -2)
-
-    # group the steps into node intervals, padded with identity steps
-    starts = torch.cat((node_steps.new_zeros(1), node_steps[:-1] + 1))
-    lengths = node_steps - starts + 1
-    L = int(lengths.max())
-    offsets = torch.arange(L, device=node_steps.device)
-    index = starts.unsqueeze(1) + offsets.unsqueeze(0)  # (m, L)
-    valid = offsets.unsqueeze(0) < lengths.unsqueeze(1)
-    index = torch.where(valid, index, torch.full_like(index, K))  # K -> padding element
-    eye = torch.eye(STATE_DIM, dtype=x0.dtype, device=x0.device)
-    F_pad = torch.cat((F, eye.unsqueeze(0)), dim=0)[index]
-    W_pad = torch.cat((W, torch.zeros_like(eye).unsqueeze(0)), dim=0)[index]
-    Phi, S = _compose_pairs(F_pad, W_pad)
-
-    covs = []
-    P = P0
-    for j in range(node_steps.shape[0]):
-        P = symmetrize(Phi[j] @ P @ Phi[j].T + S[j])
-        covs.append(P)
-    return Propagated(means[node_steps], torch.stack(covs), Phi)
+    means, pieces = _run_pieces(x0, acc_mps2, gyro_rps, dt_s, gravity_mps2, scheme)
+    grouped = _group_steps(pieces, node_steps)
+    F, G = core_jacobians_from_pieces(grouped, scheme)  # (m, L, 19, 19), (m, L, 19, 15)
+    W = (G * noise.variances(grouped.dt.squeeze(-1)).unsqueeze(-2)) @ G.transpose(-1, -2)
+    Phi_core, S_core = _compose_pairs(F, W)
+    Phi, S = embed_core(Phi_core)[0], pad_core(S_core)
+    # covariance at every node at once: P_j = Φ_{0→j} P0 Φ_{0→j}ᵀ + S_{0→j}
+    Phi_pre, S_pre = _prefix_compose(Phi, S)
+    covs = symmetrize(Phi_pre @ P0 @ Phi_pre.transpose(-1, -2) + S_pre)
+    return Propagated(means[node_steps], covs, Phi)
 
 
 def propagate_reference(

@@ -38,42 +38,53 @@ class Event(Protocol):
 
 @dataclass
 class ChainBuilder:
-    """The growing node chain; events call :meth:`update` and :meth:`linear_predict`."""
+    """The growing node chain; events call :meth:`update` and :meth:`linear_predict`.
+
+    Nodes are stored in chunks (a propagation adds all the nodes of an IMU run at
+    once); the newest node's filtered Gaussian is always its own entry, so an
+    update replaces it without touching the rest.
+    """
 
     t_s: list[float] = field(default_factory=list)
-    transition: list[Tensor] = field(default_factory=list)
-    pred_mean: list[Tensor] = field(default_factory=list)
-    pred_cov: list[Tensor] = field(default_factory=list)
-    mean_list: list[Tensor] = field(default_factory=list)
-    cov_list: list[Tensor] = field(default_factory=list)
     log: list[dict[str, Any]] = field(default_factory=list)
+    _transition: list[Tensor] = field(default_factory=list)  # chunks (n, 26, 26)
+    _pred_mean: list[Tensor] = field(default_factory=list)  # chunks (n, 26)
+    _pred_cov: list[Tensor] = field(default_factory=list)
+    _mean: list[Tensor] = field(default_factory=list)  # chunks; the last is (1, 26)
+    _cov: list[Tensor] = field(default_factory=list)
 
     @property
     def mean(self) -> Tensor:
         """Filtered mean of the newest node ``(26,)``."""
-        return self.mean_list[-1]
+        return self._mean[-1][0]
 
     @property
     def cov(self) -> Tensor:
-        return self.cov_list[-1]
+        return self._cov[-1][0]
 
     @property
     def time_s(self) -> float:
         return self.t_s[-1]
 
+    def add_nodes(self, t_s: Sequence[float], transition: Tensor, mean: Tensor, cov: Tensor) -> None:
+        """Append ``n`` predicted nodes: times, transitions ``(n, 26, 26)``, means ``(n, 26)``, covs."""
+        self.t_s.extend(float(t) for t in t_s)
+        self._transition.append(transition)
+        self._pred_mean.append(mean)
+        self._pred_cov.append(cov)
+        if mean.shape[0] > 1:
+            self._mean.append(mean[:-1])
+            self._cov.append(cov[:-1])
+        self._mean.append(mean[-1:])
+        self._cov.append(cov[-1:])
+
     def add_node(self, t_s: float, transition: Tensor, mean: Tensor, cov: Tensor) -> None:
-        self.t_s.append(float(t_s))
-        self.transition.append(transition)
-        self.pred_mean.append(mean)
-        self.pred_cov.append(cov)
-        self.mean_list.append(mean)
-        self.cov_list.append(cov)
+        self.add_nodes([t_s], transition.unsqueeze(0), mean.unsqueeze(0), cov.unsqueeze(0))
 
     def update(self, result: UpdateResult | tuple[Tensor, Tensor], **info: Any) -> None:
         """Replace the newest node's filtered Gaussian by an update's result."""
-        mean, cov = result[0], result[1]
-        self.mean_list[-1] = mean
-        self.cov_list[-1] = cov
+        self._mean[-1] = result[0].unsqueeze(0)
+        self._cov[-1] = result[1].unsqueeze(0)
         if info:
             self.log.append({"t_s": self.time_s, **info})
 
@@ -87,11 +98,11 @@ class ChainBuilder:
     def finish(self) -> "FilterTrack":
         return FilterTrack(
             t_s=torch.tensor(self.t_s, dtype=torch.float64),
-            transition=torch.stack(self.transition),
-            pred_mean=torch.stack(self.pred_mean),
-            pred_cov=torch.stack(self.pred_cov),
-            node_mean=torch.stack(self.mean_list),
-            node_cov=torch.stack(self.cov_list),
+            transition=torch.cat(self._transition),
+            pred_mean=torch.cat(self._pred_mean),
+            pred_cov=torch.cat(self._pred_cov),
+            node_mean=torch.cat(self._mean),
+            node_cov=torch.cat(self._cov),
             log=self.log,
         )
 
@@ -239,8 +250,7 @@ def run_filter(
             gravity_mps2=gravity_mps2,
             scheme=scheme,
         )
-        for j, step in enumerate((nodes + start).tolist()):
-            chain.add_node(float(grid[step]), out.transition[j], out.mean[j], out.cov[j])
+        chain.add_nodes(grid[nodes + start].tolist(), out.transition, out.mean, out.cov)
         for event in events_by_step.get(end, []):
             event.apply(chain)
         start = end + 1

@@ -49,15 +49,18 @@ def rts_smooth(track: FilterTrack, *, normalize: bool = True) -> SmoothedTrack:
     means = [track.node_mean[-1]]
     covs = [track.node_cov[-1]]
     if J > 1:
-        gains = rts_gains(track)
+        gains = rts_gains(track).unbind(0)
+        node_mean, node_cov = track.node_mean.unbind(0), track.node_cov.unbind(0)
+        pred_mean, pred_cov = track.pred_mean.unbind(0), track.pred_cov.unbind(0)
         m_s, P_s = means[0], covs[0]
         for j in range(J - 2, -1, -1):
             G = gains[j]
-            m_s = track.node_mean[j] + G @ (m_s - track.pred_mean[j + 1])
-            P_s = symmetrize(track.node_cov[j] + G @ (P_s - track.pred_cov[j + 1]) @ G.T)
+            m_s = node_mean[j] + G @ (m_s - pred_mean[j + 1])
+            P_s = node_cov[j] + G @ (P_s - pred_cov[j + 1]) @ G.T
             means.append(m_s)
             covs.append(P_s)
     mean = torch.stack(means[::-1])
     if normalize:
         mean = normalize_quaternions(mean)
-    return SmoothedTrack(track.t_s, mean, torch.stack(covs[::-1]))
+    # the recursion keeps P symmetric up to rounding; symmetrise the outputs once
+    return SmoothedTrack(track.t_s, mean, symmetrize(torch.stack(covs[::-1])))

@@ -263,3 +263,57 @@ def cumulative_product(q: Tensor) -> Tensor:
         q = torch.cat((q[:shift], multiply(q[:-shift], q[shift:])), dim=0)
         shift *= 2
     return q.movedim(0, -2)
+
+
+# --------------------------------------------------------------------------- Jacobians
+
+
+def _skew(a: Tensor) -> Tensor:
+    x, y, z = a.unbind(-1)
+    o = torch.zeros_like(x)
+    return torch.stack(
+        (torch.stack((o, -z, y), -1), torch.stack((z, o, -x), -1), torch.stack((-y, x, o), -1)), dim=-2
+    )
+
+
+def rotation_vector_jacobian(theta: Tensor) -> Tensor:
+    """``∂𝒬{θ}/∂θ`` ``(..., 4, 3)``, branch-free and finite at ``θ = 0``.
+
+    With ``r = |θ|``, ``s = sin(r/2)/r`` and ``k = (r cos(r/2)/2 - sin(r/2))/r³``:
+    ``∂cos(r/2)/∂θ = -(s/2) θᵀ`` and ``∂(sθ)/∂θ = s I + k θθᵀ``.
+    """
+    r_sq = (theta * theta).sum(-1)
+    small = r_sq < _SMALL_ANGLE_SQ
+    safe_sq = torch.where(small, torch.ones_like(r_sq), r_sq)
+    r = torch.sqrt(safe_sq)
+    half = 0.5 * r
+    s = torch.where(small, 0.5 - r_sq / 48.0 + r_sq * r_sq / 3840.0, torch.sin(half) / r)
+    k = torch.where(
+        small,
+        -1.0 / 24.0 + r_sq / 960.0,
+        (r * torch.cos(half) * 0.5 - torch.sin(half)) / (safe_sq * r),
+    )
+    top = (-0.5 * s).unsqueeze(-1) * theta  # (..., 3)
+    eye = torch.eye(3, dtype=theta.dtype, device=theta.device)
+    bottom = s[..., None, None] * eye + k[..., None, None] * theta.unsqueeze(-1) * theta.unsqueeze(-2)
+    return torch.cat((top.unsqueeze(-2), bottom), dim=-2)
+
+
+def rotate_jacobian(q: Tensor, a: Tensor) -> Tensor:
+    """``∂(C(q/|q|) a)/∂q`` ``(..., 3, 4)`` for a (not necessarily unit) quaternion ``q``."""
+    n = q.norm(dim=-1, keepdim=True)
+    u = q / n
+    w, r = u[..., 0], u[..., 1:]
+    ra = (r * a).sum(-1)
+    d_w = 2.0 * (w.unsqueeze(-1) * a + torch.linalg.cross(r, a))
+    eye = torch.eye(3, dtype=q.dtype, device=q.device)
+    d_r = 2.0 * (
+        ra[..., None, None] * eye
+        + r.unsqueeze(-1) * a.unsqueeze(-2)
+        - a.unsqueeze(-1) * r.unsqueeze(-2)
+        - w[..., None, None] * _skew(a)
+    )
+    J_u = torch.cat((d_w.unsqueeze(-1), d_r), dim=-1)  # (..., 3, 4)
+    eye4 = torch.eye(4, dtype=q.dtype, device=q.device)
+    projector = (eye4 - u.unsqueeze(-1) * u.unsqueeze(-2)) / n.unsqueeze(-1)
+    return J_u @ projector

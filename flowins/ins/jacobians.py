@@ -19,65 +19,162 @@ and for the noise ``ε = (ε^a, ε^ω, ε^{b_a}, ε^{b_ω}, ε^{T_a})``: ``∂v'
 """
 from __future__ import annotations
 
+from functools import lru_cache
+from typing import NamedTuple
+
 import torch
 from torch import Tensor
 
 from flowins.geometry import quaternion as quat
+from flowins.geometry.quaternion import rotate_jacobian, rotation_vector_jacobian  # noqa: F401 (re-exported)
 from flowins.ins.mechanization import check_scheme
-from flowins.state import NOISE, NOISE_DIM, STATE, STATE_DIM, split
+from flowins.state import CORE, CORE_DIM, NOISE, NOISE_DIM, STATE_DIM, _Layout, split
 
-_SMALL_ANGLE_SQ = 1e-6
+class StepPieces(NamedTuple):
+    """What one mechanization step computes and its Jacobians reuse (batched over steps).
 
-
-def _skew(a: Tensor) -> Tensor:
-    x, y, z = a.unbind(-1)
-    o = torch.zeros_like(x)
-    return torch.stack(
-        (torch.stack((o, -z, y), -1), torch.stack((z, o, -x), -1), torch.stack((-y, x, o), -1)), dim=-2
-    )
-
-
-def rotation_vector_jacobian(theta: Tensor) -> Tensor:
-    """``∂𝒬{θ}/∂θ`` ``(..., 4, 3)``, branch-free and finite at ``θ = 0``.
-
-    With ``r = |θ|``, ``s = sin(r/2)/r`` and ``k = (r cos(r/2)/2 - sin(r/2))/r³``:
-    ``∂cos(r/2)/∂θ = -(s/2) θᵀ`` and ``∂(sθ)/∂θ = s I + k θθᵀ``.
+    ``q`` is the attitude before the step, ``E = 𝒬{θ}``, ``q_rot`` the attitude
+    that rotates the specific force (``q ⊙ E`` for ``paper``, ``q ⊙ 𝒬{θ/2}`` for
+    ``midpoint``) with ``E_rot`` its increment, ``C = C(q_rot)``, ``acc_unbiased =
+    ã - b_a`` and ``a = T_a ⊙ acc_unbiased``.
     """
-    r_sq = (theta * theta).sum(-1)
-    small = r_sq < _SMALL_ANGLE_SQ
-    safe_sq = torch.where(small, torch.ones_like(r_sq), r_sq)
-    r = torch.sqrt(safe_sq)
-    half = 0.5 * r
-    s = torch.where(small, 0.5 - r_sq / 48.0 + r_sq * r_sq / 3840.0, torch.sin(half) / r)
-    k = torch.where(
-        small,
-        -1.0 / 24.0 + r_sq / 960.0,
-        (r * torch.cos(half) * 0.5 - torch.sin(half)) / (safe_sq * r),
-    )
-    top = (-0.5 * s).unsqueeze(-1) * theta  # (..., 3)
-    eye = torch.eye(3, dtype=theta.dtype, device=theta.device)
-    bottom = s[..., None, None] * eye + k[..., None, None] * theta.unsqueeze(-1) * theta.unsqueeze(-2)
-    return torch.cat((top.unsqueeze(-2), bottom), dim=-2)
+
+    q: Tensor
+    theta: Tensor
+    E: Tensor
+    E_rot: Tensor
+    q_rot: Tensor
+    C: Tensor
+    acc_unbiased: Tensor
+    a: Tensor
+    T_a: Tensor
+    dt: Tensor  # (..., 1)
 
 
-def rotate_jacobian(q: Tensor, a: Tensor) -> Tensor:
-    """``∂(C(q/|q|) a)/∂q`` ``(..., 3, 4)`` for a (not necessarily unit) quaternion ``q``."""
-    n = q.norm(dim=-1, keepdim=True)
-    u = q / n
-    w, r = u[..., 0], u[..., 1:]
-    ra = (r * a).sum(-1)
-    d_w = 2.0 * (w.unsqueeze(-1) * a + torch.linalg.cross(r, a))
-    eye = torch.eye(3, dtype=q.dtype, device=q.device)
-    d_r = 2.0 * (
-        ra[..., None, None] * eye
-        + r.unsqueeze(-1) * a.unsqueeze(-2)
-        - a.unsqueeze(-1) * r.unsqueeze(-2)
-        - w[..., None, None] * _skew(a)
+def rotation_increments(theta: Tensor, scheme: str) -> tuple[Tensor, Tensor]:
+    """``(E, E_rot)``: ``𝒬{θ}`` and the increment that rotates the specific force
+    (``𝒬{θ}`` itself for ``paper``, ``𝒬{θ/2}`` for ``midpoint``), in one call."""
+    check_scheme(scheme)
+    if scheme == "paper":
+        E = quat.from_rotation_vector(theta)
+        return E, E
+    E, E_half = quat.from_rotation_vector(torch.stack((theta, 0.5 * theta), dim=-2)).unbind(-2)
+    return E, E_half
+
+
+def step_pieces(x: Tensor, acc_mps2: Tensor, gyro_rps: Tensor, dt_s: Tensor, scheme: str) -> StepPieces:
+    """:class:`StepPieces` of ``mechanize`` at the states ``x`` ``(..., 26)``."""
+    s = split(x)
+    dt = dt_s.unsqueeze(-1)
+    theta = (gyro_rps - s.b_w) * dt
+    E, E_rot = rotation_increments(theta, scheme)
+    q_rot = quat.multiply(s.q, E_rot)
+    acc_unbiased = acc_mps2 - s.b_a
+    return StepPieces(
+        s.q, theta, E, E_rot, q_rot, quat.to_matrix(q_rot), acc_unbiased, s.T_a * acc_unbiased, s.T_a, dt
     )
-    J_u = torch.cat((d_w.unsqueeze(-1), d_r), dim=-1)  # (..., 3, 4)
-    eye4 = torch.eye(4, dtype=q.dtype, device=q.device)
-    projector = (eye4 - u.unsqueeze(-1) * u.unsqueeze(-2)) / n.unsqueeze(-1)
-    return J_u @ projector
+
+
+def core_jacobians_from_pieces(pieces: StepPieces, scheme: str) -> tuple[Tensor, Tensor]:
+    """Core blocks of ``(F_x, F_ε)``, ``(..., 19, 19)`` and ``(..., 19, 15)`` (the
+    :data:`flowins.state.CORE` rows and columns), from a step's :class:`StepPieces`.
+
+    The augmented pose is constant under the mechanization, so the full Jacobians
+    are these blocks embedded with an identity (:func:`embed_core`).
+    """
+    check_scheme(scheme)
+    q, theta, E, E_rot, q_rot, C, acc_unbiased, a, T_a, dt = pieces
+    batch = q.shape[:-1]
+    dt3 = dt.unsqueeze(-1)  # (..., 1, 1)
+    if scheme == "paper":
+        dq_dbw = -dt3 * (quat.left_matrix(q) @ rotation_vector_jacobian(theta))  # (..., 4, 3)
+        dq_dq = quat.right_matrix(E)
+        drot = torch.cat((dq_dq, dq_dbw), dim=-1)  # (..., 4, 7): ∂q_rot/∂(q, b_ω)
+    else:
+        J_both = rotation_vector_jacobian(torch.stack((theta, 0.5 * theta), dim=-2))  # (..., 2, 4, 3)
+        LJ = quat.left_matrix(q).unsqueeze(-3) @ J_both
+        dq_dbw = -dt3 * LJ[..., 0, :, :]
+        R_both = quat.right_matrix(torch.stack((E, E_rot), dim=-2))  # (..., 2, 4, 4)
+        dq_dq = R_both[..., 0, :, :]
+        drot = torch.cat((R_both[..., 1, :, :], -0.5 * dt3 * LJ[..., 1, :, :]), dim=-1)
+    dv = dt3 * (rotate_jacobian(q_rot, a) @ drot)  # (..., 3, 7): ∂v'/∂(q, b_ω)
+    dv_dq, dv_dbw = dv[..., :4], dv[..., 4:]
+    dtC = dt3 * C
+    v_blocks = {"q": dv_dq, "b_a": -dtC * T_a.unsqueeze(-2), "b_w": dv_dbw, "T_a": dtC * acc_unbiased.unsqueeze(-2)}
+    v_noise = {"acc": dtC, "gyro": -dv_dbw}
+    eye3 = torch.eye(3, dtype=q.dtype, device=q.device)
+    F_blocks = {("p", "v"): dt3 * eye3, ("q", "q"): dq_dq, ("q", "b_w"): dq_dbw}
+    F_blocks.update({("v", k): b for k, b in v_blocks.items()})
+    G_blocks = {("q", "gyro"): -dq_dbw}
+    G_blocks.update({("v", k): b for k, b in v_noise.items()})
+    if scheme == "midpoint":
+        # p' = p + v Δt + (Δt/2)(v' - v): (Δt/2) x the velocity rows without their identity
+        half = 0.5 * dt3
+        F_blocks.update({("p", k): half * b for k, b in v_blocks.items()})
+        G_blocks.update({("p", k): half * b for k, b in v_noise.items()})
+    # identity on the rows no block overwrites: p, v, b_a, b_w, T_a; random walks
+    # drive the bias and scale states one to one
+    F = place_blocks(F_blocks, CORE, CORE, batch, like=q) + _core_identity_base(q.dtype, q.device)
+    G = place_blocks(G_blocks, CORE, NOISE, batch, like=q) + _walk_base(q.dtype, q.device)
+    return F, G
+
+
+@lru_cache(maxsize=None)
+def _block_index(keys: tuple[tuple[str, str], ...], rows: _Layout, cols: _Layout, device: torch.device) -> Tensor:
+    """Flat positions in a ``(rows.dim, cols.dim)`` matrix of the named blocks, concatenated."""
+    index = []
+    for row_name, col_name in keys:
+        r, c = rows.slice(row_name), cols.slice(col_name)
+        index += [i * cols.dim + j for i in range(r.start, r.stop) for j in range(c.start, c.stop)]
+    return torch.tensor(index, dtype=torch.long, device=device)
+
+
+def place_blocks(
+    blocks: dict[tuple[str, str], Tensor], rows: _Layout, cols: _Layout, batch: tuple[int, ...], *, like: Tensor
+) -> Tensor:
+    """A ``(*batch, rows.dim, cols.dim)`` matrix that is zero except for the named blocks.
+
+    ``blocks`` maps ``(row field, column field)`` to a ``(..., r, c)`` tensor; all
+    blocks are written in one scatter (fewer kernel launches than one slice
+    assignment or concatenation per block). Differentiable.
+    """
+    values = torch.cat([b.expand(*batch, *b.shape[-2:]).reshape(*batch, -1) for b in blocks.values()], dim=-1)
+    index = _block_index(tuple(blocks), rows, cols, like.device)
+    flat = like.new_zeros(*batch, rows.dim * cols.dim).index_copy(-1, index, values)
+    return flat.view(*batch, rows.dim, cols.dim)
+
+
+@lru_cache(maxsize=None)
+def _core_identity_base(dtype: torch.dtype, device: torch.device) -> Tensor:
+    """Identity on the core rows except the ``q`` block (which the step Jacobian replaces)."""
+    base = torch.eye(CORE_DIM, dtype=dtype, device=device)
+    base[CORE.q, CORE.q] = 0.0
+    return base
+
+
+@lru_cache(maxsize=None)
+def _walk_base(dtype: torch.dtype, device: torch.device) -> Tensor:
+    """``∂x'/∂ε`` of the random walks: identity from each walk noise to its state."""
+    base = torch.zeros(CORE_DIM, NOISE_DIM, dtype=dtype, device=device)
+    for name in ("b_a", "b_w", "T_a"):
+        base[CORE.slice(name), NOISE.slice(name)] = torch.eye(3, dtype=dtype, device=device)
+    return base
+
+
+def pad_core(M: Tensor) -> Tensor:
+    """``(…, 19, k)`` or ``(…, 19, 19)`` core block -> zero-padded full-state rows
+    ``(…, 26, k)``, resp. ``(…, 26, 26)`` when the block is square."""
+    extra = STATE_DIM - CORE_DIM
+    return torch.nn.functional.pad(M, (0, extra if M.shape[-1] == CORE_DIM else 0, 0, extra))
+
+
+def embed_core(F_core: Tensor, G_core: Tensor | None = None) -> tuple[Tensor, Tensor | None]:
+    """Full-state ``(…, 26, 26)`` transition (identity on the augmented pose) and
+    ``(…, 26, 15)`` noise Jacobian (zero rows there) from their core blocks."""
+    aug_identity = torch.diag(
+        (torch.arange(STATE_DIM, device=F_core.device) >= CORE_DIM).to(F_core.dtype)
+    )
+    return pad_core(F_core) + aug_identity, None if G_core is None else pad_core(G_core)
 
 
 def mechanization_jacobians(
@@ -91,49 +188,4 @@ def mechanization_jacobians(
     For ``scheme="midpoint"`` the velocity rows use ``q_½ = q ⊙ 𝒬{θ/2}`` in place of
     ``q'``, and the position rows become ``∂p'/∂· = ∂p/∂· + Δt ∂v/∂· + (Δt/2)(∂v'/∂· - ∂v/∂·)``.
     """
-    check_scheme(scheme)
-    s = split(x)
-    dt = dt_s.unsqueeze(-1)
-    theta = (gyro_rps - s.b_w) * dt
-    E = quat.from_rotation_vector(theta)
-    q_new = quat.multiply(s.q, E)
-    acc_unbiased = acc_mps2 - s.b_a
-    a = s.T_a * acc_unbiased
-    dt3 = dt.unsqueeze(-1)  # (..., 1, 1)
-    dq_dq = quat.right_matrix(E)  # (..., 4, 4)
-    dq_dbw = -dt3 * (quat.left_matrix(s.q) @ rotation_vector_jacobian(theta))  # (..., 4, 3)
-    if scheme == "paper":
-        q_rot, drot_dq, drot_dbw = q_new, dq_dq, dq_dbw
-    else:
-        E_half = quat.from_rotation_vector(0.5 * theta)
-        q_rot = quat.multiply(s.q, E_half)
-        drot_dq = quat.right_matrix(E_half)
-        drot_dbw = -0.5 * dt3 * (quat.left_matrix(s.q) @ rotation_vector_jacobian(0.5 * theta))
-    C = quat.to_matrix(q_rot)
-    J_rot = rotate_jacobian(q_rot, a)  # (..., 3, 4)
-
-    batch = x.shape[:-1]
-    F = torch.eye(STATE_DIM, dtype=x.dtype, device=x.device).expand(*batch, STATE_DIM, STATE_DIM).clone()
-    eye3 = torch.eye(3, dtype=x.dtype, device=x.device)
-    F[..., STATE.p, STATE.v] = dt3 * eye3
-    F[..., STATE.q, STATE.q] = dq_dq
-    F[..., STATE.q, STATE.b_w] = dq_dbw
-    F[..., STATE.v, STATE.q] = dt3 * (J_rot @ drot_dq)
-    F[..., STATE.v, STATE.b_w] = dt3 * (J_rot @ drot_dbw)
-    F[..., STATE.v, STATE.b_a] = -dt3 * C * s.T_a.unsqueeze(-2)
-    F[..., STATE.v, STATE.T_a] = dt3 * C * acc_unbiased.unsqueeze(-2)
-
-    G = x.new_zeros(*batch, STATE_DIM, NOISE_DIM)
-    G[..., STATE.v, NOISE.acc] = dt3 * C
-    G[..., STATE.q, NOISE.gyro] = -dq_dbw
-    G[..., STATE.v, NOISE.gyro] = -dt3 * (J_rot @ drot_dbw)
-    G[..., STATE.b_a, NOISE.b_a] = eye3
-    G[..., STATE.b_w, NOISE.b_w] = eye3
-    G[..., STATE.T_a, NOISE.T_a] = eye3
-    if scheme == "midpoint":
-        # p' = p + v Δt + (Δt/2)(v' - v): add (Δt/2) x (velocity rows without their identity)
-        dv_F = F[..., STATE.v, :].clone()
-        dv_F[..., :, STATE.v] -= eye3
-        F[..., STATE.p, :] = F[..., STATE.p, :] + 0.5 * dt3 * dv_F
-        G[..., STATE.p, :] = 0.5 * dt3 * G[..., STATE.v, :]
-    return F, G
+    return embed_core(*core_jacobians_from_pieces(step_pieces(x, acc_mps2, gyro_rps, dt_s, scheme), scheme))

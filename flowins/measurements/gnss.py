@@ -13,7 +13,7 @@ from torch import Tensor
 from torch.func import jacrev, vmap
 
 from flowins.geometry import quaternion as quat
-from flowins.state import split
+from flowins.state import STATE, split
 
 
 def gnss_position(x: Tensor, lever_arm_m: Tensor) -> Tensor:
@@ -31,15 +31,15 @@ def gnss_jacobian(x: Tensor, lever_arm_m: Tensor) -> Tensor:
     return vmap(jac, in_dims=(0, None))(flat, lever_arm_m).reshape(*x.shape[:-1], 3, x.shape[-1])
 
 
-def gnss_jacobian_analytic(x: Tensor, lever_arm_m: Tensor) -> Tensor:
-    """Closed form of :func:`gnss_jacobian`: ``[I₃, 0, ∂(C(q)ℓ)/∂q, 0]`` ``(..., 3, 26)``."""
-    from flowins.ins.jacobians import rotate_jacobian  # closed form of ∂(C(q)a)/∂q
-    from flowins.state import STATE
+def gnss_jacobian_analytic(x: Tensor, lever_arm_m: Tensor | None) -> Tensor:
+    """Closed form of :func:`gnss_jacobian`: ``[I₃, 0, ∂(C(q)ℓ)/∂q, 0]`` ``(..., 3, 26)``.
 
-    s = split(x)
+    ``lever_arm_m=None`` means a zero lever arm, whose ``∂/∂q`` block is zero.
+    """
     H = x.new_zeros(*x.shape[:-1], 3, x.shape[-1])
     H[..., STATE.p] = torch.eye(3, dtype=x.dtype, device=x.device)
-    H[..., STATE.q] = rotate_jacobian(s.q, lever_arm_m.to(x.dtype).expand_as(s.p))
+    if lever_arm_m is not None:
+        H[..., STATE.q] = quat.rotate_jacobian(split(x).q, lever_arm_m.to(x.dtype).expand(*x.shape[:-1], 3))
     return H
 
 

@@ -274,9 +274,10 @@ def test_paper_augmentation_with_small_sigma_is_the_linear_step():
     # textbook: forget (A⋆ m, A⋆ P A⋆ᵀ + Q⋆), then observe H⋆ x = 0 with R = nugget I
     A, Q = forgetting_matrices(sigma_p0, sigma_q0, dtype=F64)
     m_f, P_f = A @ mean, A @ cov @ A.T + Q
-    torch.testing.assert_close(chain.pred_mean[1], m_f, rtol=0, atol=1e-15)
-    torch.testing.assert_close(chain.pred_cov[1], P_f, rtol=0, atol=1e-9)
-    assert torch.equal(chain.transition[1], A)
+    track = chain.finish()
+    torch.testing.assert_close(track.pred_mean[1], m_f, rtol=0, atol=1e-15)
+    torch.testing.assert_close(track.pred_cov[1], P_f, rtol=0, atol=1e-9)
+    assert torch.equal(track.transition[1], A)
     H = augmentation_matrix(dtype=F64)
     S = H @ P_f @ H.T + nugget * torch.eye(7, dtype=F64)
     K = P_f @ H.T @ torch.linalg.inv(S)
