@@ -289,3 +289,36 @@ def test_paper_augmentation_with_small_sigma_is_the_linear_step():
     # σ_p0 = 3 m against a position spread of about 1 m: the pose is pulled towards the origin
     shrink = float(chain.mean[STATE.p].norm() - mean[STATE.p].norm())
     assert shrink < -0.05
+
+
+@pytest.mark.parametrize("run_length", [1, 2, 5, 13])
+def test_rts_through_long_prediction_runs_equals_batch_posterior(run_length):
+    """Runs of prediction-only nodes of several lengths between updates (the
+    key-node smoother composes gains across each run)."""
+    gen = torch.Generator().manual_seed(run_length)
+    D = 4
+    lc = LinearChain(torch.randn(D, generator=gen, dtype=F64), random_spd(gen, D))
+    for block in range(3):
+        for _ in range(run_length):
+            lc.predict(torch.eye(D, dtype=F64) + 0.1 * torch.randn(D, D, generator=gen, dtype=F64), random_spd(gen, D, scale=0.02))
+        H = torch.randn(2, D, generator=gen, dtype=F64)
+        lc.measure(H, torch.randn(2, generator=gen, dtype=F64), random_spd(gen, 2, scale=0.2))
+    for _ in range(run_length):  # and a trailing run without updates
+        lc.predict(torch.eye(D, dtype=F64), random_spd(gen, D, scale=0.02))
+    smoothed = rts_smooth(lc.chain.finish(), normalize=False)
+    mean_true, cov_true, _, _ = lc.batch_posterior()
+    assert_close_scaled(smoothed.node_mean, mean_true, 1e-8)
+    assert_close_scaled(smoothed.node_cov, cov_true, 1e-8)
+
+
+def test_key_node_smoother_equals_node_by_node_recursion_on_ins_gnss():
+    from flowins.data.synthetic import synthetic_walk_recording
+    from flowins.filter.smoother import rts_smooth_sequential
+    from flowins.navigation import NavigationConfig, navigate
+
+    rec = synthetic_walk_recording(duration_s=20.0, seed=3)
+    result = navigate(rec.imu, rec.gnss, config=NavigationConfig())
+    fast = rts_smooth(result.filter)
+    slow = rts_smooth_sequential(result.filter)
+    assert_close_scaled(fast.node_mean, slow.node_mean, 1e-9)
+    torch.testing.assert_close(fast.node_cov, slow.node_cov, rtol=1e-7, atol=1e-12)
