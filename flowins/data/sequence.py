@@ -28,7 +28,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from flowins.data.streams import GnssStream, ImuStream, PoseStream, _as_float64, _check_finite, _set
+from flowins.data.streams import (
+    GnssStream,
+    ImuStream,
+    PoseStream,
+    _as_float64,
+    _check_finite,
+    _set,
+)
 from flowins.geometry.camera import RigidTransform
 
 SOURCES = ("imu", "frames", "tracks", "gnss", "groundtruth")

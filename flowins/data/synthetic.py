@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
@@ -23,6 +24,9 @@ from torch.func import jacfwd, vmap
 
 from flowins.geometry import quaternion as quat
 from flowins.ins.mechanization import STANDARD_GRAVITY_MPS2
+
+if TYPE_CHECKING:
+    from flowins.data.streams import GnssStream, ImuStream, PoseStream
 
 # Fourier coefficients of the loop (unit scale): a rounded, non-square block
 _LOOP_X = ((1, 1.0, 0.0), (3, -0.09, 0.0), (2, 0.06, 0.05))
@@ -119,6 +123,33 @@ class Walk:
         W = R.transpose(-1, -2) @ R_dot  # skew(ω_body)
         omega = torch.stack((W[:, 2, 1], W[:, 0, 2], W[:, 1, 0]), -1)
         return f_body, omega
+
+
+def increment_imu(walk: Walk, t_s: Tensor, gravity_mps2: float = STANDARD_GRAVITY_MPS2) -> tuple[Tensor, Tensor]:
+    """Ideal readings ``(N, 3)``, ``(N, 3)`` of an integrating IMU at sample times ``t_s`` ``(N,)``.
+
+    Sample ``k >= 1`` is the constant input over ``(t_{k-1}, t_k]`` that reproduces
+    the true motion increment, as a coning- and sculling-compensated
+    delta-angle/delta-velocity IMU reports it:
+
+        ω_k = Log(q_{k-1}* ⊙ q_k) / Δt_k
+        f_k = C(q_{k-1} ⊙ 𝒬{ω_k Δt_k / 2})ᵀ ((v_k - v_{k-1}) / Δt_k + g)
+
+    so the attitude and velocity of the midpoint mechanization are exact at the
+    sample times and only the trapezoidal position step approximates. Sample 0 is
+    the instantaneous reading at ``t_0``.
+    """
+    q = walk.quaternion(t_s)
+    v = walk.velocity(t_s)
+    dt = (t_s[1:] - t_s[:-1]).unsqueeze(-1)
+    theta = quat.to_rotation_vector(quat.multiply(quat.conjugate(q[:-1]), q[1:]))
+    omega = theta / dt
+    q_mid = quat.multiply(q[:-1], quat.from_rotation_vector(0.5 * theta))
+    g = torch.tensor([0.0, 0.0, gravity_mps2], dtype=t_s.dtype)
+    world = (v[1:] - v[:-1]) / dt + g
+    f = (quat.to_matrix(q_mid).transpose(-1, -2) @ world.unsqueeze(-1)).squeeze(-1)
+    f0, w0 = walk.imu(t_s[:1], gravity_mps2)
+    return torch.cat((f0, f)), torch.cat((w0, omega))
 
 
 @dataclass(frozen=True)

@@ -9,14 +9,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import torch
 from torch import Tensor
 
 from flowins.filter.augmentation import augment_pose, copy_matrices, forgetting_matrices
 from flowins.filter.ekf import Gate, ekf_update
 from flowins.filter.runner import ChainBuilder
-from flowins.state import STATE
 from flowins.measurements.gnss import gnss_jacobian_analytic, gnss_position
+from flowins.state import STATE
 
 
 @dataclass(frozen=True)

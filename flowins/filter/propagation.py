@@ -24,8 +24,19 @@ from torch import Tensor
 
 from flowins.filter.ekf import dynamics_jacobians
 from flowins.geometry import quaternion as quat
-from flowins.ins.jacobians import StepPieces, core_jacobians_from_pieces, embed_core, pad_core, rotation_increments
-from flowins.ins.mechanization import ProcessNoise, check_scheme, gravity_vector, mechanize
+from flowins.ins.jacobians import (
+    StepPieces,
+    core_jacobians_from_pieces,
+    embed_core,
+    pad_core,
+    rotation_increments,
+)
+from flowins.ins.mechanization import (
+    ProcessNoise,
+    check_scheme,
+    gravity_vector,
+    mechanize,
+)
 from flowins.state import NOISE_DIM, STATE_DIM, State, join, split, symmetrize
 
 

@@ -30,6 +30,7 @@ from flowins.geometry.quaternion import rotate_jacobian, rotation_vector_jacobia
 from flowins.ins.mechanization import check_scheme
 from flowins.state import CORE, CORE_DIM, NOISE, NOISE_DIM, STATE_DIM, _Layout, split
 
+
 class StepPieces(NamedTuple):
     """What one mechanization step computes and its Jacobians reuse (batched over steps).
 

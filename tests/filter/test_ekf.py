@@ -4,7 +4,13 @@ import math
 import pytest
 import torch
 
-from flowins.filter.ekf import Gate, chi2_quantile, ekf_update, joseph_update, linear_predict
+from flowins.filter.ekf import (
+    Gate,
+    chi2_quantile,
+    ekf_update,
+    joseph_update,
+    linear_predict,
+)
 
 F64 = torch.float64
 

@@ -4,7 +4,14 @@ import math
 import pytest
 import torch
 
-from flowins.data.synthetic import ImuErrors, Walk, WalkConfig, corrupt_imu, gnss_track, sample_times
+from flowins.data.synthetic import (
+    ImuErrors,
+    Walk,
+    WalkConfig,
+    corrupt_imu,
+    gnss_track,
+    sample_times,
+)
 from flowins.filter.ekf import Gate
 from flowins.filter.events import GnssFix, PoseAugmentation, gnss_fixes
 from flowins.filter.runner import run_filter
@@ -13,7 +20,7 @@ from flowins.geometry import quaternion as quat
 from flowins.ins.initialization import InitialUncertainty, stationary_initialization
 from flowins.ins.mechanization import STANDARD_GRAVITY_MPS2, ProcessNoise, mechanize
 from flowins.measurements.gnss import gnss_noise
-from flowins.state import NOISE_DIM, STATE, STATE_DIM, make_state
+from flowins.state import NOISE_DIM, STATE, STATE_DIM
 
 F64 = torch.float64
 

@@ -8,7 +8,11 @@ solve and read off the marginals.
 import pytest
 import torch
 
-from flowins.filter.augmentation import augmentation_matrix, copy_pose, forgetting_matrices
+from flowins.filter.augmentation import (
+    augmentation_matrix,
+    copy_pose,
+    forgetting_matrices,
+)
 from flowins.filter.ekf import ekf_update, linear_predict
 from flowins.filter.events import PoseAugmentation
 from flowins.filter.runner import ChainBuilder
