@@ -2,6 +2,7 @@
 import math
 from dataclasses import replace
 
+import pytest
 import torch
 
 from flowins.data.simulate.gnss import GnssErrors, simulate_fixes
@@ -9,6 +10,7 @@ from flowins.data.simulate.scenario import SimulationConfig, simulate_imu
 from flowins.data.synthetic import ImuErrors, Walk, WalkConfig
 from flowins.filter.propagation import propagate_mean
 from flowins.ins.mechanization import STANDARD_GRAVITY_MPS2
+from flowins.geometry import quaternion as quat
 from flowins.state import make_state, split
 
 F64 = torch.float64
@@ -69,3 +71,103 @@ def test_gnss_errors_are_consistent_with_the_reported_accuracy():
     assert abs(rate - expected) < 0.2 * expected
     outlier_z = (measured[multipath, :2] / h_acc[multipath].unsqueeze(-1)).norm(dim=-1)
     assert float(outlier_z.median()) > 2.0  # displaced by 20-60 m, more than the radius says
+
+
+# --------------------------------------------------------------------------- the written sequence
+
+
+@pytest.fixture(scope="module")
+def small_simulation(tmp_path_factory):
+    from flowins.data.simulate.scenario import CameraConfig, simulate
+
+    config = SimulationConfig(duration_s=10.0, seed=3, camera=CameraConfig(rate_hz=5.0, width=160, height=120))
+    out = tmp_path_factory.mktemp("sim")
+    return config, out, simulate(out, config, progress=False)
+
+
+def test_simulated_sequence_has_every_source(small_simulation):
+    config, out, seq = small_simulation
+    assert seq.sources == ("imu", "frames", "gnss", "groundtruth")
+    assert len(seq.frames) == 50 and seq.camera.size == (120, 160)
+    assert tuple(seq.frames.read(0).shape) == (120, 160, 3)
+    assert seq.metadata["simulation"]["key"] == config.key()
+    assert len(list((out / "flow").glob("*.npz"))) == 49
+
+
+def test_projecting_a_world_point_through_the_written_files_gives_the_rendered_pixel(small_simulation):
+    """Renderer at the true pose -> a pixel's world point; the *written* ground-truth
+    pose and calibration project it back onto that pixel."""
+    from flowins.data.simulate.render import render
+    from flowins.data.simulate.scenario import CameraTrajectory
+    from flowins.data.simulate.world import build_city
+    from flowins.data.synthetic import Walk, WalkConfig
+    from flowins.geometry.camera import project
+
+    config, out, seq = small_simulation
+    walk = Walk(WalkConfig(duration_s=config.duration_s))
+    city = build_city(walk, seed=config.seed)
+    trajectory = CameraTrajectory(walk, config.camera.imu_to_camera())
+    i = 40  # t = 8 s, walking
+    t = float(seq.frames.t_s[i])
+    R_wc, p_wc = trajectory.pose(torch.tensor([t], dtype=F64))
+    frame = render(city, seq.camera, R_wc[0], p_wc[0], t)
+    static = (frame.object_id == 0).nonzero()
+    pixels = static[torch.linspace(0, static.shape[0] - 1, 25).long()]  # (row, col)
+    X_w = frame.point[pixels[:, 0], pixels[:, 1]]  # (25, 3) world points
+    # the written ground truth at the frame time (60 Hz poses; frame times are on that grid)
+    gt = seq.groundtruth
+    k = int(torch.argmin((gt.t_s - t).abs()))
+    assert abs(float(gt.t_s[k]) - t) < 1e-9
+    R_wb = quat.to_matrix(gt.quat_wxyz[k])
+    X_b = (R_wb.T @ (X_w - gt.pos_m[k]).T).T
+    X_c = seq.imu_to_camera.apply(X_b)
+    cam = seq.camera
+    uv = project(X_c, cam.fx, cam.fy, cam.cx, cam.cy)
+    expected = torch.stack((pixels[:, 1], pixels[:, 0]), -1).to(F64)
+    assert float((uv - expected).abs().max()) < 1e-3
+    torch.testing.assert_close(X_c[:, 2].float(), frame.depth[pixels[:, 0], pixels[:, 1]], rtol=1e-5, atol=1e-4)
+
+
+def test_written_flow_warps_the_written_frames(small_simulation):
+    import cv2
+    import numpy as np
+
+    config, out, seq = small_simulation
+    i = 30
+    truth = np.load(out / "flow" / f"{i:06d}.npz")
+    img1 = seq.frames.read_gray(i).numpy()
+    img2 = seq.frames.read_gray(i + 1).numpy()
+    H, W = img1.shape
+    grid_u, grid_v = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
+    flow = np.nan_to_num(truth["flow"])
+    warped = cv2.remap(img2, grid_u + flow[..., 0], grid_v + flow[..., 1], cv2.INTER_LINEAR)
+    mask = truth["valid"] & truth["static"]
+    assert mask.mean() > 0.5
+    err_flow = np.abs(warped - img1)[mask].mean()
+    err_zero = np.abs(img2 - img1)[mask].mean()
+    assert err_flow < err_zero / 3, (err_flow, err_zero)
+    assert float(truth["t1"] - truth["t0"]) == pytest.approx(1.0 / config.camera.rate_hz)
+
+
+def test_a_second_simulation_reads_the_cache(small_simulation):
+    from flowins.data.simulate.scenario import simulate
+
+    config, out, seq = small_simulation
+    png = out / "frames" / "000000.png"
+    before = png.stat().st_mtime_ns
+    again = simulate(out, config, progress=False)
+    assert png.stat().st_mtime_ns == before  # nothing re-rendered
+    assert torch.equal(again.imu.acc_mps2, seq.imu.acc_mps2)
+    # a different configuration in the same folder is refused, not silently mixed
+    with pytest.raises(ValueError, match="does not hold this simulation"):
+        simulate(out, replace(config, seed=4), progress=False)
+
+
+def test_simulation_is_deterministic_in_the_seed():
+    walk = Walk(WalkConfig(duration_s=12.0))
+    config = SimulationConfig(duration_s=12.0)
+    a = simulate_imu(walk, config, torch.Generator().manual_seed(5))
+    b = simulate_imu(walk, config, torch.Generator().manual_seed(5))
+    c = simulate_imu(walk, config, torch.Generator().manual_seed(6))
+    assert torch.equal(a[1], b[1]) and torch.equal(a[2], b[2])
+    assert not torch.equal(a[1], c[1])

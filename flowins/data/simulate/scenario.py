@@ -199,11 +199,13 @@ def simulate(
     for i in tqdm(range(t_frames.shape[0]), desc="simulate frames", unit="frame", disable=not progress):
         t = float(t_frames[i])
         pose = (R_all[i], p_all[i], t)
-        frame = render(city, camera, R_all[i], p_all[i], t)
+        blur = ()
+        if config.camera.motion_blur:  # a 20 ms exposure: the image averages sub-frame poses
+            t_sub = torch.tensor([t - 0.01, t - 0.005, t + 0.005, t + 0.01], dtype=torch.float64).clamp(0.0, t_end)
+            R_sub, p_sub = trajectory.pose(t_sub)
+            blur = tuple((R_sub[j], p_sub[j], float(t_sub[j])) for j in range(4))
+        frame = render(city, camera, R_all[i], p_all[i], t, exposure=exposure_gain(config.camera, t), motion_blur=blur)
         image = frame.image.numpy()
-        if config.camera.exposure_changes:
-            gain = 1.0 + 0.15 * math.sin(2 * math.pi * t / 23.0) + 0.05 * math.sin(2 * math.pi * t / 7.0)
-            image = np.clip(image.astype(np.float32) * gain, 0, 255).astype(np.uint8)
         path = frame_dir / f"{i:06d}.png"
         cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
         files.append(path)
@@ -216,6 +218,7 @@ def simulate(
                 depth=truth.depth.numpy().astype(np.float32),
                 valid=truth.valid.numpy(),
                 static=truth.static.numpy(),
+                sky=truth.sky.numpy(),
                 t0=float(t_frames[i - 1]),
                 t1=t,
             )
@@ -235,7 +238,8 @@ def simulate(
         "gnss_truth": {"multipath_fixes": int(multipath.sum()), "fixes": int(multipath.numel())},
         "flow": (
             "flow/NNNNNN.npz: exact flow (H, W, 2) px from frame NNNNNN to the next, depth (H, W) m of frame "
-            "NNNNNN (camera z, inf for sky), valid (non-occluded hit inside frame 2), static (not a moving object)"
+            "NNNNNN (camera z, inf for sky), valid (non-occluded hit inside frame 2), static (not a moving object), "
+            "sky (rotation-only flow of points at infinity)"
             if config.flow_every
             else "not written"
         ),
@@ -265,6 +269,13 @@ def simulate(
     )
     (out / ".simulation-complete").write_text(key + "\n")
     return read_folder(out)
+
+
+def exposure_gain(camera: CameraConfig, t_s: float) -> float:
+    """Auto-exposure drift of the camera (1 when ``exposure_changes`` is off)."""
+    if not camera.exposure_changes:
+        return 1.0
+    return 1.0 + 0.15 * math.sin(2 * math.pi * t_s / 23.0) + 0.05 * math.sin(2 * math.pi * t_s / 7.0)
 
 
 def simulate_imu(
