@@ -1,0 +1,114 @@
+"""Monte Carlo dropout (Gal & Ghahramani 2016) with the deterministic part run once.
+
+In the paper, dropout acts at one layer of the flow network at test time and the
+flow's per-pixel standard deviation over ``N_MC`` passes is its uncertainty.
+Everything upstream of that layer does not depend on the dropout mask, so
+:func:`mc_samples` takes the upstream features computed **once**, repeats them
+``N`` times along the batch, applies the dropout and runs only the downstream
+``head`` (in chunks of passes, to bound memory).
+
+:class:`MCDropout` is ordinary dropout that stays active in eval mode (``p = 0``
+disables it); :class:`ConcreteDropout` is the relaxed Bernoulli ("concrete")
+dropout of Gal, Hron & Kendall (2017) whose rate is a differentiable parameter
+(stored as a logit), for learning the rate end to end.
+"""
+from __future__ import annotations
+
+import math
+from typing import Callable, Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from flowins.flow.base import mc_statistics
+
+
+class MCDropout(nn.Module):
+    """Element-wise dropout with rate ``p``, active in train *and* eval mode."""
+
+    def __init__(self, p: float = 0.2):
+        super().__init__()
+        if not 0.0 <= p < 1.0:
+            raise ValueError(f"MCDropout: p={p}; expected 0 <= p < 1")
+        self.p = float(p)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return F.dropout(x, self.p, training=True) if self.p > 0 else x
+
+    def extra_repr(self) -> str:
+        return f"p={self.p}"
+
+
+class ConcreteDropout(nn.Module):
+    """Relaxed Bernoulli dropout with a learnable rate ``p = sigmoid(p_logit)``.
+
+    ``z = sigmoid((log p - log(1-p) + log u - log(1-u)) / temperature)``, ``u ~ U(0, 1)``,
+    and ``x ↦ x (1 - z) / (1 - p)``; differentiable in ``p`` (and in ``x``).
+    """
+
+    def __init__(self, p: float = 0.2, temperature: float = 0.1, *, eps: float = 1e-7):
+        super().__init__()
+        if not 0.0 < p < 1.0:
+            raise ValueError(f"ConcreteDropout: p={p}; expected 0 < p < 1")
+        if temperature <= 0:
+            raise ValueError(f"ConcreteDropout: temperature={temperature}; expected > 0")
+        self.p_logit = nn.Parameter(torch.tensor(math.log(p) - math.log1p(-p)))
+        self.temperature = float(temperature)
+        self.eps = float(eps)
+
+    @property
+    def p(self) -> Tensor:
+        return torch.sigmoid(self.p_logit)
+
+    def forward(self, x: Tensor) -> Tensor:
+        p = self.p.to(x.dtype)
+        u = torch.rand_like(x).clamp(self.eps, 1.0 - self.eps)
+        logit = (torch.log(p) - torch.log1p(-p) + torch.log(u) - torch.log1p(-u)) / self.temperature
+        keep = 1.0 - torch.sigmoid(logit)
+        return x * keep / (1.0 - p)
+
+
+def mc_samples(
+    head: Callable[..., Tensor],
+    features: Tensor,
+    dropout: nn.Module,
+    passes: int,
+    *,
+    context: Sequence[Tensor] = (),
+    chunk: int | None = None,
+) -> Tensor:
+    """``(N, B, ...)`` outputs of ``head(dropout(features), *context)`` over ``N`` passes.
+
+    ``features`` ``(B, ...)`` and ``context`` (tensors that bypass the dropout, each
+    ``(B, ...)``) are computed once by the caller; they are repeated along the
+    batch, ``chunk`` passes at a time (default: all at once).
+    """
+    if passes < 1:
+        raise ValueError(f"mc_samples: passes={passes}; expected >= 1")
+    B = features.shape[0]
+    chunk = passes if chunk is None else max(1, int(chunk))
+    outputs = []
+    for start in range(0, passes, chunk):
+        n = min(chunk, passes - start)
+        x = features.repeat(n, *([1] * (features.ndim - 1)))
+        ctx = [c.repeat(n, *([1] * (c.ndim - 1))) for c in context]
+        out = head(dropout(x), *ctx)
+        outputs.append(out.reshape(n, B, *out.shape[1:]))
+    return torch.cat(outputs, dim=0)
+
+
+def mc_flow(
+    head: Callable[..., Tensor],
+    features: Tensor,
+    dropout: nn.Module,
+    passes: int,
+    *,
+    context: Sequence[Tensor] = (),
+    chunk: int | None = None,
+    floor: float = 0.0,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """``(mean, std, samples)`` of :func:`mc_samples` (std over passes, unbiased)."""
+    samples = mc_samples(head, features, dropout, passes, context=context, chunk=chunk)
+    mean, std = mc_statistics(samples, floor=floor)
+    return mean, std, samples
