@@ -1,0 +1,83 @@
+"""Two-view linear triangulation (the paper's Eq. for the epipolar-constrained DLT).
+
+For cameras ``P₁, P₂`` ``(3, 4)`` and pixels ``(u₁, v₁)``, ``(u₂, v₂)`` the world point
+``X̃`` (homogeneous) solves
+
+    [ u₁ P₁[3,:] - P₁[1,:] ]
+    [ v₁ P₁[3,:] - P₁[2,:] ]  X̃ = 0
+    [ u₂ P₂[3,:] - P₂[1,:] ]
+    [ v₂ P₂[3,:] - P₂[2,:] ]
+
+in the least-squares sense: ``X̃`` is the right singular vector of the smallest
+singular value (``torch.linalg.svd``), batched over any leading dimensions.
+
+Conditioning: the rows are formed in normalised image coordinates
+(``K⁻¹ (u, v, 1)``) and with the world origin moved to camera 1's centre
+(Hartley's normalisation), which leaves the projections unchanged. The result is a
+homogeneous point, so points at infinity (pure rotation) are represented exactly.
+
+The gradient of the smallest singular vector involves ``1 / (σ₃² - σ₄²)``; when the
+two smallest singular values meet (zero baseline with flow consistent with a
+rotation: every point on the ray fits) it is unbounded. :func:`triangulate`
+therefore also returns a per-point conditioning ``(σ₃ - σ₄) / σ₁`` so that the
+measurement model can down-weight and count such points.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+
+class Triangulation(NamedTuple):
+    point: Tensor  # (..., 4) homogeneous world point, unit norm (in the shifted frame: see triangulate)
+    conditioning: Tensor  # (...,) (σ₃ - σ₄) / σ₁ of the DLT matrix: 0 = degenerate
+
+
+def camera_matrix(R_wc: Tensor, p_wc: Tensor) -> Tensor:
+    """Normalised camera matrix ``[R_wcᵀ | -R_wcᵀ p_wc]`` ``(..., 3, 4)`` (no intrinsics).
+
+    ``R_wc`` ``(..., 3, 3)`` maps camera-frame vectors to world, ``p_wc`` ``(..., 3)`` is
+    the camera centre. The paper's ``P = K [Rᵀ | -Rᵀ p]`` is ``K`` times this.
+    """
+    Rt = R_wc.transpose(-1, -2)
+    return torch.cat((Rt, -(Rt @ p_wc.unsqueeze(-1))), dim=-1)
+
+
+def dlt_matrix(P1: Tensor, P2: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
+    """The paper's ``4 x 4`` linear system for normalised coordinates ``x1``, ``x2`` ``(..., 2)``."""
+    rows = (
+        x1[..., 0:1] * P1[..., 2, :] - P1[..., 0, :],
+        x1[..., 1:2] * P1[..., 2, :] - P1[..., 1, :],
+        x2[..., 0:1] * P2[..., 2, :] - P2[..., 0, :],
+        x2[..., 1:2] * P2[..., 2, :] - P2[..., 1, :],
+    )
+    return torch.stack(rows, dim=-2)
+
+
+def triangulate(P1: Tensor, P2: Tensor, x1: Tensor, x2: Tensor) -> Triangulation:
+    """Homogeneous point ``(..., 4)`` from normalised cameras ``(..., 3, 4)`` and
+    normalised image points ``x = K⁻¹ (u, v, 1)`` (first two entries) ``(..., 2)``.
+
+    Callers should express both cameras in a frame whose origin is near camera 1
+    (see :func:`flowins.measurements.flow`), which keeps the system well scaled.
+    """
+    A = dlt_matrix(P1, P2, x1, x2)
+    scale = A.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(A.dtype).tiny ** 0.5)
+    A = A / scale  # equilibrate the rows (the solution is invariant)
+    _, S, Vh = torch.linalg.svd(A)
+    point = Vh[..., -1, :]
+    # the singular vector's sign is arbitrary: choose the one in front of camera 1
+    z1 = (P1[..., 2, :] * point).sum(-1, keepdim=True)
+    point = torch.where(z1 < 0, -point, point)
+    conditioning = (S[..., -2] - S[..., -1]) / S[..., 0].clamp_min(torch.finfo(A.dtype).tiny)
+    return Triangulation(point, conditioning)
+
+
+def project_homogeneous(P: Tensor, X: Tensor) -> tuple[Tensor, Tensor]:
+    """``(x, z)``: normalised image point ``(..., 2)`` of homogeneous ``X`` ``(..., 4)`` and its
+    third coordinate ``z`` ``(...)``; with ``X`` as :func:`triangulate` orients it,
+    ``z > 0`` means in front of the camera (a depth times a positive scale)."""
+    y = (P @ X.unsqueeze(-1)).squeeze(-1)
+    return y[..., :2] / y[..., 2:3], y[..., 2]
