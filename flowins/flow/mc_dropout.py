@@ -24,8 +24,35 @@ from torch import Tensor, nn
 from flowins.flow.base import mc_statistics
 
 
+def keep_mask(shape: Sequence[int], p: float, *, device: torch.device | str = "cpu") -> tuple[Tensor, float]:
+    """A Bernoulli keep-mask (bool, ``shape``) with drop rate ``≈ p``, and its exact keep probability.
+
+    On the CPU, drawing one random number per element dominates Monte Carlo
+    dropout at full resolution, so the mask is made from random *bytes*: each
+    64-bit draw (uniform on ``[0, 2⁶³)``) gives seven uniform bytes, and an element
+    is dropped when its byte is below ``round(256 p)``. The drop rate is therefore
+    ``p`` rounded to a multiple of 1/256 (0.2 -> 0.1992), which the returned keep
+    probability states exactly, so the rescaling stays unbiased. Elsewhere (CUDA)
+    the mask is ``rand < 1 - p``.
+    """
+    n = 1
+    for d in shape:
+        n *= int(d)
+    device = torch.device(device)
+    if device.type != "cpu":
+        return torch.rand(tuple(shape), device=device) >= p, 1.0 - p
+    threshold = int(round(256 * p))
+    draws = torch.empty((n + 6) // 7, dtype=torch.int64).random_()
+    bytes_ = draws.view(torch.uint8).view(-1, 8)[:, :7].reshape(-1)[:n]  # the top byte is only 7-bit
+    return (bytes_ >= threshold).view(tuple(shape)), 1.0 - threshold / 256.0
+
+
 class MCDropout(nn.Module):
-    """Element-wise dropout with rate ``p``, active in train *and* eval mode."""
+    """Element-wise dropout with rate ``p``, active in train *and* eval mode.
+
+    Kept elements are scaled by ``1 / keep``; the mask comes from :func:`keep_mask`
+    (on the CPU the rate is ``p`` rounded to a multiple of 1/256).
+    """
 
     def __init__(self, p: float = 0.2):
         super().__init__()
@@ -34,7 +61,10 @@ class MCDropout(nn.Module):
         self.p = float(p)
 
     def forward(self, x: Tensor) -> Tensor:
-        return F.dropout(x, self.p, training=True) if self.p > 0 else x
+        if self.p == 0:
+            return x
+        mask, keep = keep_mask(x.shape, self.p, device=x.device)
+        return x.masked_fill(~mask, 0.0).mul_(1.0 / keep)
 
     def extra_repr(self) -> str:
         return f"p={self.p}"
@@ -91,8 +121,9 @@ def mc_samples(
     outputs = []
     for start in range(0, passes, chunk):
         n = min(chunk, passes - start)
-        x = features.repeat(n, *([1] * (features.ndim - 1)))
-        ctx = [c.repeat(n, *([1] * (c.ndim - 1))) for c in context]
+        # one pass at a time needs no copy of the (large) upstream features
+        x = features if n == 1 else features.repeat(n, *([1] * (features.ndim - 1)))
+        ctx = [c if n == 1 else c.repeat(n, *([1] * (c.ndim - 1))) for c in context]
         out = head(dropout(x), *ctx)
         outputs.append(out.reshape(n, B, *out.shape[1:]))
     return torch.cat(outputs, dim=0)

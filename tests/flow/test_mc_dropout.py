@@ -1,0 +1,66 @@
+"""Monte Carlo dropout helpers: the mask's rate, unbiasedness, run-once sampling, concrete dropout."""
+import math
+
+import pytest
+import torch
+
+from flowins.flow.mc_dropout import ConcreteDropout, MCDropout, keep_mask, mc_flow, mc_samples
+
+
+@pytest.mark.parametrize("p", [0.05, 0.2, 0.5])
+def test_keep_mask_has_the_stated_rate_and_no_pattern(p):
+    torch.manual_seed(0)
+    mask, keep = keep_mask((400, 1000), p)
+    assert mask.dtype == torch.bool and mask.shape == (400, 1000)
+    assert abs(keep - (1 - p)) <= 0.5 / 256 + 1e-12  # p rounded to 1/256
+    n = mask.numel()
+    rate = float(mask.double().mean())
+    assert abs(rate - keep) < 5 * math.sqrt(keep * (1 - keep) / n)
+    # every byte position of the 64-bit draws is used alike (the top byte is not)
+    per_position = mask.reshape(-1)[: (n // 7) * 7].view(-1, 7).double().mean(0)
+    assert float((per_position - keep).abs().max()) < 6 * math.sqrt(keep * (1 - keep) / (n / 7))
+    # neighbouring elements are independent
+    flat = mask.reshape(-1).double()
+    corr = float(torch.corrcoef(torch.stack((flat[:-1], flat[1:])))[0, 1])
+    assert abs(corr) < 0.01
+
+
+def test_mc_dropout_is_unbiased_and_active_in_eval_mode():
+    torch.manual_seed(1)
+    drop = MCDropout(0.3).eval()
+    x = torch.full((200, 500), 2.0)
+    y = drop(x)
+    zero_rate = float((y == 0).double().mean())
+    assert abs(zero_rate - 77 / 256) < 0.01  # round(256 * 0.3) = 77
+    assert abs(float(y.mean()) - 2.0) < 0.02
+    assert torch.equal(MCDropout(0.0)(x), x)
+    with pytest.raises(ValueError, match="0 <= p < 1"):
+        MCDropout(1.0)
+
+
+def test_mc_samples_runs_the_head_on_repeated_features_with_context():
+    torch.manual_seed(2)
+    features = torch.randn(3, 4, 5)
+    context = torch.randn(3, 2, 5)
+    calls = []
+
+    def head(x, c):
+        calls.append(x.shape[0])
+        return x.sum(1, keepdim=True) + c[:, :1]
+
+    samples = mc_samples(head, features, MCDropout(0.0), passes=6, context=(context,), chunk=4)
+    assert samples.shape == (6, 3, 1, 5) and calls == [12, 6]
+    expected = features.sum(1, keepdim=True) + context[:, :1]
+    torch.testing.assert_close(samples, expected.expand(6, -1, -1, -1))
+    mean, std, _ = mc_flow(head, features, MCDropout(0.5), passes=50, context=(context,))
+    assert float(std.min()) > 0  # dropout makes the passes differ
+
+
+def test_concrete_dropout_rate_is_differentiable():
+    torch.manual_seed(3)
+    drop = ConcreteDropout(0.2, temperature=0.1)
+    assert abs(float(drop.p.detach()) - 0.2) < 1e-6
+    x = torch.ones(1000)
+    loss = drop(x).var()
+    loss.backward()
+    assert drop.p_logit.grad is not None and torch.isfinite(drop.p_logit.grad) and float(drop.p_logit.grad) != 0.0
