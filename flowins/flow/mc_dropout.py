@@ -18,7 +18,6 @@ import math
 from typing import Callable, Sequence
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from flowins.flow.base import mc_statistics
