@@ -8,12 +8,16 @@ messages and logs) and ``apply(chain)``; the maths lives in the pure functions o
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from torch import Tensor
 
 from flowins.filter.augmentation import augment_pose, copy_matrices, forgetting_matrices
 from flowins.filter.ekf import Gate, ekf_update
 from flowins.filter.runner import ChainBuilder
+
+if TYPE_CHECKING:
+    from flowins.measurements.flow import FlowCamera
 from flowins.measurements.gnss import gnss_jacobian_analytic, gnss_position
 from flowins.state import STATE
 
@@ -99,3 +103,47 @@ class PoseAugmentation:
             # one linear step, recorded as such so the smoother sees its transition
             T, Q = copy_matrices(self.nugget_var, dtype=mean.dtype, device=mean.device)
             chain.linear_predict(T, Q)
+
+
+@dataclass(frozen=True)
+class FlowFrame:
+    """A camera frame: flow updates against the augmented previous frame's pose, then
+    pose forgetting and augmentation (the paper's per-frame order).
+
+    ``flow_px``, ``uv1_px``, ``sigma_px`` ``(M, 2)``: flow points from the previous
+    frame to this one, their pixels in the previous frame and 1-σ. The update uses
+    the epipolar component of each point (:func:`flowins.measurements.flow.epipolar_update`);
+    degenerate points are skipped and counted in the log. ``M = 0`` (the first
+    frame) only augments.
+    """
+
+    time_s: float
+    flow_px: Tensor
+    uv1_px: Tensor
+    sigma_px: Tensor
+    camera: "FlowCamera"
+    gate: Gate = field(default_factory=Gate)
+    sequential: bool = False
+    augmentation: PoseAugmentation | None = None
+    name: str = "flow frame"
+
+    def apply(self, chain: ChainBuilder) -> None:
+        from flowins.measurements.flow import epipolar_update, flow_measurements
+
+        M = self.flow_px.shape[0]
+        if M:
+            mean, cov = chain.mean, chain.cov
+            m = flow_measurements(mean, self.flow_px.to(mean), self.uv1_px.to(mean), self.camera)
+            info = dict(kind="flow", name=self.name, points=M, valid=int(m.valid.sum()),
+                        degenerate=m.n_degenerate, behind=m.n_behind)
+            if bool(m.valid.any()):
+                upd = epipolar_update(m, self.sigma_px.to(mean))
+                result = ekf_update(
+                    mean, cov, innovation=upd.innovation, H=upd.H, noise_cov=upd.noise_cov,
+                    gate=self.gate, sequential=self.sequential,
+                )
+                chain.update(result, accepted=float(result.weight.sum()), **info)
+            else:
+                chain.log.append({"t_s": chain.time_s, "accepted": 0.0, **info})
+        augmentation = self.augmentation or PoseAugmentation(self.time_s)
+        augmentation.apply(chain)

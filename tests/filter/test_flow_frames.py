@@ -1,0 +1,63 @@
+"""Flow frames in the filter: INS + optical flow on a simulated walk."""
+import math
+
+import torch
+
+from flowins.data.simulate.render import exact_flow, render
+from flowins.data.simulate.scenario import CameraConfig, CameraTrajectory, SimulationConfig, simulate_imu
+from flowins.data.simulate.world import build_city
+from flowins.data.synthetic import Walk, WalkConfig
+from flowins.filter.events import FlowFrame, PoseAugmentation
+from flowins.filter.runner import run_filter
+from flowins.ins.initialization import augmented_covariance
+from flowins.ins.mechanization import ProcessNoise
+from flowins.measurements.flow import FlowCamera
+from flowins.state import STATE, make_state
+
+F64 = torch.float64
+
+
+def test_flow_frames_bound_the_inertial_drift_and_reveal_the_gyro_bias():
+    """10 s of walking, iPad-grade IMU errors, exact flow + 0.3 px noise at 100 points
+    per frame (10 Hz) on near scene points: the drift shrinks by well over 10x."""
+    t0, t1 = 5.0, 15.0
+    walk = Walk(WalkConfig(duration_s=20.0))
+    t, acc, gyro, truth = simulate_imu(walk, SimulationConfig(duration_s=20.0), torch.Generator().manual_seed(0))
+    keep = (t >= t0) & (t <= t1 + 0.01)
+    t, acc, gyro = t[keep], acc[keep], gyro[keep]
+    cc = CameraConfig(width=160, height=120)
+    cam, T_ci = cc.intrinsics(), cc.imu_to_camera()
+    city = build_city(walk, seed=0)
+    times = torch.arange(math.ceil(float(t[0]) * 10) / 10, float(t[-1]), 0.1, dtype=F64)
+    R, P = CameraTrajectory(walk, T_ci).pose(times)
+    camera = FlowCamera.from_calibration(cam, T_ci)
+    gen = torch.Generator().manual_seed(5)
+    events, previous = [], None
+    empty = torch.zeros(0, 2, dtype=F64)
+    for i, ti in enumerate(times.tolist()):
+        frame = render(city, cam, R[i], P[i], ti)
+        if previous is None:
+            events.append(FlowFrame(ti, empty, empty, empty, camera, augmentation=PoseAugmentation(ti, mode="limit")))
+        else:
+            truth_flow = exact_flow(city, cam, previous[0], previous[1], (R[i], P[i], ti), frame)
+            ok = (truth_flow.valid & truth_flow.static & (truth_flow.depth < 8.0)).nonzero()
+            pick = ok[torch.randperm(ok.shape[0], generator=gen)[:100]]
+            uv1 = torch.stack((pick[:, 1], pick[:, 0]), -1).to(F64)
+            flow = truth_flow.flow[pick[:, 0], pick[:, 1]].to(F64) + 0.3 * torch.randn(pick.shape[0], 2, generator=gen, dtype=F64)
+            events.append(FlowFrame(ti, flow, uv1, torch.full_like(flow, 0.3), camera, augmentation=PoseAugmentation(ti, mode="limit")))
+        previous = (frame, (R[i], P[i], ti))
+    x0 = make_state(p=walk.position(t[:1])[0], v=walk.velocity(t[:1])[0], q=walk.quaternion(t[:1])[0])
+    sigma = torch.cat((torch.full((3,), 0.01), torch.full((3,), 0.01), torch.full((4,), 1e-3),
+                       torch.full((3,), 0.05), torch.full((3,), 0.01), torch.full((3,), 0.02))).to(F64)
+    cov0 = augmented_covariance(torch.diag(sigma**2), 1e-9)
+    errors = {}
+    for label, ev in (("ins", []), ("ins+flow", events)):
+        track = run_filter(t_s=t, acc_mps2=acc, gyro_rps=gyro, mean0=x0, cov0=cov0, noise=ProcessNoise(), events=ev)
+        errors[label] = float((track.mean[-1, STATE.p] - walk.position(track.t[-1:])[0]).norm())
+        assert torch.isfinite(track.node_cov).all()
+    assert errors["ins"] > 5.0  # the inertial drift is real
+    assert errors["ins+flow"] < errors["ins"] / 10, errors
+    b_w_err = (track.mean[-1, STATE.b_w] - truth["b_w"][-1]).norm()
+    assert float(b_w_err) < 0.3 * float(truth["b_w"][-1].norm())
+    flows = [e for e in track.log if e.get("kind") == "flow"]
+    assert len(flows) == len(events) - 1 and sum(e["valid"] for e in flows) >= 0.99 * 100 * len(flows)
