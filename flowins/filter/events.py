@@ -125,6 +125,8 @@ class FlowFrame:
     gate: Gate = field(default_factory=Gate)
     sequential: bool = False
     augmentation: PoseAugmentation | None = None
+    #: leave out points whose parallax is below this many flow σ (0: keep all)
+    min_parallax_sigma: float = 0.0
     name: str = "flow frame"
 
     def apply(self, chain: ChainBuilder) -> None:
@@ -133,11 +135,15 @@ class FlowFrame:
         M = self.flow_px.shape[0]
         if M:
             mean, cov = chain.mean, chain.cov
-            m = flow_measurements(mean, self.flow_px.to(mean), self.uv1_px.to(mean), self.camera)
+            sigma = self.sigma_px.to(mean)
+            m = flow_measurements(
+                mean, self.flow_px.to(mean), self.uv1_px.to(mean), self.camera,
+                min_parallax_px=self.min_parallax_sigma * sigma.norm(dim=-1) / 2**0.5,
+            )
             info = dict(kind="flow", name=self.name, points=M, valid=int(m.valid.sum()),
-                        degenerate=m.n_degenerate, behind=m.n_behind)
+                        degenerate=m.n_degenerate, behind=m.n_behind, low_parallax=m.n_low_parallax)
             if bool(m.valid.any()):
-                upd = epipolar_update(m, self.sigma_px.to(mean))
+                upd = epipolar_update(m, sigma)
                 result = ekf_update(
                     mean, cov, innovation=upd.innovation, H=upd.H, noise_cov=upd.noise_cov,
                     gate=self.gate, sequential=self.sequential,

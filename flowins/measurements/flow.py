@@ -60,6 +60,7 @@ class FlowAux(NamedTuple):
     conditioning: Tensor  # (σ₃ - σ₄) / σ₁ of the triangulation
     depth1: Tensor  # z of X̃ in camera 1 (homogeneous, X̃ of unit norm)
     depth2: Tensor  # z of X̃ in camera 2
+    parallax: Tensor  # angle (rad) between the two viewing rays in the world frame
 
 
 def camera_pose(q: Tensor, p: Tensor, camera: FlowCamera) -> tuple[Tensor, Tensor]:
@@ -95,7 +96,10 @@ def flow_residual(x: Tensor, flow_px: Tensor, uv1_px: Tensor, camera: FlowCamera
     y1, z1 = project_homogeneous(P1, tri.point)
     y2, z2 = project_homogeneous(P2, tri.point)
     h = _to_pixels(y2, camera.K) - _to_pixels(y1, camera.K) - flow_px
-    return h, FlowAux(tri.conditioning, z1, z2)
+    ray1 = R1 @ torch.cat((x1, torch.ones_like(x1[..., :1])), -1)
+    ray2 = R2 @ torch.cat((x2, torch.ones_like(x2[..., :1])), -1)
+    parallax = torch.atan2(torch.linalg.cross(ray1, ray2).norm(dim=-1), (ray1 * ray2).sum(-1))
+    return h, FlowAux(tri.conditioning, z1, z2, parallax)
 
 
 class FlowMeasurements(NamedTuple):
@@ -104,9 +108,11 @@ class FlowMeasurements(NamedTuple):
     residual: Tensor  # (M, 2) h(m, δ), px (the EKF innovation is -h)
     H_x: Tensor  # (M, 2, 26)
     H_r: Tensor  # (M, 2, 2)
-    valid: Tensor  # (M,) bool: not degenerate
+    valid: Tensor  # (M,) bool: not degenerate, in front, enough parallax
     n_degenerate: int
     n_behind: int
+    n_low_parallax: int = 0
+    parallax_px: Tensor | None = None  # (M,) the rays' parallax angle times the focal length
 
 
 def flow_measurements(
@@ -117,6 +123,7 @@ def flow_measurements(
     *,
     min_conditioning: float = 1e-6,
     min_depth: float = 1e-9,
+    min_parallax_px: float | Tensor = 0.0,
 ) -> FlowMeasurements:
     """``h``, ``H_x``, ``H_r`` of ``M`` flow points at the state ``x`` ``(26,)``.
 
@@ -126,6 +133,10 @@ def flow_measurements(
             ``(σ₃ - σ₄) / σ₁`` is below this are degenerate.
         min_depth: points with ``z ≤ min_depth`` in either camera (``X̃`` of unit
             norm: at a camera centre or behind it) are left out as well.
+        min_parallax_px: points whose parallax (the angle between the two viewing
+            rays, times the focal length) is below this, a scalar or per point
+            ``(M,)``, are left out: when the parallax is comparable to the flow noise
+            the triangulated point, and with it ``h``, is strongly nonlinear in ``δ``.
     """
     if x.shape != (STATE_DIM,):
         raise ValueError(f"flow_measurements: x must be ({STATE_DIM},), got {tuple(x.shape)}")
@@ -146,7 +157,10 @@ def flow_measurements(
         finite = torch.isfinite(h0).all(-1)
         well_posed = aux.conditioning > min_conditioning
         in_front = (aux.depth1 > min_depth) & (aux.depth2 > min_depth)
-        valid = finite & well_posed & in_front
+        focal = 0.5 * (camera.K[0, 0] + camera.K[1, 1])
+        parallax_px = focal * aux.parallax
+        enough = parallax_px >= torch.as_tensor(min_parallax_px, dtype=x.dtype, device=x.device)
+        valid = finite & well_posed & in_front & enough
     residual_out = flow_px.new_zeros(M, 2)
     H_x = flow_px.new_zeros(M, 2, STATE_DIM)
     H_r = flow_px.new_zeros(M, 2, 2)
@@ -159,8 +173,9 @@ def flow_measurements(
         H_x = H_x.index_copy(0, index, Hx_v)
         H_r = H_r.index_copy(0, index, Hr_v)
     n_behind = int((finite & well_posed & ~in_front).sum())
-    n_degenerate = int((~valid).sum()) - n_behind
-    return FlowMeasurements(residual_out, H_x, H_r, valid, n_degenerate, n_behind)
+    n_low = int((finite & well_posed & in_front & ~enough).sum())
+    n_degenerate = int((~valid).sum()) - n_behind - n_low
+    return FlowMeasurements(residual_out, H_x, H_r, valid, n_degenerate, n_behind, n_low, parallax_px)
 
 
 class EpipolarUpdate(NamedTuple):

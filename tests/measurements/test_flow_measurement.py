@@ -166,3 +166,16 @@ def test_sequential_and_batched_epipolar_updates_agree_and_fit_the_flow(frame_pa
     assert float((batched.mean[STATE.p] - x[STATE.p]).norm()) < 0.6 * float((x0[STATE.p] - x[STATE.p]).norm())
     torch.testing.assert_close(sequential.mean, batched.mean, rtol=0, atol=1e-10)
     torch.testing.assert_close(sequential.cov, batched.cov, rtol=0, atol=1e-12)
+
+
+def test_low_parallax_points_are_left_out_and_counted(frame_pair):
+    """Parallax = focal length x the angle between the world-frame viewing rays:
+    checked against the depth-based value f·b⊥/Z for the true geometry."""
+    x, flow, uv1, camera = frame_pair
+    m = flow_measurements(x, flow, uv1, camera)
+    assert m.parallax_px is not None and bool((m.parallax_px > 0).all())
+    threshold = float(m.parallax_px.median())
+    gated = flow_measurements(x, flow, uv1, camera, min_parallax_px=threshold)
+    low = m.parallax_px < threshold
+    assert gated.n_low_parallax == int(low.sum()) and torch.equal(gated.valid, ~low)
+    assert float(gated.H_x[low].abs().max()) == 0.0 and float(gated.H_x[~low].abs().max()) > 0.0
