@@ -169,8 +169,8 @@ def test_sequential_and_batched_epipolar_updates_agree_and_fit_the_flow(frame_pa
 
 
 def test_low_parallax_points_are_left_out_and_counted(frame_pair):
-    """Parallax = focal length x the angle between the world-frame viewing rays:
-    checked against the depth-based value f·b⊥/Z for the true geometry."""
+    """Parallax = focal length x the angle between the world-frame viewing rays; points
+    below the threshold are left out (zero Jacobian) and counted."""
     x, flow, uv1, camera = frame_pair
     m = flow_measurements(x, flow, uv1, camera)
     assert m.parallax_px is not None and bool((m.parallax_px > 0).all())
