@@ -51,7 +51,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--passes", type=int, default=10, help="N_MC (paper: 10)")
     parser.add_argument("--p", type=float, default=0.2, help="dropout rate")
     parser.add_argument("--repeats", type=int, default=3, help="timings are the best of this many runs")
-    parser.add_argument("--chunk", type=int, default=None, help="passes per batch in the run-once path (default: all)")
+    parser.add_argument("--chunk", type=int, default=1, help="passes per batch in the run-once path (default 1, the provider's default; 0: all at once)")
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
     W, H = (int(v) for v in args.size.lower().split("x"))
@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> None:
 
     print("FlowNet2 Monte Carlo dropout benchmark — RANDOM WEIGHTS, speed only (flows are meaningless)")
     torch.manual_seed(0)
-    model = FlowNet2(dropout_option=2, p=args.p, passes=args.passes, chunk=args.chunk).eval().to(device)
+    model = FlowNet2(dropout_option=2, p=args.p, passes=args.passes, chunk=args.chunk or None).eval().to(device)
     images = torch.rand(1, 3, 2, H, W)
     padded, _ = pad_to_multiple(images.flatten(1, 2), 64)
     inputs = (padded.unflatten(1, (3, 2)) * 255.0).to(device)

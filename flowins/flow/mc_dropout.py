@@ -23,6 +23,24 @@ from torch import Tensor, nn
 from flowins.flow.base import mc_statistics
 
 
+def keep_probability(p: float, device: torch.device | str = "cpu") -> float:
+    """The exact keep probability of :func:`keep_mask` for rate ``p`` on ``device``."""
+    return 1.0 - p if torch.device(device).type != "cpu" else 1.0 - int(round(256 * p)) / 256.0
+
+
+def drop_mask(shape: Sequence[int], p: float, *, device: torch.device | str = "cpu") -> Tensor:
+    """The complement of :func:`keep_mask`: ``True`` where an element is dropped."""
+    device = torch.device(device)
+    if device.type != "cpu":
+        return torch.rand(tuple(shape), device=device) < p
+    n = 1
+    for d in shape:
+        n *= int(d)
+    draws = torch.empty((n + 6) // 7, dtype=torch.int64).random_()
+    bytes_ = draws.view(torch.uint8).view(-1, 8)[:, :7].reshape(-1)[:n]  # the top byte is only 7-bit
+    return (bytes_ < int(round(256 * p))).view(tuple(shape))
+
+
 def keep_mask(shape: Sequence[int], p: float, *, device: torch.device | str = "cpu") -> tuple[Tensor, float]:
     """A Bernoulli keep-mask (bool, ``shape``) with drop rate ``≈ p``, and its exact keep probability.
 
@@ -34,16 +52,7 @@ def keep_mask(shape: Sequence[int], p: float, *, device: torch.device | str = "c
     probability states exactly, so the rescaling stays unbiased. Elsewhere (CUDA)
     the mask is ``rand < 1 - p``.
     """
-    n = 1
-    for d in shape:
-        n *= int(d)
-    device = torch.device(device)
-    if device.type != "cpu":
-        return torch.rand(tuple(shape), device=device) >= p, 1.0 - p
-    threshold = int(round(256 * p))
-    draws = torch.empty((n + 6) // 7, dtype=torch.int64).random_()
-    bytes_ = draws.view(torch.uint8).view(-1, 8)[:, :7].reshape(-1)[:n]  # the top byte is only 7-bit
-    return (bytes_ >= threshold).view(tuple(shape)), 1.0 - threshold / 256.0
+    return ~drop_mask(shape, p, device=device), keep_probability(p, device)
 
 
 class MCDropout(nn.Module):
@@ -62,8 +71,14 @@ class MCDropout(nn.Module):
     def forward(self, x: Tensor) -> Tensor:
         if self.p == 0:
             return x
-        mask, keep = keep_mask(x.shape, self.p, device=x.device)
-        return x.masked_fill(~mask, 0.0).mul_(1.0 / keep)
+        return self.drop_prescaled(x * (1.0 / keep_probability(self.p, x.device)))
+
+    def drop_prescaled(self, x_scaled: Tensor) -> Tensor:
+        """Dropout of features already divided by the keep probability (one mask, one fill):
+        Monte Carlo passes over the same features scale them once, not once per pass."""
+        if self.p == 0:
+            return x_scaled
+        return x_scaled.masked_fill(drop_mask(x_scaled.shape, self.p, device=x_scaled.device), 0.0)
 
     def extra_repr(self) -> str:
         return f"p={self.p}"
@@ -117,13 +132,16 @@ def mc_samples(
         raise ValueError(f"mc_samples: passes={passes}; expected >= 1")
     B = features.shape[0]
     chunk = passes if chunk is None else max(1, int(chunk))
+    prescaled = isinstance(dropout, MCDropout) and dropout.p > 0
+    if prescaled:  # scale once for all passes
+        features = features * (1.0 / keep_probability(dropout.p, features.device))
     outputs = []
     for start in range(0, passes, chunk):
         n = min(chunk, passes - start)
         # one pass at a time needs no copy of the (large) upstream features
         x = features if n == 1 else features.repeat(n, *([1] * (features.ndim - 1)))
         ctx = [c if n == 1 else c.repeat(n, *([1] * (c.ndim - 1))) for c in context]
-        out = head(dropout(x), *ctx)
+        out = head(dropout.drop_prescaled(x) if prescaled else dropout(x), *ctx)
         outputs.append(out.reshape(n, B, *out.shape[1:]))
     return torch.cat(outputs, dim=0)
 
