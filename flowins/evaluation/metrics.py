@@ -92,8 +92,8 @@ def associate(t_est_s: Tensor, t_ref_s: Tensor, *, max_dt_s: float) -> Associati
     if not (max_dt_s >= 0.0 and max_dt_s < float("inf")):
         raise ValueError(f"max_dt_s must be a finite number >= 0, got {max_dt_s}")
 
-    t_est = t_est_s.detach().to(torch.float64)
-    t_ref = t_ref_s.detach().to(torch.float64).to(t_est.device)
+    t_est = t_est_s.detach().to(torch.float64).contiguous()
+    t_ref = t_ref_s.detach().to(torch.float64).to(t_est.device).contiguous()
     n = t_est.shape[0]
     inside = (t_ref >= t_est[0]) & (t_ref <= t_est[-1])
     left = (torch.searchsorted(t_est, t_ref, right=True) - 1).clamp(0, n - 2)
