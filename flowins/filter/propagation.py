@@ -134,9 +134,8 @@ def _prefix_compose(F: Tensor, S: Tensor) -> tuple[Tensor, Tensor]:
     shift = 1
     m = F.shape[0]
     while shift < m:
-        F_late, S_late = F[shift:], S[shift:]
-        S = torch.cat((S[:shift], F_late @ S[:-shift] @ F_late.transpose(-1, -2) + S_late), dim=0)
-        F = torch.cat((F[:shift], F_late @ F[:-shift]), dim=0)
+        F_new, S_new = _compose((F[shift:], S[shift:]), (F[:-shift], S[:-shift]))
+        F, S = torch.cat((F[:shift], F_new), dim=0), torch.cat((S[:shift], S_new), dim=0)
         shift *= 2
     return F, S
 
