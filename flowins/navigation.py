@@ -1,7 +1,6 @@
 """The INS pipeline from validated streams to filtered and smoothed tracks.
 
-``data (streams) -> measurements (GNSS fixes) -> filter (EKF, RTS)``; the flow
-updates of the paper join here as further events in a later release.
+``data (streams, flow pairs) -> measurements (GNSS fixes, flow frames) -> filter (EKF, RTS)``.
 """
 from __future__ import annotations
 
@@ -12,7 +11,7 @@ from torch import Tensor
 
 from flowins.data.streams import GnssStream, ImuStream
 from flowins.filter.ekf import Gate
-from flowins.filter.events import gnss_fixes
+from flowins.filter.events import FlowFrame, FlowUpdate, ZeroVelocity, gnss_fixes
 from flowins.filter.runner import FilterTrack, run_filter
 from flowins.filter.smoother import SmoothedTrack, rts_smooth
 from flowins.geometry.geodesy import LocalTangentPlane, gnss_to_enu
@@ -28,6 +27,10 @@ class NavigationConfig:
     noise: ProcessNoise = field(default_factory=ProcessNoise)
     initial: InitialUncertainty = field(default_factory=InitialUncertainty)
     stationary_s: float = 5.0
+    #: zero-velocity updates over the stationary window (the initialisation assumes the
+    #: device is still there), at this rate; 0 switches them off
+    stationary_zupt_hz: float = 10.0
+    stationary_zupt_sigma_mps: float = 0.01
     initial_yaw_rad: float = 0.0
     gnss_gate: Gate = field(default_factory=Gate)
     gnss_noise_scale: float = 1.0
@@ -36,6 +39,7 @@ class NavigationConfig:
     gravity_mps2: float = STANDARD_GRAVITY_MPS2
     jacobians: str = "analytic"
     dtype: torch.dtype = torch.float64
+    flow_update: FlowUpdate = field(default_factory=FlowUpdate)
 
 
 @dataclass
@@ -46,12 +50,45 @@ class NavigationResult:
     gnss_t_s: Tensor | None
     gnss_enu_m: Tensor | None
     gnss_h_acc_m: Tensor | None
+    #: flow pairs left out because they are not inside the IMU time span
+    flow_pairs_outside: int = 0
 
     @property
     def gnss_accepted(self) -> Tensor | None:
         """Gate decision (1 accepted, 0 rejected) of each GNSS fix, in order."""
         flags = [entry["accepted"] for entry in self.filter.log if entry.get("kind") == "gnss"]
         return torch.tensor(flags) if flags else None
+
+    @property
+    def flow_log(self) -> list[dict]:
+        """The log entries of the flow frames (points, valid, degenerate, accepted, ...)."""
+        return [entry for entry in self.filter.log if entry.get("kind") == "flow"]
+
+
+def flow_frames(pairs, camera, update: FlowUpdate, *, t_min_s: float, t_max_s: float, name: str = "flow") -> tuple[list[FlowFrame], int]:
+    """One :class:`FlowFrame` per frame time of ``pairs`` (a :class:`~flowins.flow.pairs.FlowPairs`).
+
+    A pair's points update the filter at its end time; its start time must be the
+    previous frame event (where the pose was augmented), otherwise an augmentation-only
+    frame is inserted there first. Pairs not inside ``[t_min_s, t_max_s]`` are left out
+    and counted (second return value).
+    """
+    from flowins.flow.points import FlowPoints
+
+    empty = torch.zeros(0, 2, dtype=torch.float64)
+    events: list[FlowFrame] = []
+    outside = 0
+    last = None
+    for k in range(len(pairs)):
+        t1, t2 = float(pairs.t1_s[k]), float(pairs.t2_s[k])
+        if t1 < t_min_s or t2 > t_max_s:
+            outside += 1
+            continue
+        if last is None or last != t1:
+            events.append(FlowFrame(t1, FlowPoints(empty, empty, empty), camera, update, f"{name} frame at {t1:.3f} s"))
+        events.append(FlowFrame(t2, pairs.points[k], camera, update, f"{name} pair {k} ({t1:.3f} -> {t2:.3f} s)"))
+        last = t2
+    return events, outside
 
 
 def navigate(
@@ -60,6 +97,8 @@ def navigate(
     *,
     config: NavigationConfig = NavigationConfig(),
     frame: LocalTangentPlane | None = None,
+    flow=None,
+    camera=None,
     progress: bool = False,
 ) -> NavigationResult:
     """Run the EKF and the RTS smoother on an IMU stream, with GNSS fixes if given.
@@ -68,6 +107,10 @@ def navigate(
     over ``config.stationary_s``; with GNSS the local ENU frame has its origin at
     the first fix (or ``frame``) and the initial position is that fix's, with
     its accuracy as uncertainty. GNSS fixes outside the IMU time span raise.
+
+    ``flow`` (a :class:`~flowins.flow.pairs.FlowPairs`, dense or sparse) with
+    ``camera`` (:class:`~flowins.measurements.flow.FlowCamera`) adds the paper's flow
+    frames (:func:`flow_frames`, settings ``config.flow_update``).
     """
     initial = config.initial
     events = []
@@ -79,6 +122,18 @@ def navigate(
         initial = InitialUncertainty(
             **{**initial.__dict__, "position_m": float(max(gnss.h_acc_m[0], gnss.v_acc_m[0]))}
         )
+    if config.stationary_zupt_hz > 0:
+        t_start = float(imu.t_s[0])
+        times = torch.arange(t_start, t_start + config.stationary_s, 1.0 / config.stationary_zupt_hz, dtype=torch.float64)
+        events = events + [ZeroVelocity(float(t), config.stationary_zupt_sigma_mps, f"zero velocity at {float(t):.2f} s")
+                           for t in times[times <= float(imu.t_s[-1])]]
+    outside = 0
+    if flow is not None:
+        if camera is None:
+            raise ValueError("navigate: flow pairs need the camera (a FlowCamera with K and the IMU->camera transform)")
+        frames, outside = flow_frames(flow, camera, config.flow_update, t_min_s=float(imu.t_s[0]),
+                                      t_max_s=float(imu.t_s[-1]), name=flow.kind)
+        events = events + frames
     mean0, cov0 = stationary_initialization(
         t_s=imu.t_s,
         acc_mps2=imu.acc_mps2,
@@ -111,4 +166,5 @@ def navigate(
         gnss_t_s=None if gnss is None else gnss.t_s,
         gnss_enu_m=enu,
         gnss_h_acc_m=None if gnss is None else gnss.h_acc_m,
+        flow_pairs_outside=outside,
     )

@@ -22,14 +22,14 @@ noise vector has its own layout, :data:`NOISE`.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 
-@lru_cache(maxsize=None)
+@cache
 def _slices(sizes: tuple[tuple[str, int], ...]) -> dict[str, slice]:
     out, start = {}, 0
     for field, size in sizes:

@@ -247,10 +247,10 @@ def _read_imu(iphone: Path, *, max_gap_s: float) -> tuple[ImuStream, dict[str, A
         "method": "accelerometer linearly interpolated onto the gyro timestamps, then g -> m/s^2 (x 9.80665)",
         "accelerometer_file": str(acc_file),
         "gyro_file": str(gyro_file),
-        "gyro_samples": int(len(gyro)),
+        "gyro_samples": len(gyro),
         "gyro_dropped_start": first,
-        "gyro_dropped_end": int(len(gyro)) - 1 - last,
-        "accelerometer_samples": int(len(acc)),
+        "gyro_dropped_end": len(gyro) - 1 - last,
+        "accelerometer_samples": len(acc),
     }
     return imu, meta
 

@@ -158,7 +158,7 @@ def check_increasing(
     *,
     path: Path,
     unit: str,
-    max_step: float | int | None = None,
+    max_step: float | None = None,
     max_step_hint: str = "",
 ) -> None:
     """Timestamps must be strictly increasing (and, optionally, steps at most ``max_step``).

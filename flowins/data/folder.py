@@ -25,11 +25,12 @@ import datetime
 import os
 import re
 import shutil
+from collections.abc import Iterable, Iterator
+from collections.abc import Sequence as Seq
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Iterator
-from typing import Sequence as Seq
+from typing import Any
 
 import numpy as np
 import torch
@@ -40,7 +41,7 @@ from flowins.data.sequence import CameraFrames, PinholeCamera, Sequence, Tracks
 from flowins.data.streams import GnssStream, ImuStream, PoseStream
 from flowins.geometry.camera import RigidTransform
 
-__all__ = ["read_folder", "write_folder", "write_frame_images", "FILES"]
+__all__ = ["FILES", "read_folder", "write_folder", "write_frame_images"]
 
 IMU_COLUMNS = ("t", "ax", "ay", "az", "wx", "wy", "wz")
 FRAME_FILE_COLUMNS = ("t", "file")
@@ -516,8 +517,7 @@ def _format_rows(columns: Seq[Tensor | np.ndarray], integer: Seq[bool] | None = 
 def _write_csv(file: Path, header: Seq[str], lines: Iterable[str]) -> None:
     with open(file, "w", encoding="utf-8", newline="\n") as out:
         out.write(",".join(header) + "\n")
-        for line in lines:
-            out.write(line + "\n")
+        out.writelines(line + "\n" for line in lines)
 
 
 def _plain(value: Any, where: str) -> Any:

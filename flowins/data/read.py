@@ -17,7 +17,7 @@ from typing import Any
 
 from flowins.data.sequence import Sequence
 
-__all__ = ["read_sequence", "detect_format"]
+__all__ = ["detect_format", "read_sequence"]
 
 _LOOKED_FOR = (
     "imu.csv (flowins folder format)",

@@ -20,9 +20,10 @@ beside this module (``folder``, ``euroc``, ``advio``); they all return a
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import KW_ONLY, dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 import torch
@@ -200,7 +201,7 @@ class CameraFrames:
     def _read_video(self, index: int) -> np.ndarray:
         import cv2
 
-        cap, position = getattr(self, "_capture") or (None, -1)
+        cap, position = self._capture or (None, -1)
         if cap is None:
             cap = cv2.VideoCapture(str(self.video))
             if not cap.isOpened():

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["ImuStream", "GnssStream", "PoseStream"]
+__all__ = ["GnssStream", "ImuStream", "PoseStream"]
 
 _DTYPE = torch.float64
 

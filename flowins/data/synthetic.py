@@ -216,9 +216,9 @@ def gnss_track(
 class Recording:
     """A synthetic recording: sensor streams plus everything that is true."""
 
-    imu: "ImuStream"
-    gnss: "GnssStream"
-    truth: "PoseStream"
+    imu: ImuStream
+    gnss: GnssStream
+    truth: PoseStream
     imu_errors: dict[str, Tensor]
     walk: Walk
 

@@ -13,9 +13,10 @@ followed by quaternion re-normalisation of the mean and symmetrisation of ``P``.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import torch
 from torch import Tensor

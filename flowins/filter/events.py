@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
+import torch
 from torch import Tensor
 
 from flowins.filter.augmentation import augment_pose, copy_matrices, forgetting_matrices
@@ -17,6 +18,7 @@ from flowins.filter.ekf import Gate, ekf_update
 from flowins.filter.runner import ChainBuilder
 
 if TYPE_CHECKING:
+    from flowins.flow.points import FlowPoints
     from flowins.measurements.flow import FlowCamera
 from flowins.measurements.gnss import gnss_jacobian_analytic, gnss_position
 from flowins.state import STATE
@@ -74,6 +76,24 @@ def gnss_fixes(
 
 
 @dataclass(frozen=True)
+class ZeroVelocity:
+    """A zero-velocity pseudo-measurement ``0 = v + n``, ``n ~ N(0, σ² I₃)`` (a still device)."""
+
+    time_s: float
+    sigma_mps: float | Tensor = 0.01
+    name: str = "zero velocity"
+
+    def apply(self, chain: ChainBuilder) -> None:
+        mean, cov = chain.mean, chain.cov
+        H = torch.zeros(1, 3, mean.shape[-1], dtype=mean.dtype, device=mean.device)
+        H[0, :, STATE.v] = torch.eye(3, dtype=mean.dtype, device=mean.device)
+        sigma = torch.as_tensor(self.sigma_mps, dtype=mean.dtype, device=mean.device)
+        result = ekf_update(mean, cov, innovation=-mean[STATE.v].reshape(1, 3), H=H,
+                            noise_cov=(sigma**2 * torch.eye(3, dtype=mean.dtype, device=mean.device)).reshape(1, 3, 3))
+        chain.update(result, kind="zero_velocity", name=self.name)
+
+
+@dataclass(frozen=True)
 class PoseAugmentation:
     """Pose forgetting then pose augmentation at ``time_s`` (the per-frame step of the paper).
 
@@ -106,50 +126,110 @@ class PoseAugmentation:
 
 
 @dataclass(frozen=True)
+class FlowUpdate:
+    """How a frame's flow points update the filter (every field has a config entry).
+
+    Attributes:
+        n_points: points used per frame, chosen at the current state by ``selection``
+            (:func:`flowins.measurements.selection.select_points`); None: all.
+        selection: ``"parallax"`` | ``"sigma"`` | ``"grid"``; ``cell_px``: spreading cell.
+        sigma_scale, sigma_floor_px: the flow noise used is
+            ``σ = sqrt((sigma_scale σ_flow)² + sigma_floor_px²)`` per component.
+        min_parallax_sigma: leave out points whose rotation-compensated parallax is
+            below this many σ (0: keep all).
+        parallax_inflation: inflate each point's noise by ``p² / (p² - σ²)`` (``p`` the
+            measured parallax): the depth, and with it ``H_x``, is estimated from the same
+            noisy flow, and without the correction a low-parallax point claims
+            ``(p² + σ²) / p²`` times the information it has (errors in variables).
+        gate: χ² gate on each point's scalar innovation (moving objects, bad flow).
+        sequential: the paper's point-by-point update instead of one stacked update.
+        iterations: relinearisations of the measurement (1: EKF, > 1: iterated EKF).
+        augmentation: the pose forgetting + augmentation after the update.
+    """
+
+    n_points: int | None = 256
+    selection: str = "parallax"
+    cell_px: float = 80.0
+    sigma_scale: float | Tensor = 1.0
+    sigma_floor_px: float | Tensor = 0.25
+    min_parallax_sigma: float = 1.0
+    parallax_inflation: bool = True
+    gate: Gate = field(default_factory=Gate)
+    sequential: bool = False
+    iterations: int = 1
+    augmentation_mode: str = "limit"
+    sigma_p0: float | Tensor = 1e3
+    sigma_q0: float | Tensor = 1e2
+
+    def __post_init__(self) -> None:
+        if self.n_points is not None and self.n_points < 1:
+            raise ValueError(f"FlowUpdate.n_points must be >= 1 or None, got {self.n_points}")
+        if self.iterations < 1:
+            raise ValueError(f"FlowUpdate.iterations must be >= 1, got {self.iterations}")
+        if self.min_parallax_sigma < 0:
+            raise ValueError(f"FlowUpdate.min_parallax_sigma must be >= 0, got {self.min_parallax_sigma}")
+
+
+#: every point used, no inflation, no parallax limit, no gate: the paper's update as written
+PAPER_FLOW_UPDATE = FlowUpdate(n_points=None, min_parallax_sigma=0.0, parallax_inflation=False,
+                               sigma_floor_px=0.0, gate=Gate(mode="off"))
+
+
+@dataclass(frozen=True)
 class FlowFrame:
     """A camera frame: flow updates against the augmented previous frame's pose, then
     pose forgetting and augmentation (the paper's per-frame order).
 
-    ``flow_px``, ``uv1_px``, ``sigma_px`` ``(M, 2)``: flow points from the previous
-    frame to this one, their pixels in the previous frame and 1-σ. The update uses
-    the epipolar component of each point (:func:`flowins.measurements.flow.epipolar_update`);
-    degenerate points are skipped and counted in the log. ``M = 0`` (the first
-    frame) only augments.
+    ``points``: the flow points from the previous frame used by the filter to this
+    one (:class:`~flowins.flow.points.FlowPoints`, ``M`` of them; ``M = 0`` for the
+    first frame, which only augments). The update uses the epipolar component of each
+    point (:func:`flowins.measurements.flow.epipolar_update`); degenerate points are
+    skipped and counted in the log.
     """
 
     time_s: float
-    flow_px: Tensor
-    uv1_px: Tensor
-    sigma_px: Tensor
-    camera: "FlowCamera"
-    gate: Gate = field(default_factory=Gate)
-    sequential: bool = False
-    augmentation: PoseAugmentation | None = None
-    #: leave out points whose parallax is below this many flow σ (0: keep all)
-    min_parallax_sigma: float = 0.0
+    points: FlowPoints
+    camera: FlowCamera
+    update: FlowUpdate = field(default_factory=FlowUpdate)
     name: str = "flow frame"
+
+    def noise_sigma(self, sigma_px: Tensor) -> Tensor:
+        u = self.update
+        scale = torch.as_tensor(u.sigma_scale, dtype=sigma_px.dtype)
+        floor = torch.as_tensor(u.sigma_floor_px, dtype=sigma_px.dtype)
+        return torch.sqrt((scale * sigma_px) ** 2 + floor**2)
 
     def apply(self, chain: ChainBuilder) -> None:
         from flowins.measurements.flow import epipolar_update, flow_measurements
+        from flowins.measurements.selection import select_points
 
-        M = self.flow_px.shape[0]
+        u = self.update
+        points = self.points
+        M = len(points)
         if M:
             mean, cov = chain.mean, chain.cov
-            sigma = self.sigma_px.to(mean)
-            m = flow_measurements(
-                mean, self.flow_px.to(mean), self.uv1_px.to(mean), self.camera,
-                min_parallax_px=self.min_parallax_sigma * sigma.norm(dim=-1) / 2**0.5,
-            )
-            info = dict(kind="flow", name=self.name, points=M, valid=int(m.valid.sum()),
+            points = type(points)(points.uv1_px.to(mean), points.flow_px.to(mean), self.noise_sigma(points.sigma_px.to(mean)))
+            if u.n_points is not None and M > u.n_points:
+                keep = select_points(mean, points, self.camera.K, self.camera.R_ci, n_points=u.n_points,
+                                     method=u.selection, cell_px=u.cell_px)
+                points = points.take(keep)
+            sigma = points.sigma_px
+            min_parallax = u.min_parallax_sigma * sigma.norm(dim=-1) / 2**0.5
+            x_i, result = mean, None
+            for _ in range(u.iterations):
+                m = flow_measurements(x_i, points.flow_px, points.uv1_px, self.camera, min_parallax_px=min_parallax)
+                if not bool(m.valid.any()):
+                    break
+                upd = epipolar_update(m, sigma, parallax_inflation=u.parallax_inflation)
+                # iterated EKF: linearised at x_i, applied to the prior (mean, cov)
+                shift = (upd.H @ (mean - x_i).unsqueeze(-1)).squeeze(-1)
+                result = ekf_update(mean, cov, innovation=upd.innovation - shift, H=upd.H,
+                                    noise_cov=upd.noise_cov, gate=u.gate, sequential=u.sequential)
+                x_i = result.mean
+            info = dict(kind="flow", name=self.name, candidates=M, points=len(points), valid=int(m.valid.sum()),
                         degenerate=m.n_degenerate, behind=m.n_behind, low_parallax=m.n_low_parallax)
-            if bool(m.valid.any()):
-                upd = epipolar_update(m, sigma)
-                result = ekf_update(
-                    mean, cov, innovation=upd.innovation, H=upd.H, noise_cov=upd.noise_cov,
-                    gate=self.gate, sequential=self.sequential,
-                )
+            if result is not None:
                 chain.update(result, accepted=float(result.weight.sum()), **info)
             else:
                 chain.log.append({"t_s": chain.time_s, "accepted": 0.0, **info})
-        augmentation = self.augmentation or PoseAugmentation(self.time_s)
-        augmentation.apply(chain)
+        PoseAugmentation(self.time_s, u.sigma_p0, u.sigma_q0, mode=u.augmentation_mode).apply(chain)

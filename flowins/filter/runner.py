@@ -14,8 +14,9 @@ use the sample, as the paper's ``ã_k`` drives the whole interval ``(t_{k-1}, t_
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol, Sequence
+from typing import Any, Protocol
 
 import torch
 from torch import Tensor
@@ -33,7 +34,7 @@ class Event(Protocol):
     time_s: float
     name: str
 
-    def apply(self, chain: "ChainBuilder") -> None: ...
+    def apply(self, chain: ChainBuilder) -> None: ...
 
 
 @dataclass
@@ -95,7 +96,7 @@ class ChainBuilder:
         if info:
             self.log.append({"t_s": self.time_s, **info})
 
-    def finish(self) -> "FilterTrack":
+    def finish(self) -> FilterTrack:
         return FilterTrack(
             t_s=torch.tensor(self.t_s, dtype=torch.float64),
             transition=torch.cat(self._transition),

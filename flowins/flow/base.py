@@ -48,7 +48,7 @@ class FlowResult:
                 f"FlowResult: flow and sigma must both be (B, 2, H, W); got {tuple(self.flow.shape)} and {tuple(self.sigma.shape)}"
             )
 
-    def __getitem__(self, index: int) -> "FlowResult":
+    def __getitem__(self, index: int) -> FlowResult:
         """The ``index``-th pair, keeping a batch dimension of 1."""
         samples = None if self.samples is None else self.samples[:, index : index + 1]
         return FlowResult(self.flow[index : index + 1], self.sigma[index : index + 1], samples)

@@ -15,7 +15,7 @@ dropout of Gal, Hron & Kendall (2017) whose rate is a differentiable parameter
 from __future__ import annotations
 
 import math
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor, nn

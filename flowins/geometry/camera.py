@@ -43,11 +43,11 @@ class RigidTransform:
         object.__setattr__(self, "translation_m", t)
 
     @staticmethod
-    def identity() -> "RigidTransform":
+    def identity() -> RigidTransform:
         return RigidTransform(torch.tensor([1.0, 0.0, 0.0, 0.0]), torch.zeros(3))
 
     @staticmethod
-    def from_matrix(T: Tensor) -> "RigidTransform":
+    def from_matrix(T: Tensor) -> RigidTransform:
         """From a homogeneous ``(..., 4, 4)`` matrix."""
         T = torch.as_tensor(T, dtype=torch.float64)
         return RigidTransform(quat.from_matrix(T[..., :3, :3]), T[..., :3, 3])
@@ -64,7 +64,7 @@ class RigidTransform:
         bottom[..., 0, 3] = 1.0
         return torch.cat((top, bottom), dim=-2)
 
-    def inverse(self) -> "RigidTransform":
+    def inverse(self) -> RigidTransform:
         q_inv = quat.conjugate(self.rotation_wxyz)
         return RigidTransform(q_inv, -quat.rotate(q_inv, self.translation_m))
 
@@ -73,7 +73,7 @@ class RigidTransform:
         q = self.rotation_wxyz.to(points)
         return quat.rotate(q, points) + self.translation_m.to(points)
 
-    def compose(self, other: "RigidTransform") -> "RigidTransform":
+    def compose(self, other: RigidTransform) -> RigidTransform:
         """``self ∘ other``: first ``other`` (a→b), then ``self`` (b→c)."""
         return RigidTransform(
             quat.multiply(self.rotation_wxyz, other.rotation_wxyz),

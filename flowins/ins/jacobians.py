@@ -19,14 +19,14 @@ and for the noise ``ε = (ε^a, ε^ω, ε^{b_a}, ε^{b_ω}, ε^{T_a})``: ``∂v'
 """
 from __future__ import annotations
 
-from functools import lru_cache
+from functools import cache
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 from flowins.geometry import quaternion as quat
-from flowins.geometry.quaternion import rotate_jacobian, rotation_vector_jacobian  # noqa: F401 (re-exported)
+from flowins.geometry.quaternion import rotate_jacobian, rotation_vector_jacobian
 from flowins.ins.mechanization import check_scheme
 from flowins.state import CORE, CORE_DIM, NOISE, NOISE_DIM, STATE_DIM, _Layout, split
 
@@ -120,7 +120,7 @@ def core_jacobians_from_pieces(pieces: StepPieces, scheme: str) -> tuple[Tensor,
     return F, G
 
 
-@lru_cache(maxsize=None)
+@cache
 def _block_index(keys: tuple[tuple[str, str], ...], rows: _Layout, cols: _Layout, device: torch.device) -> Tensor:
     """Flat positions in a ``(rows.dim, cols.dim)`` matrix of the named blocks, concatenated."""
     index = []
@@ -145,7 +145,7 @@ def place_blocks(
     return flat.view(*batch, rows.dim, cols.dim)
 
 
-@lru_cache(maxsize=None)
+@cache
 def _core_identity_base(dtype: torch.dtype, device: torch.device) -> Tensor:
     """Identity on the core rows except the ``q`` block (which the step Jacobian replaces)."""
     base = torch.eye(CORE_DIM, dtype=dtype, device=device)
@@ -153,7 +153,7 @@ def _core_identity_base(dtype: torch.dtype, device: torch.device) -> Tensor:
     return base
 
 
-@lru_cache(maxsize=None)
+@cache
 def _walk_base(dtype: torch.dtype, device: torch.device) -> Tensor:
     """``∂x'/∂ε`` of the random walks: identity from each walk noise to its state."""
     base = torch.zeros(CORE_DIM, NOISE_DIM, dtype=dtype, device=device)

@@ -1,38 +1,42 @@
 """The evaluation job: run each fusion combination on a sequence and report Table I.
 
-For every combination: the EKF and the RTS smoother, their RMSE after
-Procrustes (rotation + translation) alignment to the ground truth, a Fig. 5
-style PNG, TUM trajectories and one JSON of all metrics.
+``sequence -> flow pairs (dense provider, sparse tracker; cached) -> navigate per
+combination -> metrics, plots``. For every combination: the EKF and the RTS
+smoother, their RMSE after Procrustes (rotation + translation) alignment to the
+ground truth, a Fig. 5 style PNG, TUM trajectories and one JSON of all metrics;
+plus the Fig. 2 flow panel for a few frame pairs.
 """
 from __future__ import annotations
 
 import json
 import math
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import torch
 
+from flowins.cache import cache_root
+from flowins.data.sequence import Sequence
 from flowins.data.streams import GnssStream, ImuStream, PoseStream
-from flowins.data.synthetic import Recording, synthetic_walk_recording
 from flowins.evaluation import plot_trajectory, trajectory_errors, write_tum
 from flowins.filter.ekf import Gate
+from flowins.filter.events import FlowUpdate
+from flowins.flow.pairs import (
+    FlowPairs,
+    cache_key,
+    cached,
+    dense_pairs,
+    sparse_pairs,
+    track_pairs,
+)
 from flowins.ins.initialization import InitialUncertainty
 from flowins.ins.mechanization import ProcessNoise
+from flowins.measurements.flow import FlowCamera
 from flowins.navigation import NavigationConfig, NavigationResult, navigate
 from flowins.state import STATE
-
-#: Table I rows: name -> (uses GNSS, uses sparse flow, uses dense flow)
-COMBINATIONS: dict[str, tuple[bool, bool, bool]] = {
-    "ins": (False, False, False),
-    "ins_gnss": (True, False, False),
-    "ins_sparse": (False, True, False),
-    "ins_dense": (False, False, True),
-    "ins_gnss_sparse": (True, True, False),
-    "ins_gnss_dense": (True, False, True),
-}
 
 _DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
@@ -52,6 +56,8 @@ def navigation_config(cfg: Mapping[str, Any]) -> NavigationConfig:
         ),
         initial=InitialUncertainty(**dict(cfg["initial"])),
         stationary_s=cfg["stationary_s"],
+        stationary_zupt_hz=cfg["stationary_zupt_hz"],
+        stationary_zupt_sigma_mps=cfg["stationary_zupt_sigma_mps"],
         initial_yaw_rad=cfg["initial_yaw_rad"],
         gnss_gate=Gate(mode=cfg["gnss_gate"]["mode"], probability=cfg["gnss_gate"]["probability"]),
         gnss_noise_scale=cfg["gnss_noise_scale"],
@@ -60,39 +66,99 @@ def navigation_config(cfg: Mapping[str, Any]) -> NavigationConfig:
         gravity_mps2=cfg["gravity_mps2"],
         jacobians=cfg["jacobians"],
         dtype=_DTYPES[cfg["dtype"]],
+        flow_update=flow_update_config(cfg["flow"]),
     )
+
+
+def flow_update_config(cfg: Mapping[str, Any]) -> FlowUpdate:
+    """:class:`FlowUpdate` from ``filter.flow``."""
+    cfg = dict(cfg)
+    gate = cfg.pop("gate")
+    return FlowUpdate(gate=Gate(mode=gate["mode"], probability=gate["probability"]), **cfg)
 
 
 @dataclass
 class EvalInputs:
-    """What the job evaluates: IMU, optional GNSS and optional ground truth."""
+    """What the job evaluates: IMU, optional GNSS, camera frames or tracks, ground truth."""
 
     name: str
     imu: ImuStream
     gnss: GnssStream | None
     truth: PoseStream | None
+    sequence: Sequence | None = None
+    #: identifies the recording in flow cache keys
+    source_id: str = ""
+
+    @property
+    def camera(self) -> FlowCamera | None:
+        seq = self.sequence
+        if seq is None or seq.camera is None or seq.imu_to_camera is None:
+            return None
+        return FlowCamera.from_calibration(seq.camera, seq.imu_to_camera)
 
 
-def load_sequence(cfg: Mapping[str, Any], *, quick: bool) -> EvalInputs:
+def load_sequence(cfg: Mapping[str, Any], *, quick: bool, progress: bool = False) -> EvalInputs:
     """``sequence.path=DIR`` reads a recording (flowins folder, EuRoC, ADVIO); otherwise
-    the built-in simulated walk of ``sequence.kind``."""
+    the simulated city walk (:func:`flowins.data.simulate.simulate`, cached)."""
     if cfg.get("path"):
         from flowins.data.read import read_sequence
 
         seq = read_sequence(cfg["path"])
-        return EvalInputs(seq.name, seq.imu, seq.gnss, seq.groundtruth)
-    if cfg["kind"] != "synthetic_walk":
+        n = 0 if seq.frames is None else len(seq.frames)
+        source = f"{Path(cfg['path']).resolve()}|{n}|{float(seq.imu.t_s[0])}|{float(seq.imu.t_s[-1])}"
+        return EvalInputs(seq.name, seq.imu, seq.gnss, seq.groundtruth, seq, source)
+    if cfg["kind"] != "simulated_walk":
         raise ValueError(
-            f"sequence.kind={cfg['kind']!r} is not supported; use the built-in 'synthetic_walk' "
+            f"sequence.kind={cfg['kind']!r} is not supported; use the built-in 'simulated_walk' "
             "or give a recording with sequence.path=DIR"
         )
-    rec: Recording = synthetic_walk_recording(
-        duration_s=60.0 if quick else float(cfg["duration_s"]),
+    from flowins.data.simulate import CameraConfig, SimulationConfig, simulate
+
+    config = SimulationConfig(
+        duration_s=float(cfg["quick_duration_s"] if quick else cfg["duration_s"]),
         seed=int(cfg["seed"]),
         imu_rate_hz=float(cfg["imu_rate_hz"]),
-        gnss_rate_hz=float(cfg["gnss_rate_hz"]),
+        camera=CameraConfig(**dict(cfg["camera"])),
+        flow_every=0,
     )
-    return EvalInputs(rec.imu.name, rec.imu, rec.gnss, rec.truth)
+    seq = simulate(config=config, progress=progress)
+    return EvalInputs(seq.name, seq.imu, seq.gnss, seq.groundtruth, seq, f"simulated:{config.key()}")
+
+
+def load_flow(kind: str, rec: EvalInputs, cfg: Mapping[str, Any], *, progress: bool) -> FlowPairs | str:
+    """The dense or sparse flow pairs of the recording (computed once, then cached),
+    or the reason they can't be had."""
+    seq = rec.sequence
+    if seq is None or seq.camera is None:
+        return "the sequence has no camera"
+    pairs_cfg = cfg["flow_pairs"]
+    step = int(pairs_cfg["step"])
+    if kind == "sparse" and cfg["sparse"].get("source") == "tracks":
+        if seq.tracks is None:
+            return "sparse.source=tracks but the sequence has no tracks.csv"
+        return track_pairs(seq.tracks, sigma_px=float(cfg["sparse"]["sigma_px"]), step=step).undistorted(seq.camera)
+    if seq.frames is None:
+        return "the sequence has no camera frames"
+    from hydra.utils import instantiate
+
+    settings = cfg["flow"] if kind == "dense" else cfg["sparse"]
+    extra = dict(stride_px=pairs_cfg["stride_px"], border_px=pairs_cfg["border_px"],
+                 input_scale=pairs_cfg["input_scale"]) if kind == "dense" else {}
+    key = cache_key(kind=kind, source=rec.source_id, provider=settings, step=step, **extra)
+    path = Path(cfg["cache_dir"] or cache_root()) / "flow" / f"{kind}-{key}.npz"
+    label = str((settings if kind == "dense" else settings["tracker"]).get("_target_", "")).rsplit(".", 1)[-1]
+
+    def compute() -> FlowPairs:
+        provider = instantiate(settings if kind == "dense" else settings["tracker"])
+        if kind == "dense":
+            return dense_pairs(seq.frames, provider, step=step, batch_size=int(pairs_cfg["batch_size"]),
+                               progress=progress, description=label, **extra)
+        return sparse_pairs(seq.frames, provider, step=step, progress=progress, description=label)
+
+    if path.is_file():
+        print(f"{kind} flow: {label}, read from the cache {path}")
+    pairs = cached(path, compute)
+    return pairs.undistorted(seq.camera)
 
 
 @dataclass
@@ -107,7 +173,7 @@ class Row:
 
 def format_table(rows: list[Row]) -> str:
     """The Table I analogue as fixed-width text."""
-    tick = lambda b: "x" if b else " "  # noqa: E731
+    tick = lambda b: "x" if b else " "
     lines = [
         f"{'#':>2}  {'combination':<16} {'INS':^4} {'GNSS':^5} {'sparse':^7} {'dense':^6} {'filter RMSE':>12} {'smoother RMSE':>14}",
         "-" * 74,
@@ -155,43 +221,110 @@ def _export(out: Path, name: str, result: NavigationResult, rec: EvalInputs, plo
     return metrics
 
 
+def flow_panels(rec: EvalInputs, cfg: Mapping[str, Any], out: Path, count: int) -> list[Path]:
+    """The paper's Fig. 2 (frames, Δu, Δv, σ) for ``count`` frame pairs spread over the recording."""
+    from hydra.utils import instantiate
+
+    from flowins.flow.pairs import _run_scaled
+    from flowins.flow.visualize import flow_panel
+
+    frames = rec.sequence.frames
+    step = int(cfg["flow_pairs"]["step"])
+    provider = instantiate(cfg["flow"])
+    paths = []
+    n = len(frames) - step
+    for i in torch.linspace(0.2 * n, 0.8 * n, count).round().long().tolist():
+        a, b = frames.read(i), frames.read(i + step)
+        a, b = (x if isinstance(x, torch.Tensor) else torch.from_numpy(x) for x in (a, b))
+        flow, sigma = _run_scaled(provider, a[None], b[None], float(cfg["flow_pairs"]["input_scale"]))
+        t = float(frames.t_s[i])
+        paths.append(flow_panel(a, b, flow[0], sigma[0], out / f"flow_panel_{i:06d}.png",
+                                title=f"{rec.name}: frames {i} -> {i + step} (t = {t:.1f} s)"))
+    return paths
+
+
+def _flow_stats(result: NavigationResult, pairs: FlowPairs) -> dict[str, Any]:
+    log = result.flow_log
+    frames = [e for e in log if e["points"]]
+    n = max(1, len(frames))
+    return {
+        "flow_frames": len(frames),
+        "flow_pairs": len(pairs),
+        "flow_pairs_outside_imu": result.flow_pairs_outside,
+        "mean_candidates": sum(e["candidates"] for e in frames) / n,
+        "mean_points": sum(e["points"] for e in frames) / n,
+        "mean_valid": sum(e["valid"] for e in frames) / n,
+        "mean_accepted": sum(e["accepted"] for e in frames) / n,
+        "mean_low_parallax": sum(e["low_parallax"] for e in frames) / n,
+        "mean_degenerate": sum(e["degenerate"] + e["behind"] for e in frames) / n,
+    }
+
+
 def run(cfg: Mapping[str, Any]) -> list[Row]:
     """Run the job; returns the table rows (also printed and written to ``metrics.json``)."""
     out = Path(cfg["output_dir"])
     out.mkdir(parents=True, exist_ok=True)
     nav_cfg = navigation_config(cfg["filter"])
     quick = bool(cfg.get("quick", False))
+    progress = bool(cfg.get("progress"))
+    plots = bool(cfg.get("plots", True))
+    methods: Mapping[str, Mapping[str, bool]] = cfg["methods"]
+    for name in cfg["combinations"]:
+        if name not in methods:
+            raise ValueError(f"unknown combination {name!r}; expected one of {list(methods)} (configs/method/)")
     t0 = time.perf_counter()
-    rec = load_sequence(cfg["sequence"], quick=quick)
+    rec = load_sequence(cfg["sequence"], quick=quick, progress=progress)
     n_gnss = 0 if rec.gnss is None else len(rec.gnss)
-    print(f"sequence: {rec.name}, {rec.imu.duration_s:.0f} s, {len(rec.imu)} IMU samples, "
+    seq = rec.sequence
+    n_frames = 0 if seq is None or seq.frames is None else len(seq.frames)
+    print(f"sequence: {rec.name}, {rec.imu.duration_s:.0f} s, {len(rec.imu)} IMU samples, {n_frames} camera frames, "
           f"{n_gnss} GNSS fixes, ground truth: {'yes' if rec.truth is not None else 'no'} "
           f"({time.perf_counter() - t0:.1f} s to load)")
+
+    flows: dict[str, FlowPairs | str] = {}
+    for kind in ("sparse", "dense"):
+        if any(methods[name][kind] for name in cfg["combinations"]):
+            t1 = time.perf_counter()
+            flows[kind] = load_flow(kind, rec, cfg, progress=progress)
+            if isinstance(flows[kind], FlowPairs):
+                print(f"{kind} flow: {len(flows[kind])} frame pairs ({time.perf_counter() - t1:.1f} s)")
+
     rows, metrics = [], {}
     for name in cfg["combinations"]:
-        if name not in COMBINATIONS:
-            raise ValueError(f"unknown combination {name!r}; expected one of {list(COMBINATIONS)}")
-        sources = COMBINATIONS[name]
-        if sources[1] or sources[2]:
-            rows.append(Row(name, sources, None, None, "optical flow: not in this release"))
-            metrics[name] = {"status": "not available"}
-            continue
+        m_cfg = methods[name]
+        sources = (bool(m_cfg["gnss"]), bool(m_cfg["sparse"]), bool(m_cfg["dense"]))
+        reason = None
         if sources[0] and rec.gnss is None:
-            rows.append(Row(name, sources, None, None, "not applicable: the sequence has no GNSS"))
-            metrics[name] = {"status": "not applicable", "reason": "no GNSS"}
+            reason = "the sequence has no GNSS"
+        flow = None
+        for kind, used in (("sparse", sources[1]), ("dense", sources[2])):
+            if used:
+                flow = flows[kind]
+                if isinstance(flow, str):
+                    reason = flow
+        if reason is not None:
+            rows.append(Row(name, sources, None, None, f"not applicable: {reason}"))
+            metrics[name] = {"status": "not applicable", "reason": reason}
             continue
         t1 = time.perf_counter()
-        result = navigate(rec.imu, rec.gnss if sources[0] else None, config=nav_cfg, progress=bool(cfg.get("progress")))
-        m = _export(out, name, result, rec, bool(cfg.get("plots", True)))
+        result = navigate(rec.imu, rec.gnss if sources[0] else None, config=nav_cfg, flow=flow,
+                          camera=rec.camera if flow is not None else None, progress=progress)
+        m = _export(out, name, result, rec, plots)
+        if flow is not None:
+            m.update(_flow_stats(result, flow))
         m["seconds"] = time.perf_counter() - t1
         metrics[name] = m
         note = "" if rec.truth is not None else "no ground truth: TUM tracks only"
         rows.append(Row(name, sources, m["filter_rmse_m"], m["smoother_rmse_m"], note, seconds=m["seconds"]))
+        fr = "n/a" if m["filter_rmse_m"] is None else f"{m['filter_rmse_m']:.2f} m"
+        print(f"  {name:<16} filter RMSE {fr} ({m['seconds']:.1f} s)")
+    if plots and isinstance(flows.get("dense"), FlowPairs) and int(cfg.get("flow_panels", 0)) > 0:
+        flow_panels(rec, cfg, out, int(cfg["flow_panels"]))
     table = format_table(rows)
     print("\nRMSE after Procrustes alignment (rotation + translation) to the ground truth\n")
     print(table)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=float))
-    print(f"\nwrote {out}/metrics.json, *.tum" + (", *.png" if cfg.get("plots", True) else ""))
+    print(f"\nwrote {out}/metrics.json, *.tum" + (", *.png" if plots else ""))
     for r in rows:
         if r.filter_rmse_m is not None and not math.isfinite(r.filter_rmse_m):
             raise RuntimeError(f"{r.name}: non-finite RMSE; see {out}")

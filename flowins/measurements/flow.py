@@ -35,7 +35,11 @@ from torch import Tensor
 from torch.func import jacrev, vmap
 
 from flowins.geometry import quaternion as quat
-from flowins.geometry.triangulation import camera_matrix, project_homogeneous, triangulate
+from flowins.geometry.triangulation import (
+    camera_matrix,
+    project_homogeneous,
+    triangulate,
+)
 from flowins.state import STATE_DIM, split
 
 
@@ -48,11 +52,11 @@ class FlowCamera:
     t_ci: Tensor
 
     @classmethod
-    def from_calibration(cls, camera, imu_to_camera) -> "FlowCamera":
+    def from_calibration(cls, camera, imu_to_camera) -> FlowCamera:
         """From a :class:`~flowins.data.PinholeCamera` and a :class:`~flowins.geometry.camera.RigidTransform`."""
         return cls(camera.K, imu_to_camera.rotation_matrix, imu_to_camera.translation_m)
 
-    def to(self, like: Tensor) -> "FlowCamera":
+    def to(self, like: Tensor) -> FlowCamera:
         return FlowCamera(self.K.to(like), self.R_ci.to(like), self.t_ci.to(like))
 
 
@@ -187,7 +191,7 @@ class EpipolarUpdate(NamedTuple):
     direction: Tensor  # (M, 2) w, unit
 
 
-def epipolar_update(measurements: FlowMeasurements, sigma_px: Tensor) -> EpipolarUpdate:
+def epipolar_update(measurements: FlowMeasurements, sigma_px: Tensor, *, parallax_inflation: bool = False) -> EpipolarUpdate:
     """Scalar EKF measurements ``0 = wᵀ h(x, δ + r)`` of the valid points.
 
     ``H_r = ∂h/∂δ`` has rank one: moving ``δ`` along the epipolar line keeps the two
@@ -208,6 +212,12 @@ def epipolar_update(measurements: FlowMeasurements, sigma_px: Tensor) -> Epipola
     w = U[..., :, 0]  # (m, 2)
     R = torch.diag_embed(sigma_px[index].to(H_r) ** 2)
     noise = (w.unsqueeze(-2) @ H_r @ R @ H_r.transpose(-1, -2) @ w.unsqueeze(-1))  # (m, 1, 1)
+    if parallax_inflation:
+        p2 = measurements.parallax_px[index].to(H_r) ** 2
+        s2 = (sigma_px[index].to(H_r) ** 2).mean(-1)
+        factor = p2 / (p2 - s2).clamp_min(1e-6 * p2 + 1e-30)
+        noise = noise * factor.clamp_max(1e8).view(-1, 1, 1)
     innovation = -(w * measurements.residual[index]).sum(-1, keepdim=True)
     H = (w.unsqueeze(-2) @ measurements.H_x[index])  # (m, 1, 26)
     return EpipolarUpdate(innovation, H, noise, w)
+

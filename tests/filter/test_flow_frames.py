@@ -7,7 +7,8 @@ from flowins.data.simulate.render import exact_flow, render
 from flowins.data.simulate.scenario import CameraConfig, CameraTrajectory, SimulationConfig, simulate_imu
 from flowins.data.simulate.world import build_city
 from flowins.data.synthetic import Walk, WalkConfig
-from flowins.filter.events import FlowFrame, PoseAugmentation
+from flowins.filter.events import FlowFrame
+from flowins.flow.points import FlowPoints
 from flowins.filter.runner import run_filter
 from flowins.ins.initialization import augmented_covariance
 from flowins.ins.mechanization import ProcessNoise
@@ -37,14 +38,14 @@ def test_flow_frames_bound_the_inertial_drift_and_reveal_the_gyro_bias():
     for i, ti in enumerate(times.tolist()):
         frame = render(city, cam, R[i], P[i], ti)
         if previous is None:
-            events.append(FlowFrame(ti, empty, empty, empty, camera, augmentation=PoseAugmentation(ti, mode="limit")))
+            events.append(FlowFrame(ti, FlowPoints(empty, empty, empty), camera))
         else:
             truth_flow = exact_flow(city, cam, previous[0], previous[1], (R[i], P[i], ti), frame)
             ok = (truth_flow.valid & truth_flow.static & (truth_flow.depth < 8.0)).nonzero()
             pick = ok[torch.randperm(ok.shape[0], generator=gen)[:100]]
             uv1 = torch.stack((pick[:, 1], pick[:, 0]), -1).to(F64)
             flow = truth_flow.flow[pick[:, 0], pick[:, 1]].to(F64) + 0.3 * torch.randn(pick.shape[0], 2, generator=gen, dtype=F64)
-            events.append(FlowFrame(ti, flow, uv1, torch.full_like(flow, 0.3), camera, augmentation=PoseAugmentation(ti, mode="limit")))
+            events.append(FlowFrame(ti, FlowPoints(uv1, flow, torch.full_like(flow, 0.3)), camera))
         previous = (frame, (R[i], P[i], ti))
     x0 = make_state(p=walk.position(t[:1])[0], v=walk.velocity(t[:1])[0], q=walk.quaternion(t[:1])[0])
     sigma = torch.cat((torch.full((3,), 0.01), torch.full((3,), 0.01), torch.full((4,), 1e-3),
@@ -60,4 +61,4 @@ def test_flow_frames_bound_the_inertial_drift_and_reveal_the_gyro_bias():
     b_w_err = (track.mean[-1, STATE.b_w] - truth["b_w"][-1]).norm()
     assert float(b_w_err) < 0.3 * float(truth["b_w"][-1].norm())
     flows = [e for e in track.log if e.get("kind") == "flow"]
-    assert len(flows) == len(events) - 1 and sum(e["valid"] for e in flows) >= 0.99 * 100 * len(flows)
+    assert len(flows) == len(events) - 1 and sum(e["valid"] + e["low_parallax"] for e in flows) >= 0.99 * 100 * len(flows)

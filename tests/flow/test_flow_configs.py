@@ -1,4 +1,5 @@
-"""configs/flow/*.yaml: each composes, names a real class, mirrors its defaults, and instantiates."""
+"""configs/flow/*.yaml (dense providers) and configs/sparse/lk.yaml (the tracker): each composes,
+names a real class, mirrors its defaults, and instantiates."""
 import importlib
 import inspect
 from pathlib import Path
@@ -13,6 +14,9 @@ NAMES = ("dis", "lk", "spynet", "flownet2")
 
 
 def flow_config(name: str, overrides: tuple[str, ...] = ()):
+    if name == "lk":
+        with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+            return compose(config_name="sparse/lk", overrides=[f"sparse.tracker.{o}" for o in overrides]).sparse.tracker
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         return compose(config_name=f"flow/{name}", overrides=[f"flow.{o}" for o in overrides]).flow
 

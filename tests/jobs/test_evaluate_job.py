@@ -1,7 +1,9 @@
 """The evaluation job on a recording read from disk (``sequence.path=DIR``)."""
 import json
+import math
 from pathlib import Path
 
+import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
@@ -43,3 +45,40 @@ def test_the_default_configuration_composes_and_runs_quick(tmp_path):
     cfg = _compose([f"output_dir={tmp_path}", "quick=true", "plots=false", "progress=false", "combinations=[ins_gnss]"])
     (row,) = run(cfg)
     assert row.name == "ins_gnss" and row.filter_rmse_m is not None and row.filter_rmse_m < 30.0
+
+
+@pytest.fixture(scope="module")
+def small_walk(tmp_path_factory):
+    """A 60 s simulated walk at 320 x 240 (camera, GNSS, ground truth), written once."""
+    from flowins.data.simulate import SimulationConfig, simulate
+
+    folder = tmp_path_factory.mktemp("walk")
+    config = SimulationConfig(duration_s=60.0, seed=0, flow_every=0)
+    simulate(folder, config, progress=False)
+    return folder
+
+
+def test_every_combination_runs_on_a_simulated_walk_and_flow_bounds_the_drift(small_walk, tmp_path):
+    out = tmp_path / "out"
+    cfg = _compose([f"sequence.path={small_walk}", f"output_dir={out}", f"cache_dir={tmp_path / 'cache'}",
+                    "flow=dis", "flow_pairs.input_scale=1.0", "flow_panels=1", "progress=false"])
+    rows = {r.name: r for r in run(cfg)}
+    assert list(rows) == ["ins", "ins_gnss", "ins_sparse", "ins_dense", "ins_gnss_sparse", "ins_gnss_dense"]
+    for row in rows.values():
+        assert row.filter_rmse_m is not None and math.isfinite(row.filter_rmse_m) and math.isfinite(row.smoother_rmse_m)
+    # the inertial drift is real, and flow (dense or sparse) bounds it
+    assert rows["ins"].filter_rmse_m > 10.0
+    assert rows["ins_dense"].filter_rmse_m < rows["ins"].filter_rmse_m / 10
+    assert rows["ins_sparse"].filter_rmse_m < rows["ins"].filter_rmse_m / 10
+    metrics = json.loads((out / "metrics.json").read_text())
+    dense = metrics["ins_dense"]
+    assert dense["flow_frames"] == dense["flow_pairs"] == 600 and dense["mean_points"] == 256
+    assert 0 < dense["mean_accepted"] <= dense["mean_valid"] <= dense["mean_points"]
+    assert (out / "ins_gnss_dense.png").is_file() and len(list(out.glob("flow_panel_*.png"))) == 1
+    # the flow pairs were cached: a second run reads them back and gives the same track
+    cfg2 = _compose([f"sequence.path={small_walk}", f"output_dir={tmp_path / 'again'}", f"cache_dir={tmp_path / 'cache'}",
+                     "flow=dis", "flow_pairs.input_scale=1.0", "plots=false", "progress=false",
+                     "combinations=[ins_dense]"])
+    (again,) = run(cfg2)
+    assert again.filter_rmse_m == rows["ins_dense"].filter_rmse_m
+    assert len(list((tmp_path / "cache" / "flow").glob("dense-*.npz"))) == 1

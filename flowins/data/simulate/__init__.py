@@ -4,6 +4,11 @@
 (torch ray casting and exact optical flow), ``gnss`` (urban-canyon GNSS errors).
 Command line: ``python -m flowins.data.simulate OUT --seed 0 --duration 300``.
 """
-from flowins.data.simulate.scenario import CameraConfig, SimulationConfig, default_cache_dir, simulate
+from flowins.data.simulate.scenario import (
+    CameraConfig,
+    SimulationConfig,
+    default_cache_dir,
+    simulate,
+)
 
 __all__ = ["CameraConfig", "SimulationConfig", "default_cache_dir", "simulate"]

@@ -17,7 +17,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -27,6 +26,7 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
+from flowins.cache import cache_root
 from flowins.data.sequence import CameraFrames, PinholeCamera, Sequence
 from flowins.data.simulate.gnss import GnssErrors, simulate_fixes
 from flowins.data.streams import GnssStream, ImuStream, PoseStream
@@ -107,8 +107,7 @@ class SimulationConfig:
 
 def default_cache_dir(config: SimulationConfig) -> Path:
     """``$FLOWINS_CACHE/simulated/<key>`` (default cache root ``~/.cache/flowins``)."""
-    root = Path(os.environ.get("FLOWINS_CACHE", Path.home() / ".cache" / "flowins"))
-    return root / "simulated" / config.key()
+    return cache_root() / "simulated" / config.key()
 
 
 @dataclass(frozen=True)

@@ -26,13 +26,14 @@ from flowins.flow.flownet2.networks import FlowNetC, FlowNetFusion, FlowNetS, Fl
 from flowins.flow.flownet2.provider import DEFAULT_SIGMA_FLOOR_PX, FlowNet2Provider
 
 __all__ = [
-    "Correlation",
-    "correlation",
+    "DEFAULT_SIGMA_FLOOR_PX",
     "VARIANTS",
+    "Correlation",
     "FlowNet2",
     "FlowNet2C",
     "FlowNet2CS",
     "FlowNet2CSS",
+    "FlowNet2Provider",
     "FlowNet2S",
     "FlowNet2SD",
     "FlowNetC",
@@ -42,9 +43,8 @@ __all__ = [
     "brightness_error",
     "build_model",
     "channel_norm",
+    "correlation",
     "load_checkpoint",
     "normalize_pair",
     "warp",
-    "DEFAULT_SIGMA_FLOOR_PX",
-    "FlowNet2Provider",
 ]

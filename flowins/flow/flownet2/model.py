@@ -43,7 +43,13 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from flowins.flow.base import mc_statistics
-from flowins.flow.flownet2.networks import DROPOUT_OPTIONS, FlowNetC, FlowNetFusion, FlowNetS, FlowNetSD
+from flowins.flow.flownet2.networks import (
+    DROPOUT_OPTIONS,
+    FlowNetC,
+    FlowNetFusion,
+    FlowNetS,
+    FlowNetSD,
+)
 from flowins.flow.mc_dropout import ConcreteDropout, MCDropout
 
 #: NVIDIA's defaults: images in [0, 255], flows predicted in units of 1/20 pixel

@@ -26,7 +26,7 @@ and :meth:`FlowNetFusion.mc_samples`.
 """
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 from torch import Tensor, nn

@@ -12,8 +12,20 @@ import os
 import torch
 from torch import Tensor
 
-from flowins.flow.base import FlowProvider, FlowResult, mc_statistics, pad_to_multiple, unpad
-from flowins.flow.flownet2.model import RGB_MAX, VARIANTS, FlowNet2, build_model, load_checkpoint
+from flowins.flow.base import (
+    FlowProvider,
+    FlowResult,
+    mc_statistics,
+    pad_to_multiple,
+    unpad,
+)
+from flowins.flow.flownet2.model import (
+    RGB_MAX,
+    VARIANTS,
+    FlowNet2,
+    build_model,
+    load_checkpoint,
+)
 
 #: σ (px) reported when dropout is off, and the lower bound of the Monte Carlo σ
 DEFAULT_SIGMA_FLOOR_PX = 0.1
@@ -96,7 +108,7 @@ class FlowNet2Provider(FlowProvider):
         self.trained = checkpoint is not None
 
     @classmethod
-    def untrained(cls, variant: str = "FlowNet2", *, seed: int | None = 0, **kwargs) -> "FlowNet2Provider":
+    def untrained(cls, variant: str = "FlowNet2", *, seed: int | None = 0, **kwargs) -> FlowNet2Provider:
         """A provider with NVIDIA's *random* initialisation (no checkpoint): its flow is
         meaningless; for tests and speed measurements only."""
         if seed is not None:

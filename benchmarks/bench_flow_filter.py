@@ -1,0 +1,89 @@
+"""Filter + smoother speed for ``ins_gnss_dense`` given the flow (issue target: >= 50x real time).
+
+Reads the default simulated walk and its dense flow pairs (both cached by
+``python evaluate.py``; computed here if missing) and times, in one run:
+
+* flowins: analytic batched IMU Jacobians, one stacked update of the frame's points;
+* the paper's straightforward way: per-sample ``torch.func.jacrev`` for the IMU
+  Jacobians and the point-by-point sequential update, on the first ``--reference-s``
+  seconds of the walk (it is slow), with its real-time factor scaled from that window.
+
+    python benchmarks/bench_flow_filter.py [--points 256] [--reference-s 20] [--repeats 3]
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import statistics
+import time
+from pathlib import Path
+
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from flowins.data.streams import GnssStream, ImuStream
+from flowins.filter.smoother import rts_smooth
+from flowins.jobs.evaluate import load_flow, load_sequence, navigation_config
+from flowins.navigation import navigate
+
+CONFIGS = str(Path(__file__).resolve().parents[1] / "configs")
+
+
+def crop(rec, pairs, t_end):
+    imu = rec.imu
+    keep = imu.t_s <= t_end
+    imu_c = ImuStream(imu.t_s[keep], imu.acc_mps2[keep], imu.gyro_rps[keep], name=imu.name)
+    g = rec.gnss
+    gk = g.t_s <= t_end
+    gnss_c = GnssStream(g.t_s[gk], g.lat_deg[gk], g.lon_deg[gk], g.alt_m[gk], g.h_acc_m[gk], g.v_acc_m[gk], name=g.name)
+    pk = (pairs.t2_s <= t_end).nonzero().squeeze(-1).tolist()
+    sub = dataclasses.replace(pairs, t1_s=pairs.t1_s[pk], t2_s=pairs.t2_s[pk], points=[pairs.points[i] for i in pk])
+    return imu_c, gnss_c, sub
+
+
+def run(imu, gnss, pairs, camera, config):
+    start = time.perf_counter()
+    result = navigate(imu, gnss, config=config, flow=pairs, camera=camera)
+    rts_smooth(result.filter)
+    return time.perf_counter() - start, result
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--points", type=int, default=256)
+    parser.add_argument("--reference-s", type=float, default=20.0)
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args()
+    with initialize_config_dir(config_dir=CONFIGS, version_base=None):
+        cfg = OmegaConf.to_container(compose("evaluate", overrides=[f"filter.flow.n_points={args.points}"]), resolve=False)
+    rec = load_sequence(cfg["sequence"], quick=False, progress=True)
+    pairs = load_flow("dense", rec, cfg, progress=True)
+    config = navigation_config(cfg["filter"])
+    duration = float(rec.imu.t_s[-1] - rec.imu.t_s[0])
+    print(f"{rec.name}: {duration:.0f} s, {len(pairs)} flow frames, up to {args.points} points each, "
+          f"{len(rec.gnss)} GNSS fixes, float64, {torch.get_num_threads()} threads")
+
+    run(*crop(rec, pairs, 10.0)[:3], rec.camera, config)  # warm-up
+    times = []
+    for _ in range(args.repeats):
+        seconds, result = run(rec.imu, rec.gnss, pairs, rec.camera, config)
+        times.append(seconds)
+    fast = statistics.median(times)
+    log = result.flow_log
+    used = sum(e["valid"] for e in log) / max(1, len(log))
+    print(f"flowins:       {fast:7.2f} s for {duration:.0f} s  -> {duration / fast:6.1f}x real time "
+          f"(median of {args.repeats}; {used:.0f} valid points per frame)")
+
+    paper = dataclasses.replace(config, jacobians="autodiff",
+                                flow_update=dataclasses.replace(config.flow_update, sequential=True))
+    imu_c, gnss_c, pairs_c = crop(rec, pairs, args.reference_s)
+    span = float(imu_c.t_s[-1] - imu_c.t_s[0])
+    slow, _ = run(imu_c, gnss_c, pairs_c, rec.camera, paper)
+    fast_c, _ = run(imu_c, gnss_c, pairs_c, rec.camera, config)
+    print(f"paper's way:   {slow:7.2f} s for the first {span:.0f} s -> {span / slow:6.1f}x real time "
+          f"(flowins on the same window: {fast_c:.2f} s, {slow / fast_c:.1f}x faster)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,247 @@
+"""Flow over a whole recording: one set of flow points per frame pair, cached on disk.
+
+This is the stage between the flow providers and the measurement model
+(``frames -> flow points per pair -> filter``):
+
+* :func:`dense_pairs` runs a dense provider (SpyNet, FlowNet 2.0, DIS) on the pairs
+  ``(k, k + step)`` and keeps the field on a grid of candidate pixels
+  (:func:`flowins.flow.points.grid_candidates`); the filter picks its
+  points among them at its current state.
+* :func:`sparse_pairs` runs the paper's sparse baseline (Shi–Tomasi + Lucas–Kanade)
+  on the same pairs.
+* :func:`track_pairs` turns a sequence's precomputed ``tracks.csv`` into pairs.
+
+:class:`FlowPairs` saves to and loads from one ``.npz`` file, so the expensive
+network passes run once per recording and provider setting.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+from tqdm.auto import tqdm
+
+from flowins.flow.points import FlowPoints, grid_candidates
+
+FORMAT_VERSION = 1
+
+
+@dataclass
+class FlowPairs:
+    """Flow points of ``P`` frame pairs: pair ``k`` goes from ``t1_s[k]`` to ``t2_s[k]``."""
+
+    t1_s: Tensor  # (P,) float64
+    t2_s: Tensor  # (P,)
+    points: list[FlowPoints]
+    kind: str  # "dense" | "sparse"
+    description: str = ""
+
+    def __post_init__(self) -> None:
+        if self.t1_s.shape != self.t2_s.shape or self.t1_s.ndim != 1 or len(self.points) != self.t1_s.shape[0]:
+            raise ValueError(
+                f"FlowPairs: t1 {tuple(self.t1_s.shape)}, t2 {tuple(self.t2_s.shape)} and {len(self.points)} point sets "
+                "must all have one entry per pair"
+            )
+        if bool((self.t2_s <= self.t1_s).any()):
+            k = int(torch.nonzero(self.t2_s <= self.t1_s)[0])
+            raise ValueError(f"FlowPairs: pair {k} ends at {float(self.t2_s[k])} s, not after its start {float(self.t1_s[k])} s")
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def undistorted(self, camera) -> FlowPairs:
+        """The points in the ideal pinhole image of ``camera`` (a
+        :class:`~flowins.data.sequence.PinholeCamera`): both ends of every flow vector
+        are undistorted (radial-tangential); ``σ`` is kept. Without distortion, ``self``."""
+        from flowins.geometry.camera import undistort
+
+        if not any(camera.distortion):
+            return self
+        f = torch.tensor([camera.fx, camera.fy], dtype=torch.float64)
+        c = torch.tensor([camera.cx, camera.cy], dtype=torch.float64)
+
+        def ideal(uv: Tensor) -> Tensor:
+            return undistort((uv - c) / f, tuple(camera.distortion)) * f + c
+
+        points = []
+        for p in self.points:
+            uv1 = ideal(p.uv1_px)
+            points.append(FlowPoints(uv1, ideal(p.uv1_px + p.flow_px) - uv1, p.sigma_px))
+        return FlowPairs(self.t1_s, self.t2_s, points, self.kind, self.description)
+
+    def save(self, path: str | Path) -> None:
+        """One ``.npz``: times, per-pair counts and the concatenated points."""
+        counts = np.array([len(p) for p in self.points], np.int64)
+        cat = lambda field: (
+            np.concatenate([getattr(p, field).numpy() for p in self.points]) if self.points else np.zeros((0, 2))
+        ).astype(np.float32)
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".partial.npz")
+        np.savez_compressed(
+            tmp, version=FORMAT_VERSION, t1_s=self.t1_s.numpy(), t2_s=self.t2_s.numpy(), counts=counts,
+            uv1_px=cat("uv1_px"), flow_px=cat("flow_px"), sigma_px=cat("sigma_px"),
+            kind=self.kind, description=self.description,
+        )
+        tmp.replace(path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> FlowPairs:
+        path = Path(path)
+        with np.load(path, allow_pickle=False) as z:
+            if "version" not in z or int(z["version"]) != FORMAT_VERSION:
+                raise ValueError(f"{path}: not a flowins flow-pairs file of format version {FORMAT_VERSION}")
+            counts = z["counts"]
+            edges = np.concatenate(([0], np.cumsum(counts)))
+            arrays = {k: torch.from_numpy(z[k]).double() for k in ("uv1_px", "flow_px", "sigma_px")}
+            points = [
+                FlowPoints(*(arrays[k][edges[i] : edges[i + 1]] for k in ("uv1_px", "flow_px", "sigma_px")))
+                for i in range(len(counts))
+            ]
+            return cls(torch.from_numpy(z["t1_s"]), torch.from_numpy(z["t2_s"]), points, str(z["kind"]), str(z["description"]))
+
+
+def pair_indices(n_frames: int, step: int) -> list[tuple[int, int]]:
+    """``(k, k + step)`` for ``k = 0, step, 2 step, ...``: consecutive pairs that chain."""
+    if step < 1:
+        raise ValueError(f"frame step must be >= 1, got {step}")
+    if n_frames < step + 1:
+        raise ValueError(f"{n_frames} frame(s) make no pair with step {step}")
+    return [(k, k + step) for k in range(0, n_frames - step, step)]
+
+
+def cache_key(**parts: Any) -> str:
+    """A short content key of the settings that produce a :class:`FlowPairs`."""
+    text = json.dumps({"version": FORMAT_VERSION, **parts}, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def cached(path: Path | None, compute: Callable[[], FlowPairs]) -> FlowPairs:
+    """``FlowPairs.load(path)`` if it exists, else ``compute()`` and save it there."""
+    if path is not None and path.is_file():
+        return FlowPairs.load(path)
+    pairs = compute()
+    if path is not None:
+        pairs.save(path)
+    return pairs
+
+
+def _read(frames, index: int) -> Tensor:
+    image = frames.read(index)
+    return image if isinstance(image, Tensor) else torch.from_numpy(np.ascontiguousarray(image))
+
+
+def _run_scaled(provider: Callable, first: Tensor, second: Tensor, scale: float) -> tuple[Tensor, Tensor]:
+    """``provider`` on ``(B, H, W, 3)`` uint8 images resized by ``scale``; flow and σ at full size."""
+    if scale == 1.0:
+        result = provider(first, second)
+        return result.flow, result.sigma
+    import torch.nn.functional as F
+
+    from flowins.flow.base import resize_flow
+
+    H, W = first.shape[1:3]
+    size = (max(8, round(H * scale)), max(8, round(W * scale)))
+
+    def shrink(images: Tensor) -> Tensor:
+        x = images.permute(0, 3, 1, 2).float() / 255.0
+        return F.interpolate(x, size=size, mode="area")
+
+    result = provider(shrink(first), shrink(second))
+    return resize_flow(result.flow, (H, W)), resize_flow(result.sigma, (H, W)).abs()
+
+
+def dense_pairs(
+    frames,
+    provider: Callable,
+    *,
+    step: int = 1,
+    stride_px: int = 8,
+    border_px: int = 8,
+    batch_size: int = 4,
+    input_scale: float = 1.0,
+    progress: bool = True,
+    description: str = "",
+) -> FlowPairs:
+    """Run a dense provider on the pairs ``(k, k + step)`` of ``frames`` and keep grid candidates.
+
+    Args:
+        frames: a :class:`~flowins.data.sequence.CameraFrames` (``read(i)`` -> ``(H, W, 3)`` uint8, ``t_s``).
+        provider: ``provider(image1, image2) -> FlowResult`` (a :class:`~flowins.flow.base.FlowProvider`
+            or :class:`~flowins.flow.classical.DISProvider`).
+        step: frame step of a pair (1: consecutive frames).
+        stride_px, border_px: candidate grid (:func:`grid_candidates`).
+        batch_size: pairs per provider call.
+        input_scale: the provider sees the images resized by this factor (area
+            interpolation); its flow and σ are resized back and scaled by ``1 / input_scale``
+            (:func:`~flowins.flow.base.resize_flow`), so points and flow are always in
+            pixels of the recording.
+    """
+    if not 0.0 < input_scale <= 1.0:
+        raise ValueError(f"dense_pairs: input_scale must be in (0, 1], got {input_scale}")
+    pairs = pair_indices(len(frames), step)
+    t = torch.as_tensor(frames.t_s, dtype=torch.float64)
+    points: list[FlowPoints] = []
+    cache: dict[int, Tensor] = {}
+    bar = tqdm(total=len(pairs), desc=f"dense flow ({description or type(provider).__name__})", unit="pair",
+               disable=None if progress else True)
+    for start in range(0, len(pairs), batch_size):
+        chunk = pairs[start : start + batch_size]
+        need = sorted({i for pair in chunk for i in pair})
+        cache = {i: cache[i] if i in cache else _read(frames, i) for i in need}
+        first = torch.stack([cache[a] for a, _ in chunk])
+        second = torch.stack([cache[b] for _, b in chunk])
+        flow, sigma = _run_scaled(provider, first, second, input_scale)
+        for j in range(len(chunk)):
+            points.append(grid_candidates(flow[j].double(), sigma[j].double(),
+                                          stride_px=stride_px, border_px=border_px))
+        cache = {chunk[-1][1]: cache[chunk[-1][1]]}
+        bar.update(len(chunk))
+    bar.close()
+    index = torch.tensor(pairs)
+    return FlowPairs(t[index[:, 0]], t[index[:, 1]], points, "dense", description)
+
+
+def sparse_pairs(
+    frames, tracker: Callable, *, step: int = 1, progress: bool = True, description: str = ""
+) -> FlowPairs:
+    """Run a sparse provider (``tracker(image1, image2) -> SparseFlowResult``) on the pairs ``(k, k + step)``."""
+    pairs = pair_indices(len(frames), step)
+    t = torch.as_tensor(frames.t_s, dtype=torch.float64)
+    points = []
+    previous: tuple[int, Tensor] | None = None
+    for a, b in tqdm(pairs, desc=f"sparse flow ({description or type(tracker).__name__})", unit="pair",
+                     disable=None if progress else True):
+        image1 = previous[1] if previous is not None and previous[0] == a else _read(frames, a)
+        image2 = _read(frames, b)
+        result = tracker(image1, image2)
+        points.append(FlowPoints(result.points.double(), result.flow.double(), result.sigma.double()))
+        previous = (b, image2)
+    index = torch.tensor(pairs)
+    return FlowPairs(t[index[:, 0]], t[index[:, 1]], points, "sparse", description)
+
+
+def track_pairs(tracks, *, sigma_px: float = 0.5, step: int = 1) -> FlowPairs:
+    """Pairs from precomputed tracks (:class:`~flowins.data.sequence.Tracks`): for consecutive
+    track times ``(k, k + step)``, every id seen at both gives a flow point with 1-σ ``sigma_px``."""
+    if sigma_px <= 0:
+        raise ValueError(f"track_pairs: sigma_px must be > 0, got {sigma_px}")
+    times = torch.unique(tracks.t_s)
+    index = pair_indices(times.shape[0], step)
+    points = []
+    for a, b in index:
+        in_a, in_b = tracks.t_s == times[a], tracks.t_s == times[b]
+        ids_a, ids_b = tracks.track_id[in_a], tracks.track_id[in_b]
+        common, ia, ib = np.intersect1d(ids_a.numpy(), ids_b.numpy(), return_indices=True)
+        uv_a = tracks.uv_px[in_a][torch.from_numpy(ia)]
+        uv_b = tracks.uv_px[in_b][torch.from_numpy(ib)]
+        points.append(FlowPoints(uv_a, uv_b - uv_a, torch.full_like(uv_a, sigma_px)))
+    idx = torch.tensor(index)
+    return FlowPairs(times[idx[:, 0]], times[idx[:, 1]], points, "sparse", f"{tracks.name} (precomputed tracks)")
