@@ -35,9 +35,9 @@ def crop(rec, pairs, t_end):
     keep = imu.t_s <= t_end
     imu_c = ImuStream(imu.t_s[keep], imu.acc_mps2[keep], imu.gyro_rps[keep], name=imu.name)
     g = rec.gnss
-    gk = g.t_s <= t_end
+    gk = g.t_s <= float(imu_c.t_s[-1])
     gnss_c = GnssStream(g.t_s[gk], g.lat_deg[gk], g.lon_deg[gk], g.alt_m[gk], g.h_acc_m[gk], g.v_acc_m[gk], name=g.name)
-    pk = (pairs.t2_s <= t_end).nonzero().squeeze(-1).tolist()
+    pk = (pairs.t2_s <= float(imu_c.t_s[-1])).nonzero().squeeze(-1).tolist()
     sub = dataclasses.replace(pairs, t1_s=pairs.t1_s[pk], t2_s=pairs.t2_s[pk], points=[pairs.points[i] for i in pk])
     return imu_c, gnss_c, sub
 
