@@ -133,12 +133,13 @@ def cached(path: Path | None, compute: Callable[[], FlowPairs]) -> FlowPairs:
     return pairs
 
 
-def _read(frames, index: int) -> Tensor:
+def read_frame(frames, index: int) -> Tensor:
+    """Frame ``index`` of ``frames`` as a ``(H, W, 3)`` uint8 tensor (readers may return numpy)."""
     image = frames.read(index)
     return image if isinstance(image, Tensor) else torch.from_numpy(np.ascontiguousarray(image))
 
 
-def _run_scaled(provider: Callable, first: Tensor, second: Tensor, scale: float) -> tuple[Tensor, Tensor]:
+def run_provider(provider: Callable, first: Tensor, second: Tensor, scale: float = 1.0) -> tuple[Tensor, Tensor]:
     """``provider`` on ``(B, H, W, 3)`` uint8 images resized by ``scale``; flow and σ at full size."""
     if scale == 1.0:
         result = provider(first, second)
@@ -195,10 +196,10 @@ def dense_pairs(
     for start in range(0, len(pairs), batch_size):
         chunk = pairs[start : start + batch_size]
         need = sorted({i for pair in chunk for i in pair})
-        cache = {i: cache[i] if i in cache else _read(frames, i) for i in need}
+        cache = {i: cache[i] if i in cache else read_frame(frames, i) for i in need}
         first = torch.stack([cache[a] for a, _ in chunk])
         second = torch.stack([cache[b] for _, b in chunk])
-        flow, sigma = _run_scaled(provider, first, second, input_scale)
+        flow, sigma = run_provider(provider, first, second, input_scale)
         for j in range(len(chunk)):
             points.append(grid_candidates(flow[j].double(), sigma[j].double(),
                                           stride_px=stride_px, border_px=border_px))
@@ -219,8 +220,8 @@ def sparse_pairs(
     previous: tuple[int, Tensor] | None = None
     for a, b in tqdm(pairs, desc=f"sparse flow ({description or type(tracker).__name__})", unit="pair",
                      disable=None if progress else True):
-        image1 = previous[1] if previous is not None and previous[0] == a else _read(frames, a)
-        image2 = _read(frames, b)
+        image1 = previous[1] if previous is not None and previous[0] == a else read_frame(frames, a)
+        image2 = read_frame(frames, b)
         result = tracker(image1, image2)
         points.append(FlowPoints(result.points.double(), result.flow.double(), result.sigma.double()))
         previous = (b, image2)

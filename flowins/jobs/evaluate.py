@@ -29,6 +29,8 @@ from flowins.flow.pairs import (
     cache_key,
     cached,
     dense_pairs,
+    read_frame,
+    run_provider,
     sparse_pairs,
     track_pairs,
 )
@@ -142,14 +144,15 @@ def load_flow(kind: str, rec: EvalInputs, cfg: Mapping[str, Any], *, progress: b
     from hydra.utils import instantiate
 
     settings = cfg["flow"] if kind == "dense" else cfg["sparse"]
+    target = settings if kind == "dense" else settings["tracker"]  # what instantiate builds
     extra = dict(stride_px=pairs_cfg["stride_px"], border_px=pairs_cfg["border_px"],
                  input_scale=pairs_cfg["input_scale"]) if kind == "dense" else {}
     key = cache_key(kind=kind, source=rec.source_id, provider=settings, step=step, **extra)
     path = Path(cfg["cache_dir"] or cache_root()) / "flow" / f"{kind}-{key}.npz"
-    label = str((settings if kind == "dense" else settings["tracker"]).get("_target_", "")).rsplit(".", 1)[-1]
+    label = str(target.get("_target_", "")).rsplit(".", 1)[-1]
 
     def compute() -> FlowPairs:
-        provider = instantiate(settings if kind == "dense" else settings["tracker"])
+        provider = instantiate(target)
         if kind == "dense":
             return dense_pairs(seq.frames, provider, step=step, batch_size=int(pairs_cfg["batch_size"]),
                                progress=progress, description=label, **extra)
@@ -225,7 +228,6 @@ def flow_panels(rec: EvalInputs, cfg: Mapping[str, Any], out: Path, count: int) 
     """The paper's Fig. 2 (frames, Δu, Δv, σ) for ``count`` frame pairs spread over the recording."""
     from hydra.utils import instantiate
 
-    from flowins.flow.pairs import _run_scaled
     from flowins.flow.visualize import flow_panel
 
     frames = rec.sequence.frames
@@ -234,9 +236,8 @@ def flow_panels(rec: EvalInputs, cfg: Mapping[str, Any], out: Path, count: int) 
     paths = []
     n = len(frames) - step
     for i in torch.linspace(0.2 * n, 0.8 * n, count).round().long().tolist():
-        a, b = frames.read(i), frames.read(i + step)
-        a, b = (x if isinstance(x, torch.Tensor) else torch.from_numpy(x) for x in (a, b))
-        flow, sigma = _run_scaled(provider, a[None], b[None], float(cfg["flow_pairs"]["input_scale"]))
+        a, b = read_frame(frames, i), read_frame(frames, i + step)
+        flow, sigma = run_provider(provider, a[None], b[None], float(cfg["flow_pairs"]["input_scale"]))
         t = float(frames.t_s[i])
         paths.append(flow_panel(a, b, flow[0], sigma[0], out / f"flow_panel_{i:06d}.png",
                                 title=f"{rec.name}: frames {i} -> {i + step} (t = {t:.1f} s)"))

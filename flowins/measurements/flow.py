@@ -75,7 +75,13 @@ def camera_pose(q: Tensor, p: Tensor, camera: FlowCamera) -> tuple[Tensor, Tenso
     return R_wc, p + (R_wb @ c_b.unsqueeze(-1)).squeeze(-1)
 
 
-def _normalise(uv: Tensor, K: Tensor) -> Tensor:
+def ray_angle(ray1: Tensor, ray2: Tensor) -> Tensor:
+    """Angle (rad) between two rays ``(..., 3)`` (not necessarily unit), stable near 0 and π."""
+    return torch.atan2(torch.linalg.cross(ray1, ray2).norm(dim=-1), (ray1 * ray2).sum(-1))
+
+
+def normalise_pixels(uv: Tensor, K: Tensor) -> Tensor:
+    """Pixels ``(..., 2)`` -> normalised image coordinates ``K⁻¹ (u, v, 1)`` without the 1."""
     return torch.stack(((uv[..., 0] - K[0, 2]) / K[0, 0], (uv[..., 1] - K[1, 2]) / K[1, 1]), dim=-1)
 
 
@@ -94,15 +100,15 @@ def flow_residual(x: Tensor, flow_px: Tensor, uv1_px: Tensor, camera: FlowCamera
     R2, c2 = camera_pose(s.q, s.p, camera)
     P1 = camera_matrix(R1, torch.zeros_like(c1))  # world origin at camera 1's centre
     P2 = camera_matrix(R2, c2 - c1)
-    x1 = _normalise(uv1_px, camera.K)
-    x2 = _normalise(uv1_px + flow_px, camera.K)
+    x1 = normalise_pixels(uv1_px, camera.K)
+    x2 = normalise_pixels(uv1_px + flow_px, camera.K)
     tri = triangulate(P1, P2, x1, x2)
     y1, z1 = project_homogeneous(P1, tri.point)
     y2, z2 = project_homogeneous(P2, tri.point)
     h = _to_pixels(y2, camera.K) - _to_pixels(y1, camera.K) - flow_px
     ray1 = R1 @ torch.cat((x1, torch.ones_like(x1[..., :1])), -1)
     ray2 = R2 @ torch.cat((x2, torch.ones_like(x2[..., :1])), -1)
-    parallax = torch.atan2(torch.linalg.cross(ray1, ray2).norm(dim=-1), (ray1 * ray2).sum(-1))
+    parallax = ray_angle(ray1, ray2)
     return h, FlowAux(tri.conditioning, z1, z2, parallax)
 
 

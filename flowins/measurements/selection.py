@@ -27,6 +27,7 @@ from torch import Tensor
 
 from flowins.flow.points import FlowPoints
 from flowins.geometry import quaternion as quat
+from flowins.measurements.flow import normalise_pixels, ray_angle
 from flowins.state import STATE_DIM, split
 
 METHODS = ("parallax", "sigma", "grid")
@@ -77,13 +78,12 @@ def rotation_parallax_px(x: Tensor, points: FlowPoints, K: Tensor, R_ci: Tensor)
     K = K.to(x)
 
     def ray(uv: Tensor) -> Tensor:
-        xy = (uv.to(x) - K[:2, 2]) / torch.stack((K[0, 0], K[1, 1]))
+        xy = normalise_pixels(uv.to(x), K)
         return torch.cat((xy, torch.ones_like(xy[..., :1])), -1)
 
     r1 = ray(points.uv1_px) @ R1.transpose(-1, -2)
     r2 = ray(points.uv1_px + points.flow_px) @ R2.transpose(-1, -2)
-    angle = torch.atan2(torch.linalg.cross(r1, r2).norm(dim=-1), (r1 * r2).sum(-1))
-    return 0.5 * (K[0, 0] + K[1, 1]) * angle
+    return 0.5 * (K[0, 0] + K[1, 1]) * ray_angle(r1, r2)
 
 
 def select_points(
