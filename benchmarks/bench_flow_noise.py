@@ -44,7 +44,8 @@ def provider_noise(floor: float) -> None:
         for scale in (1.0, 0.5):
             run_provider(provider, a, b, scale)  # warm-up
             start = time.perf_counter()
-            flow, sigma = run_provider(provider, a, b, scale)
+            result = run_provider(provider, a, b, scale)
+            flow, sigma = result.flow, result.sigma
             ms = (time.perf_counter() - start) * 1e3
             err = (flow[0] - truth).norm(dim=0)
             pts = grid_candidates(flow[0].double(), sigma[0].double())

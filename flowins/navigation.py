@@ -91,7 +91,20 @@ def flow_frames(pairs, camera, update: FlowUpdate, *, t_min_s: float, t_max_s: f
     return events, outside
 
 
-def navigate(
+@dataclass
+class NavigationSetup:
+    """What :func:`navigate` hands the filter: the prior at the first IMU sample and all events."""
+
+    mean0: Tensor  # (26,)
+    cov0: Tensor  # (26, 26)
+    events: list
+    frame: LocalTangentPlane | None
+    gnss_enu_m: Tensor | None
+    #: flow pairs left out because they are not inside the IMU time span
+    flow_pairs_outside: int = 0
+
+
+def prepare_navigation(
     imu: ImuStream,
     gnss: GnssStream | None = None,
     *,
@@ -99,22 +112,15 @@ def navigate(
     frame: LocalTangentPlane | None = None,
     flow=None,
     camera=None,
-    progress: bool = False,
-) -> NavigationResult:
-    """Run the EKF and the RTS smoother on an IMU stream, with GNSS fixes if given.
+) -> NavigationSetup:
+    """The prior and the measurement events of :func:`navigate` (see there).
 
-    The filter starts at the first IMU sample from a stationary initialisation
-    over ``config.stationary_s``; with GNSS the local ENU frame has its origin at
-    the first fix (or ``frame``) and the initial position is that fix's, with
-    its accuracy as uncertainty. GNSS fixes outside the IMU time span raise.
-
-    ``flow`` (a :class:`~flowins.flow.pairs.FlowPairs`, dense or sparse) with
-    ``camera`` (:class:`~flowins.measurements.flow.FlowCamera`) adds the paper's flow
-    frames (:func:`flow_frames`, settings ``config.flow_update``).
+    Every number of ``config`` may be a tensor with a gradient (the training wraps
+    this same function), so the events carry the graph into the filter.
     """
     initial = config.initial
     events = []
-    enu = cov = None
+    enu = None
     if gnss is not None:
         enu, _, frame = gnss_to_enu(gnss, origin=frame)
         cov = gnss_noise(gnss.h_acc_m, gnss.v_acc_m, config.gnss_noise_scale)
@@ -145,14 +151,39 @@ def navigate(
         dtype=config.dtype,
         name=imu.name,
     )
+    return NavigationSetup(mean0, cov0, events, frame, enu, outside)
+
+
+def navigate(
+    imu: ImuStream,
+    gnss: GnssStream | None = None,
+    *,
+    config: NavigationConfig = NavigationConfig(),
+    frame: LocalTangentPlane | None = None,
+    flow=None,
+    camera=None,
+    progress: bool = False,
+) -> NavigationResult:
+    """Run the EKF and the RTS smoother on an IMU stream, with GNSS fixes if given.
+
+    The filter starts at the first IMU sample from a stationary initialisation
+    over ``config.stationary_s``; with GNSS the local ENU frame has its origin at
+    the first fix (or ``frame``) and the initial position is that fix's, with
+    its accuracy as uncertainty. GNSS fixes outside the IMU time span raise.
+
+    ``flow`` (a :class:`~flowins.flow.pairs.FlowPairs`, dense or sparse) with
+    ``camera`` (:class:`~flowins.measurements.flow.FlowCamera`) adds the paper's flow
+    frames (:func:`flow_frames`, settings ``config.flow_update``).
+    """
+    setup = prepare_navigation(imu, gnss, config=config, frame=frame, flow=flow, camera=camera)
     track = run_filter(
         t_s=imu.t_s,
         acc_mps2=imu.acc_mps2,
         gyro_rps=imu.gyro_rps,
-        mean0=mean0,
-        cov0=cov0,
+        mean0=setup.mean0,
+        cov0=setup.cov0,
         noise=config.noise,
-        events=events,
+        events=setup.events,
         output_every=config.output_every,
         gravity_mps2=config.gravity_mps2,
         jacobians=config.jacobians,
@@ -162,9 +193,9 @@ def navigate(
     return NavigationResult(
         filter=track,
         smoother=rts_smooth(track),
-        frame=frame,
+        frame=setup.frame,
         gnss_t_s=None if gnss is None else gnss.t_s,
-        gnss_enu_m=enu,
+        gnss_enu_m=setup.gnss_enu_m,
         gnss_h_acc_m=None if gnss is None else gnss.h_acc_m,
-        flow_pairs_outside=outside,
+        flow_pairs_outside=setup.flow_pairs_outside,
     )

@@ -5,6 +5,7 @@ times (s), positions (m) and quaternions (w, x, y, z).
 """
 from flowins.evaluation.alignment import (
     Alignment,
+    align_yaw,
     apply_alignment,
     apply_alignment_to_quaternions,
     identity_alignment,
@@ -26,6 +27,7 @@ __all__ = [
     "Alignment",
     "Association",
     "TrajectoryErrors",
+    "align_yaw",
     "apply_alignment",
     "apply_alignment_to_quaternions",
     "associate",

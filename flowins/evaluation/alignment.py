@@ -168,3 +168,28 @@ def apply_alignment_to_quaternions(alignment: Alignment, q: Tensor) -> Tensor:
     if q_r.ndim > 1:
         q_r = q_r.unsqueeze(-2)
     return quaternion.multiply(q_r, q)
+
+
+def align_yaw(source: Tensor, target: Tensor) -> Alignment:
+    """The rotation about ``z`` and translation mapping ``source`` onto ``target`` (4 DoF).
+
+    The alignment for trajectories whose gravity direction is known (an INS): only
+    the heading and the origin are free. With centred points, the angle maximising
+    ``Σ ỹᵀ R_z(θ) x̃`` is ``θ = atan2(Σ (x̃ × ỹ)_z, Σ x̃_xy · ỹ_xy)``; ``t = μ_y - R_z μ_x``.
+    Well defined for a straight (collinear) track, unlike the 3-D rotation of
+    :func:`umeyama`. Points ``(..., N, 3)``, ``N >= 1``.
+    """
+    check_points(source, "source", min_points=1)
+    check_points(target, "target", min_points=1)
+    if source.shape != target.shape:
+        raise ValueError(f"source and target must have the same shape, got {tuple(source.shape)} and {tuple(target.shape)}")
+    mu_s, mu_t = source.mean(dim=-2), target.mean(dim=-2)
+    xs, xt = source - mu_s.unsqueeze(-2), target - mu_t.unsqueeze(-2)
+    cross = (xs[..., 0] * xt[..., 1] - xs[..., 1] * xt[..., 0]).sum(-1)
+    dot = (xs[..., 0] * xt[..., 0] + xs[..., 1] * xt[..., 1]).sum(-1)
+    theta = torch.atan2(cross, dot)
+    c, s = torch.cos(theta), torch.sin(theta)
+    one, zero = torch.ones_like(c), torch.zeros_like(c)
+    rotation = torch.stack((c, -s, zero, s, c, zero, zero, zero, one), -1).reshape(*c.shape, 3, 3)
+    translation = mu_t - (rotation @ mu_s.unsqueeze(-1)).squeeze(-1)
+    return Alignment(rotation=rotation, translation=translation, scale=torch.ones_like(c))

@@ -53,8 +53,8 @@ class GnssFix:
             result,
             kind="gnss",
             name=self.name,
-            nis=float(result.nis[0]),
-            accepted=float(result.weight[0]),
+            nis=float(result.nis[0].detach()),
+            accepted=float(result.weight[0].detach()),
         )
 
 
@@ -229,7 +229,7 @@ class FlowFrame:
             info = dict(kind="flow", name=self.name, candidates=M, points=len(points), valid=int(m.valid.sum()),
                         degenerate=m.n_degenerate, behind=m.n_behind, low_parallax=m.n_low_parallax)
             if result is not None:
-                chain.update(result, accepted=float(result.weight.sum()), **info)
+                chain.update(result, accepted=float(result.weight.detach().sum()), **info)
             else:
                 chain.log.append({"t_s": chain.time_s, "accepted": 0.0, **info})
         PoseAugmentation(self.time_s, u.sigma_p0, u.sigma_q0, mode=u.augmentation_mode).apply(chain)

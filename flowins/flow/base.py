@@ -36,11 +36,17 @@ class FlowResult:
     ``flow`` ``(B, 2, H, W)`` px from image 1 to image 2; ``sigma`` ``(B, 2, H, W)``
     px, the 1-σ of each component; ``samples``: the Monte Carlo passes
     ``(N, B, 2, H, W)`` when a provider was asked to keep them, else ``None``.
+    ``dropout_unit``, ``floor`` ``(B, 2, H, W)`` px, from a provider whose Monte Carlo
+    dropout spread has a closed form (SpyNet with ``mc_mode="moments"``): the spread is
+    ``sqrt(p / (1 - p)) dropout_unit`` for dropout rate ``p`` and
+    ``sigma = max(spread, floor)``, so the σ at another rate needs no network pass.
     """
 
     flow: Tensor
     sigma: Tensor
     samples: Tensor | None = None
+    dropout_unit: Tensor | None = None
+    floor: Tensor | None = None
 
     def __post_init__(self) -> None:
         if self.flow.ndim != 4 or self.flow.shape[1] != 2 or self.sigma.shape != self.flow.shape:
@@ -51,7 +57,8 @@ class FlowResult:
     def __getitem__(self, index: int) -> FlowResult:
         """The ``index``-th pair, keeping a batch dimension of 1."""
         samples = None if self.samples is None else self.samples[:, index : index + 1]
-        return FlowResult(self.flow[index : index + 1], self.sigma[index : index + 1], samples)
+        one = lambda x: None if x is None else x[index : index + 1]
+        return FlowResult(one(self.flow), one(self.sigma), samples, one(self.dropout_unit), one(self.floor))
 
 
 @dataclass

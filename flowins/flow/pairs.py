@@ -25,12 +25,16 @@ from typing import Any
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 from tqdm.auto import tqdm
 
+from flowins.flow.base import FlowResult, resize_flow
 from flowins.flow.points import FlowPoints, grid_candidates
 
 FORMAT_VERSION = 1
+_REQUIRED = ("uv1_px", "flow_px", "sigma_px")
+_OPTIONAL = ("dropout_unit_px", "floor_px")  # the dropout moments, when the provider gives them
 
 
 @dataclass
@@ -73,8 +77,18 @@ class FlowPairs:
         points = []
         for p in self.points:
             uv1 = ideal(p.uv1_px)
-            points.append(FlowPoints(uv1, ideal(p.uv1_px + p.flow_px) - uv1, p.sigma_px))
+            points.append(FlowPoints(uv1, ideal(p.uv1_px + p.flow_px) - uv1, *p[2:]))
         return FlowPairs(self.t1_s, self.t2_s, points, self.kind, self.description)
+
+    def at_dropout_rate(self, p: float | Tensor) -> FlowPairs:
+        """The pairs with every point's σ at dropout rate ``p`` (:meth:`FlowPoints.at_dropout_rate`)."""
+        return FlowPairs(self.t1_s, self.t2_s, [pts.at_dropout_rate(p) for pts in self.points], self.kind,
+                         self.description)
+
+    def select(self, keep: Tensor) -> FlowPairs:
+        """The pairs where the bool mask ``keep`` ``(P,)`` is true."""
+        index = torch.nonzero(keep).squeeze(-1).tolist()
+        return FlowPairs(self.t1_s[keep], self.t2_s[keep], [self.points[i] for i in index], self.kind, self.description)
 
     def save(self, path: str | Path) -> None:
         """One ``.npz``: times, per-pair counts and the concatenated points."""
@@ -82,12 +96,13 @@ class FlowPairs:
         cat = lambda field: (
             np.concatenate([getattr(p, field).numpy() for p in self.points]) if self.points else np.zeros((0, 2))
         ).astype(np.float32)
+        optional = [f for f in _OPTIONAL if self.points and all(getattr(p, f) is not None for p in self.points)]
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(path.name + ".partial.npz")
         np.savez_compressed(
             tmp, version=FORMAT_VERSION, t1_s=self.t1_s.numpy(), t2_s=self.t2_s.numpy(), counts=counts,
-            uv1_px=cat("uv1_px"), flow_px=cat("flow_px"), sigma_px=cat("sigma_px"),
+            **{f: cat(f) for f in (*_REQUIRED, *optional)},
             kind=self.kind, description=self.description,
         )
         tmp.replace(path)
@@ -100,9 +115,9 @@ class FlowPairs:
                 raise ValueError(f"{path}: not a flowins flow-pairs file of format version {FORMAT_VERSION}")
             counts = z["counts"]
             edges = np.concatenate(([0], np.cumsum(counts)))
-            arrays = {k: torch.from_numpy(z[k]).double() for k in ("uv1_px", "flow_px", "sigma_px")}
+            arrays = {k: torch.from_numpy(z[k]).double() for k in (*_REQUIRED, *_OPTIONAL) if k in z}
             points = [
-                FlowPoints(*(arrays[k][edges[i] : edges[i + 1]] for k in ("uv1_px", "flow_px", "sigma_px")))
+                FlowPoints(**{k: a[edges[i] : edges[i + 1]] for k, a in arrays.items()})
                 for i in range(len(counts))
             ]
             return cls(torch.from_numpy(z["t1_s"]), torch.from_numpy(z["t2_s"]), points, str(z["kind"]), str(z["description"]))
@@ -139,14 +154,11 @@ def read_frame(frames, index: int) -> Tensor:
     return image if isinstance(image, Tensor) else torch.from_numpy(np.ascontiguousarray(image))
 
 
-def run_provider(provider: Callable, first: Tensor, second: Tensor, scale: float = 1.0) -> tuple[Tensor, Tensor]:
-    """``provider`` on ``(B, H, W, 3)`` uint8 images resized by ``scale``; flow and σ at full size."""
+def run_provider(provider: Callable, first: Tensor, second: Tensor, scale: float = 1.0) -> FlowResult:
+    """``provider`` on ``(B, H, W, 3)`` uint8 images resized by ``scale``; the
+    :class:`~flowins.flow.base.FlowResult` (flow, σ and its parts) at full size."""
     if scale == 1.0:
-        result = provider(first, second)
-        return result.flow, result.sigma
-    import torch.nn.functional as F
-
-    from flowins.flow.base import resize_flow
+        return provider(first, second)
 
     H, W = first.shape[1:3]
     size = (max(8, round(H * scale)), max(8, round(W * scale)))
@@ -156,7 +168,9 @@ def run_provider(provider: Callable, first: Tensor, second: Tensor, scale: float
         return F.interpolate(x, size=size, mode="area")
 
     result = provider(shrink(first), shrink(second))
-    return resize_flow(result.flow, (H, W)), resize_flow(result.sigma, (H, W)).abs()
+    grow = lambda x: None if x is None else resize_flow(x, (H, W)).abs()
+    return FlowResult(resize_flow(result.flow, (H, W)), grow(result.sigma), None, grow(result.dropout_unit),
+                      grow(result.floor))
 
 
 def dense_pairs(
@@ -199,10 +213,12 @@ def dense_pairs(
         cache = {i: cache[i] if i in cache else read_frame(frames, i) for i in need}
         first = torch.stack([cache[a] for a, _ in chunk])
         second = torch.stack([cache[b] for _, b in chunk])
-        flow, sigma = run_provider(provider, first, second, input_scale)
+        result = run_provider(provider, first, second, input_scale)
         for j in range(len(chunk)):
-            points.append(grid_candidates(flow[j].double(), sigma[j].double(),
-                                          stride_px=stride_px, border_px=border_px))
+            item = lambda x: None if x is None else x[j].double()
+            points.append(grid_candidates(item(result.flow), item(result.sigma), stride_px=stride_px,
+                                          border_px=border_px, dropout_unit_px=item(result.dropout_unit),
+                                          floor_px=item(result.floor)))
         cache = {chunk[-1][1]: cache[chunk[-1][1]]}
         bar.update(len(chunk))
     bar.close()

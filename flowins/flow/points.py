@@ -13,24 +13,56 @@ from torch import Tensor
 
 
 class FlowPoints(NamedTuple):
-    """Flow points of one frame pair: pixels in the first frame, flow and 1-σ, all ``(M, 2)`` px."""
+    """Flow points of one frame pair: pixels in the first frame, flow and 1-σ, all ``(M, 2)`` px.
+
+    ``dropout_unit_px`` and ``floor_px`` (optional, ``(M, 2)``): the parts of ``σ`` of a
+    provider whose Monte Carlo dropout spread has a closed form
+    (:meth:`flowins.flow.spynet.SpyNetProvider.moments`); :meth:`at_dropout_rate`
+    recomputes ``σ`` for another rate, differentiably.
+    """
 
     uv1_px: Tensor
     flow_px: Tensor
     sigma_px: Tensor
+    dropout_unit_px: Tensor | None = None
+    floor_px: Tensor | None = None
 
+    # (``__len__`` is the number of points, so ``NamedTuple._replace`` can't be used here)
     def take(self, index: Tensor) -> FlowPoints:
-        return FlowPoints(self.uv1_px[index], self.flow_px[index], self.sigma_px[index])
+        return FlowPoints(*(None if x is None else x[index] for x in self))
 
     def __len__(self) -> int:
         return self.uv1_px.shape[0]
 
+    def to(self, like: Tensor) -> FlowPoints:
+        return FlowPoints(*(None if x is None else x.to(like) for x in self))
 
-def grid_candidates(flow_px: Tensor, sigma_px: Tensor, *, stride_px: int = 8, border_px: int = 8) -> FlowPoints:
+    def at_dropout_rate(self, p: float | Tensor) -> FlowPoints:
+        """The points with ``σ = max(sqrt(p / (1 - p)) dropout_unit, floor)`` for dropout rate ``p``."""
+        if self.dropout_unit_px is None or self.floor_px is None:
+            raise ValueError(
+                "FlowPoints.at_dropout_rate: these points carry no dropout moments; compute them with a provider "
+                "in closed-form mode (SpyNetProvider(mc_mode='moments'))"
+            )
+        p = torch.as_tensor(p, dtype=self.dropout_unit_px.dtype, device=self.dropout_unit_px.device)
+        sigma = torch.maximum(torch.sqrt(p / (1 - p)) * self.dropout_unit_px, self.floor_px)
+        return FlowPoints(self.uv1_px, self.flow_px, sigma, self.dropout_unit_px, self.floor_px)
+
+
+def grid_candidates(
+    flow_px: Tensor,
+    sigma_px: Tensor,
+    *,
+    stride_px: int = 8,
+    border_px: int = 8,
+    dropout_unit_px: Tensor | None = None,
+    floor_px: Tensor | None = None,
+) -> FlowPoints:
     """The dense field sampled every ``stride_px`` pixels, ``border_px`` away from the edges.
 
     Args:
-        flow_px, sigma_px: ``(2, H, W)`` (a :class:`~flowins.flow.base.FlowResult` item).
+        flow_px, sigma_px: ``(2, H, W)`` (a :class:`~flowins.flow.base.FlowResult` item);
+            ``dropout_unit_px``, ``floor_px``: optional ``(2, H, W)`` parts of σ, sampled alike.
     Raises:
         ValueError: for mismatched shapes, non-positive stride, a border that leaves
             no pixel, or non-finite flow or σ at a candidate (a provider must not
@@ -64,4 +96,5 @@ def grid_candidates(flow_px: Tensor, sigma_px: Tensor, *, stride_px: int = 8, bo
             f"first at (u, v) = ({int(u[i])}, {int(v[i])}): flow {flow[i].tolist()}, σ {sigma[i].tolist()}"
         )
     uv = torch.stack((u, v), -1).to(flow.dtype)
-    return FlowPoints(uv, flow, sigma)
+    extras = [None if x is None else x[:, v, u].T for x in (dropout_unit_px, floor_px)]
+    return FlowPoints(uv, flow, sigma, *extras)

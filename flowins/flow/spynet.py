@@ -435,8 +435,11 @@ class SpyNetProvider(FlowProvider):
         dropout_level: Literal["finest"] | int = "finest",
         sigma_floor: float = 0.05,
         device: str | torch.device = "cpu",
+        mc_mode: Literal["sample", "moments"] = "sample",
     ) -> None:
         super().__init__()
+        if mc_mode not in ("sample", "moments"):
+            raise ValueError(f"SpyNetProvider: mc_mode={mc_mode!r}; expected 'sample' or 'moments'")
         if mc_passes < 0 or mc_passes == 1:
             raise ValueError(
                 f"SpyNetProvider: mc_passes={mc_passes}; expected 0 (no Monte Carlo) or >= 2"
@@ -455,6 +458,12 @@ class SpyNetProvider(FlowProvider):
             raise ValueError(
                 f"SpyNetProvider: sigma_floor={sigma_floor}; expected >= 0 px"
             )
+        if mc_mode == "moments" and dropout_level != LEVELS - 1:
+            raise ValueError(
+                f"SpyNetProvider: mc_mode='moments' needs the dropout in the finest level (dropout_level='finest'), "
+                f"got {dropout_level}: only there is everything after the dropout linear"
+            )
+        self.mc_mode = mc_mode
         self.spynet = load_spynet_weights(SpyNet(), weights)
         self.dropout: nn.Module = ConcreteDropout(p) if concrete else MCDropout(p)
         self.mc_passes = int(mc_passes)
@@ -481,7 +490,35 @@ class SpyNetProvider(FlowProvider):
         """The σ floor ``(B, 2, H, W)`` px of each pixel of ``image1`` ``(B, 3, H, W)``."""
         return observability_floor(image1, self.sigma_floor).expand(-1, 2, -1, -1)
 
+    @property
+    def dropout_rate(self) -> float | Tensor:
+        """The dropout rate ``p`` (a tensor with a gradient for the concrete dropout)."""
+        return self.dropout.p
+
+    def moments(self, image1: Tensor, image2: Tensor) -> FlowResult:
+        """The limit of infinitely many Monte Carlo passes, in closed form (prepared images).
+
+        The dropout drops the input ``f`` of the finest level's last conv ``W`` (linear,
+        nothing after it but the addition of the coarser flow), so a pass is
+        ``W * (z ⊙ f) / (1 - p) + b + up`` with ``z ~ Bernoulli(1 - p)`` per element: its
+        mean is the deterministic flow and its variance per output channel is
+        ``p / (1 - p) · (W² * f²)`` (``*`` the convolution). Returns the flow, ``σ =
+        max(sqrt(p / (1 - p)) dropout_unit, floor)``, and both parts, so a caller can
+        change ``p`` without running the network (:meth:`FlowPoints.at_dropout_rate`).
+        """
+        size = tuple(image1.shape[-2:])
+        features, up, head = self._split(image1, image2)
+        conv = self.spynet.basic_module[self.dropout_level].basic_module[2 * self.dropout_conv]
+        variance = F.conv2d(features * features, conv.weight * conv.weight, padding=conv.padding)
+        unit = resize_flow(variance.clamp_min(0).sqrt(), size).abs()
+        floor = self.floor(image1)
+        p = torch.as_tensor(self.dropout_rate, dtype=unit.dtype, device=unit.device)
+        sigma = torch.maximum(torch.sqrt(p / (1 - p)) * unit, floor)
+        return FlowResult(head(features, up), sigma, dropout_unit=unit, floor=floor)
+
     def estimate(self, image1: Tensor, image2: Tensor) -> FlowResult:
+        if self.mc_mode == "moments":
+            return self.moments(image1, image2)
         features, up, head = self._split(image1, image2)
         floor = self.floor(image1)
         if self.mc_passes == 0:
@@ -544,5 +581,5 @@ class SpyNetProvider(FlowProvider):
     def extra_repr(self) -> str:
         return (
             f"weights={self.weights!r}, mc_passes={self.mc_passes}, dropout_level={self.dropout_level}, "
-            f"dropout_conv={self.dropout_conv}, sigma_floor={self.sigma_floor}"
+            f"dropout_conv={self.dropout_conv}, sigma_floor={self.sigma_floor}, mc_mode={self.mc_mode!r}"
         )

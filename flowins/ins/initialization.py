@@ -116,6 +116,7 @@ def stationary_initialization(
     block(STATE.b_a, u.acc_bias_mps2)
     block(STATE.b_w, u.gyro_bias_rps)
     block(STATE.T_a, u.acc_scale)
-    rpy = torch.tensor([u.roll_pitch_rad, u.roll_pitch_rad, u.yaw_rad], dtype=dtype)
+    # stacked, not torch.tensor(...): the uncertainties may be learned tensors with a gradient
+    rpy = torch.stack([torch.as_tensor(v, dtype=dtype) for v in (u.roll_pitch_rad, u.roll_pitch_rad, u.yaw_rad)])
     core[STATE.q, STATE.q] = orientation_covariance(q, rpy, u.quaternion_radial)
     return mean, augmented_covariance(core, u.augmentation_nugget_var)

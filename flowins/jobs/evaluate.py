@@ -79,6 +79,20 @@ def flow_update_config(cfg: Mapping[str, Any]) -> FlowUpdate:
     return FlowUpdate(gate=Gate(mode=gate["mode"], probability=gate["probability"]), **cfg)
 
 
+def learned_settings(checkpoint: str, nav_cfg: NavigationConfig, cfg: Mapping[str, Any]) -> tuple[NavigationConfig, dict]:
+    """The filter config and job config with a ``train.py`` checkpoint's learned parameters
+    (noise, gates, flow noise; the dropout rate goes to the flow provider when it has one)."""
+    from flowins.training.parameters import FilterParameters
+
+    params = FilterParameters.from_checkpoint(checkpoint)
+    values = params.values()
+    cfg = dict(cfg)
+    if "p" in cfg["flow"]:
+        cfg["flow"] = {**cfg["flow"], "p": values["dropout_p"]}
+    print(f"learned parameters from {checkpoint}: " + ", ".join(f"{k}={v:.4g}" for k, v in values.items()))
+    return params.apply(nav_cfg, training=False), cfg
+
+
 @dataclass
 class EvalInputs:
     """What the job evaluates: IMU, optional GNSS, camera frames or tracks, ground truth."""
@@ -237,9 +251,9 @@ def flow_panels(rec: EvalInputs, cfg: Mapping[str, Any], out: Path, count: int) 
     n = len(frames) - step
     for i in torch.linspace(0.2 * n, 0.8 * n, count).round().long().tolist():
         a, b = read_frame(frames, i), read_frame(frames, i + step)
-        flow, sigma = run_provider(provider, a[None], b[None], float(cfg["flow_pairs"]["input_scale"]))
+        result = run_provider(provider, a[None], b[None], float(cfg["flow_pairs"]["input_scale"]))
         t = float(frames.t_s[i])
-        paths.append(flow_panel(a, b, flow[0], sigma[0], out / f"flow_panel_{i:06d}.png",
+        paths.append(flow_panel(a, b, result.flow[0], result.sigma[0], out / f"flow_panel_{i:06d}.png",
                                 title=f"{rec.name}: frames {i} -> {i + step} (t = {t:.1f} s)"))
     return paths
 
@@ -266,6 +280,9 @@ def run(cfg: Mapping[str, Any]) -> list[Row]:
     out = Path(cfg["output_dir"])
     out.mkdir(parents=True, exist_ok=True)
     nav_cfg = navigation_config(cfg["filter"])
+    checkpoint = (cfg.get("model") or {}).get("checkpoint")
+    if checkpoint:
+        nav_cfg, cfg = learned_settings(checkpoint, nav_cfg, cfg)
     quick = bool(cfg.get("quick", False))
     progress = bool(cfg.get("progress"))
     plots = bool(cfg.get("plots", True))

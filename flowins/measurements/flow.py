@@ -178,8 +178,10 @@ def flow_measurements(
     if index.numel():
         jac = jacrev(lambda x_, f_, u_: residual(x_, f_, u_)[0], argnums=(0, 1))
         Hx_v, Hr_v = vmap(jac, in_dims=(None, 0, 0))(x, flow_px[index], uv1_px[index])
-        h_v = vmap(lambda f_, u_: residual(x, f_, u_)[0])(flow_px[index], uv1_px[index])
+        h_v, aux_v = vmap(lambda f_, u_: residual(x, f_, u_))(flow_px[index], uv1_px[index])
         residual_out = residual_out.index_copy(0, index, h_v)
+        # the parallax of the valid points again, now with its gradient (the noise inflation uses it)
+        parallax_px = parallax_px.index_copy(0, index, focal * aux_v.parallax)
         H_x = H_x.index_copy(0, index, Hx_v)
         H_r = H_r.index_copy(0, index, Hr_v)
     n_behind = int((finite & well_posed & ~in_front).sum())

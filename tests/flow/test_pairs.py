@@ -94,16 +94,19 @@ def test_dense_pairs_keep_the_field_in_recording_pixels(scale):
         assert (pts.sigma_px > 0.1 / scale * 0.99).all()
 
 
-def test_flow_pairs_round_trip_through_the_cache_file(tmp_path):
+@pytest.mark.parametrize("fields", [3, 5])  # with and without the dropout moments
+def test_flow_pairs_round_trip_through_the_cache_file(tmp_path, fields):
     gen = torch.Generator().manual_seed(0)
-    pts = [FlowPoints(*(torch.rand(n, 2, generator=gen, dtype=F64) * 100 for _ in range(3))) for n in (5, 0, 7)]
+    pts = [FlowPoints(*(torch.rand(n, 2, generator=gen, dtype=F64) * 100 for _ in range(fields))) for n in (5, 0, 7)]
     pairs = FlowPairs(torch.tensor([0.0, 0.1, 0.2], dtype=F64), torch.tensor([0.1, 0.2, 0.3], dtype=F64), pts, "dense", "test")
     pairs.save(tmp_path / "p.npz")
     back = FlowPairs.load(tmp_path / "p.npz")
     assert back.kind == "dense" and back.description == "test" and [len(p) for p in back.points] == [5, 0, 7]
     for a, b in zip(pairs.points, back.points):
+        assert sum(x is not None for x in b) == fields
         for x, y in zip(a, b):
-            torch.testing.assert_close(y, x.float().double())  # stored as float32
+            if x is not None:
+                torch.testing.assert_close(y, x.float().double())  # stored as float32
     with pytest.raises(ValueError, match="not after its start"):
         FlowPairs(torch.tensor([0.2], dtype=F64), torch.tensor([0.1], dtype=F64), pts[:1], "dense")
 

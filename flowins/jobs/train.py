@@ -1,0 +1,90 @@
+"""The training job: learn the filter's parameters on sequences with ground truth.
+
+``configs -> data (sequences, cached flow) -> FilterLearner (unrolled filter) ->
+Lightning Trainer (fit, then the held-out test) -> checkpoint, TensorBoard, table``.
+"""
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import pytorch_lightning as pl
+
+from flowins.training.parameters import NAMES, NOISE_NAMES, FROZEN_BY_DEFAULT, FilterParameters, starting_values
+
+
+def parameter_sets(cfg: Mapping[str, Any], base) -> tuple[dict[str, float], dict[str, float], set[str]]:
+    """(hand-tuned values, starting values, names to learn) from the ``model`` group."""
+    model = cfg["model"]
+    p = float(cfg["flow"].get("p", 0.2))
+    tuned = starting_values(base, dropout_p=p)
+    start = {**tuned, **{k: float(v) for k, v in (model.get("start") or {}).items()}}
+    unknown = sorted(set(model.get("start") or {}) - set(NAMES))
+    if unknown:
+        raise ValueError(f"model.start: unknown parameters {unknown}; expected names from {list(NAMES)}")
+    mistune = float(model.get("mistune", 1.0))
+    if not mistune > 0:
+        raise ValueError(f"model.mistune must be > 0, got {mistune}")
+    start = {k: v * mistune if k in NOISE_NAMES else v for k, v in start.items()}
+    learn = set(NAMES) - FROZEN_BY_DEFAULT if model.get("learn") is None else set(model["learn"])
+    learn -= set(model.get("freeze") or [])
+    if base.flow_update.augmentation_mode == "limit" and model.get("learn") is None:
+        learn -= {"sigma_p0", "sigma_q0"}  # the limit mode has no forgetting variances to learn
+    return tuned, start, learn
+
+
+def flow_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """The flow provider config, in closed-form dropout mode where the provider has one."""
+    flow = dict(cfg["flow"])
+    if cfg.get("flow_moments", True) and str(flow.get("_target_", "")).endswith("SpyNetProvider"):
+        flow["mc_mode"] = "moments"
+    return flow
+
+
+def run(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """Fit, test on the held-out sequences, and return the held-out results."""
+    from hydra.utils import instantiate
+
+    from flowins.jobs.evaluate import navigation_config
+    from flowins.training.data import SequenceDataModule
+    from flowins.training.module import FilterLearner
+    from flowins.training.unroll import METHODS
+
+    pl.seed_everything(int(cfg.get("seed", 0)), workers=True)
+    out = Path(cfg["output_dir"])
+    out.mkdir(parents=True, exist_ok=True)
+    methods = list(cfg["methods"])
+    for m in methods:
+        if m not in METHODS:
+            raise ValueError(f"methods: unknown {m!r}; expected names from {list(METHODS)}")
+    base = navigation_config(cfg["filter"])
+    tuned, start, learn = parameter_sets(cfg, base)
+    params = FilterParameters(start, learn)
+    print(f"learning {len(params.learned)} parameters: {', '.join(params.learned)}")
+    data_cfg = {**cfg, "flow": flow_settings(cfg)}
+    data = SequenceDataModule(train=cfg["data"]["train"], val=cfg["data"]["val"], config=data_cfg, methods=methods,
+                              progress=bool(cfg.get("progress", True)))
+    module = FilterLearner(
+        params, base, methods=methods, window_s=float(cfg["window_s"]), nll_weight=float(cfg["model"]["nll_weight"]),
+        lr=float(cfg["model"]["lr"]), gradient_clip=float(cfg["model"]["gradient_clip"]),
+        reference={"start": start, "hand-tuned": tuned}, output_dir=str(out),
+    )
+    checkpoint = pl.callbacks.ModelCheckpoint(dirpath=out / "checkpoints", filename="best", monitor="val/rmse_mean_m",
+                                              mode="min", save_last=True)
+    logger = instantiate(cfg["logger"]) if cfg.get("logger") else False
+    trainer: pl.Trainer = instantiate(cfg["trainer"], logger=logger, callbacks=[checkpoint])
+    trainer.fit(module, datamodule=data)
+    best = checkpoint.best_model_path or None
+    if best:
+        module.params.load_state_dict(FilterParameters.from_checkpoint(best).state_dict())
+    trainer.test(module, datamodule=data, verbose=False)
+    learned = module.params.values()
+    (out / "learned_parameters.json").write_text(json.dumps(learned, indent=2))
+    print(f"\nlearned parameters: {out / 'learned_parameters.json'}")
+    if best:
+        print(f"checkpoint: {best}\n  python evaluate.py model.checkpoint={best}")
+    print(f"skipped windows (non-finite loss or gradient): {module.skipped_windows}; trained: {module.trained_windows}")
+    return {"learned": learned, "start": start, "hand-tuned": tuned, "checkpoint": best,
+            "skipped_windows": module.skipped_windows}

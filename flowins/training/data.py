@@ -1,0 +1,118 @@
+"""Training data: sequences with ground truth and their flow pairs, as a ``LightningDataModule``.
+
+A source is either a recording (``{path: DIR}``: a flowins folder, EuRoC or ADVIO with
+ground truth) or the simulated walk with a seed (``{seed: 3}``, optionally
+``duration_s``). The flow network runs once per recording and setting, in
+closed-form Monte Carlo dropout mode (:meth:`flowins.flow.spynet.SpyNetProvider.moments`),
+and its points are cached on disk (the same cache ``evaluate.py`` uses): what depends on
+no learned parameter is never recomputed, and the one that does, the dropout rate,
+changes only an analytic factor of each point's σ.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import pytorch_lightning as pl
+from torch.utils.data import DataLoader, Dataset
+
+from flowins.flow.pairs import FlowPairs
+from flowins.training.unroll import METHODS, TrainingSequence
+
+
+def _sequence_config(source: Mapping[str, Any], base: Mapping[str, Any]) -> dict[str, Any]:
+    if "path" in source and source["path"]:
+        return {**base, "path": str(source["path"])}
+    unknown = set(source) - {"seed", "duration_s", "path"}
+    if unknown or "seed" not in source:
+        raise ValueError(
+            f"data source {dict(source)}: expected {{path: DIR}} or {{seed: N}} (optionally duration_s); "
+            f"unknown keys {sorted(unknown)}" if unknown else f"data source {dict(source)} has neither path nor seed"
+        )
+    cfg = {**base, "path": None, "seed": int(source["seed"])}
+    if "duration_s" in source:
+        cfg["duration_s"] = float(source["duration_s"])
+    return cfg
+
+
+def load_training_sequence(
+    source: Mapping[str, Any], cfg: Mapping[str, Any], *, methods: Sequence[str], progress: bool = False
+) -> TrainingSequence:
+    """One :class:`TrainingSequence` with the flow pairs ``methods`` need (computed or cached).
+
+    ``cfg`` holds the groups ``sequence`` (the defaults of a simulated source), ``flow``,
+    ``sparse``, ``flow_pairs`` and ``cache_dir``, as in ``configs/train.yaml``.
+    """
+    from flowins.jobs.evaluate import load_flow, load_sequence
+
+    rec = load_sequence(_sequence_config(source, cfg["sequence"]), quick=False, progress=progress)
+    if rec.truth is None:
+        raise ValueError(f"{rec.name}: training needs ground truth; the sequence has none")
+    pairs: dict[str, FlowPairs | None] = {"dense": None, "sparse": None}
+    for kind, index in (("sparse", 1), ("dense", 2)):
+        if any(METHODS[m][index] for m in methods):
+            flow = load_flow(kind, rec, cfg, progress=progress)
+            if isinstance(flow, str):
+                raise ValueError(f"{rec.name}: {kind} flow unavailable: {flow}")
+            pairs[kind] = flow
+    return TrainingSequence(rec.name, rec.imu, rec.gnss, rec.truth, rec.camera, pairs["dense"], pairs["sparse"])
+
+
+class _Sequences(Dataset):
+    def __init__(self, items: list[TrainingSequence]) -> None:
+        self.items = items
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __getitem__(self, index: int) -> TrainingSequence:
+        return self.items[index]
+
+
+def _identity(batch: TrainingSequence) -> TrainingSequence:
+    return batch
+
+
+class SequenceDataModule(pl.LightningDataModule):
+    """Training and held-out sequences; one batch is one whole sequence (the module cuts it
+    into windows). ``prepare_data`` simulates and runs the flow network once (cached)."""
+
+    def __init__(
+        self,
+        *,
+        train: Sequence[Mapping[str, Any]],
+        val: Sequence[Mapping[str, Any]],
+        config: Mapping[str, Any],
+        methods: Sequence[str],
+        progress: bool = True,
+    ) -> None:
+        super().__init__()
+        if not train or not val:
+            raise ValueError("data: need at least one training and one held-out (val) sequence")
+        self.sources = {"train": list(train), "val": list(val)}
+        self.config = config
+        self.methods = list(methods)
+        self.progress = progress
+        self.sequences: dict[str, list[TrainingSequence]] = {}
+
+    def prepare_data(self) -> None:
+        self.setup()
+
+    def setup(self, stage: str | None = None) -> None:
+        for split, sources in self.sources.items():
+            if split not in self.sequences:
+                self.sequences[split] = [
+                    load_training_sequence(s, self.config, methods=self.methods, progress=self.progress) for s in sources
+                ]
+
+    def _loader(self, split: str, shuffle: bool) -> DataLoader:
+        return DataLoader(_Sequences(self.sequences[split]), batch_size=None, shuffle=shuffle, collate_fn=_identity)
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader("train", True)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader("val", False)
+
+    def test_dataloader(self) -> DataLoader:
+        return self._loader("val", False)

@@ -1,0 +1,185 @@
+"""Unrolling the filter over windows of a sequence, and the loss against ground truth.
+
+``sequence -> (events with the current parameters) -> filter over a window -> loss``.
+A sequence is cut into windows at IMU sample times; the filter runs through one
+window from the (detached) state at its start, so the gradient of a window's loss
+reaches back to that window's start only (truncated backpropagation through time).
+The events are rebuilt from the parameters for every window
+(:func:`flowins.navigation.prepare_navigation`, the same function ``evaluate.py``
+uses), so each window sees the current values.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from flowins.data.streams import GnssStream, ImuStream, PoseStream
+from flowins.evaluation.alignment import align_yaw, apply_alignment
+from flowins.evaluation.metrics import associate, interpolate_positions
+from flowins.filter.runner import FilterTrack, run_filter
+from flowins.flow.pairs import FlowPairs
+from flowins.measurements.flow import FlowCamera
+from flowins.navigation import NavigationConfig, prepare_navigation
+from flowins.state import STATE
+
+#: the rows of Table I as (GNSS, sparse, dense) sources
+METHODS: dict[str, tuple[bool, bool, bool]] = {
+    "ins": (False, False, False),
+    "ins_gnss": (True, False, False),
+    "ins_sparse": (False, True, False),
+    "ins_dense": (False, False, True),
+    "ins_gnss_sparse": (True, True, False),
+    "ins_gnss_dense": (True, False, True),
+}
+
+
+@dataclass
+class TrainingSequence:
+    """One recording with ground truth, and its flow pairs (with dropout moments for learning ``p``)."""
+
+    name: str
+    imu: ImuStream
+    gnss: GnssStream | None
+    truth: PoseStream
+    camera: FlowCamera | None = None
+    dense: FlowPairs | None = None
+    sparse: FlowPairs | None = None
+
+    def sources(self, method: str) -> tuple[GnssStream | None, FlowPairs | None]:
+        """The GNSS stream and flow pairs ``method`` uses; a clear error when one is missing."""
+        if method not in METHODS:
+            raise ValueError(f"unknown method {method!r}; expected one of {list(METHODS)}")
+        gnss, sparse, dense = METHODS[method]
+        if gnss and self.gnss is None:
+            raise ValueError(f"{self.name}: method {method} needs GNSS, the sequence has none")
+        flow = self.dense if dense else self.sparse if sparse else None
+        if (dense or sparse) and flow is None:
+            raise ValueError(f"{self.name}: method {method} needs {'dense' if dense else 'sparse'} flow pairs")
+        return (self.gnss if gnss else None), flow
+
+
+def window_bounds(t_s: Tensor, window_s: float) -> list[tuple[int, int]]:
+    """``[(i_a, i_b)]`` IMU sample index ranges of consecutive windows of about ``window_s``;
+    consecutive windows share their boundary sample, the last one takes the remainder."""
+    if window_s <= 0:
+        raise ValueError(f"window_s must be > 0, got {window_s}")
+    t = torch.as_tensor(t_s, dtype=torch.float64)
+    edges = torch.arange(float(t[0]), float(t[-1]), window_s, dtype=torch.float64)
+    index = torch.unique(torch.searchsorted(t, edges).clamp_max(t.shape[0] - 1)).tolist()
+    if index[-1] != t.shape[0] - 1:
+        if t[-1] - t[index[-1]] < 0.5 * window_s and len(index) > 1:
+            index[-1] = t.shape[0] - 1  # a short tail joins the last window
+        else:
+            index.append(t.shape[0] - 1)
+    return list(zip(index[:-1], index[1:]))
+
+
+class WindowResult(NamedTuple):
+    track: FilterTrack
+    mean: Tensor  # (26,) the state at the window's end (with the graph)
+    cov: Tensor  # (26, 26)
+
+
+def run_window(
+    seq: TrainingSequence,
+    method: str,
+    config: NavigationConfig,
+    bounds: tuple[int, int],
+    *,
+    dropout_p: Tensor | float | None = None,
+    start: tuple[Tensor, Tensor] | None = None,
+) -> WindowResult:
+    """The filter of ``method`` from IMU sample ``bounds[0]`` to ``bounds[1]``.
+
+    ``start``: the state ``(mean, cov)`` at the window's first sample (carried over from
+    the previous window); None: the sequence's own prior (then ``bounds[0]`` must be 0).
+    Events at the first sample belong to the previous window unless this is the first.
+    ``dropout_p``: recompute the flow σ at this dropout rate (the pairs need moments).
+    """
+    i_a, i_b = bounds
+    if start is None and i_a != 0:
+        raise ValueError(f"run_window: a window starting at IMU sample {i_a} needs the state there (start=...)")
+    gnss, flow = seq.sources(method)
+    imu = seq.imu
+    t_a, t_b = float(imu.t_s[i_a]), float(imu.t_s[i_b])
+    if flow is not None:
+        # only the pairs this window uses (and the one before, whose end frame augments)
+        flow = flow.select((flow.t2_s > t_a - 1.0) & (flow.t2_s <= t_b))
+        if dropout_p is not None:
+            flow = flow.at_dropout_rate(dropout_p)
+    setup = prepare_navigation(imu, gnss, config=config, flow=flow, camera=seq.camera if flow is not None else None)
+    first = start is None
+    events = [e for e in setup.events if (t_a < e.time_s or (first and e.time_s == t_a)) and e.time_s <= t_b]
+    mean0, cov0 = (setup.mean0, setup.cov0) if first else start
+    track = run_filter(
+        t_s=imu.t_s[i_a : i_b + 1],
+        acc_mps2=imu.acc_mps2[i_a : i_b + 1],
+        gyro_rps=imu.gyro_rps[i_a : i_b + 1],
+        mean0=mean0,
+        cov0=cov0,
+        noise=config.noise,
+        events=events,
+        output_every=config.output_every,
+        gravity_mps2=config.gravity_mps2,
+        jacobians=config.jacobians,
+        scheme=config.scheme,
+    )
+    return WindowResult(track, track.node_mean[-1], track.node_cov[-1])
+
+
+class WindowLoss(NamedTuple):
+    loss: Tensor  # scalar, what is minimised
+    rmse_m: Tensor  # position RMSE after the yaw + translation alignment (no gradient through it)
+    nll: Tensor  # mean Gaussian negative log-likelihood of the aligned position errors (0 if unused)
+
+
+def window_loss(track: FilterTrack, truth: PoseStream, *, nll_weight: float = 0.0, max_dt_s: float = 0.1) -> WindowLoss:
+    """Position error of a window's filter track against the ground truth.
+
+    The estimate is interpolated at the truth's times inside the window and aligned to
+    them by a yaw rotation and a translation (:func:`~flowins.evaluation.alignment.align_yaw`;
+    the heading and origin of an INS without GNSS are arbitrary). The alignment is
+    computed without a gradient: it minimises the squared error, so its own derivative
+    contributes nothing to the gradient (envelope theorem). The loss is the aligned
+    position RMSE (m), plus ``nll_weight`` times the mean negative log-likelihood
+    ``½ (eᵀ P⁻¹ e + log det 2πP)`` of the aligned errors under the filter's position
+    covariance, so the covariances learn to be honest.
+    """
+    t, pos, cov = track.t, track.mean[:, STATE.p], track.cov[:, STATE.p, STATE.p]
+    inside = (truth.t_s >= t[0]) & (truth.t_s <= t[-1])
+    t_ref, p_ref = truth.t_s[inside], truth.pos_m[inside].to(pos)
+    if t_ref.shape[0] < 3:
+        raise ValueError(f"window [{float(t[0]):.2f}, {float(t[-1]):.2f}] s has {t_ref.shape[0]} ground-truth samples; need >= 3")
+    assoc = associate(t, t_ref, max_dt_s=max_dt_s)
+    est = interpolate_positions(pos, assoc)
+    ref = p_ref[assoc.ref_index]
+    with torch.no_grad():
+        alignment = align_yaw(est.detach(), ref)
+    err = apply_alignment(alignment, est) - ref
+    mse = (err * err).sum(-1).mean()
+    rmse = torch.sqrt(mse + 1e-12)
+    nll = torch.zeros((), dtype=pos.dtype)
+    if nll_weight > 0:
+        w = assoc.weight.to(pos).view(-1, 1, 1)
+        left = assoc.est_left
+        P = (1 - w) * cov[left] + w * cov[left + 1]
+        R = alignment.rotation
+        P = R @ P @ R.T + 1e-9 * torch.eye(3, dtype=pos.dtype)
+        maha = (err.unsqueeze(-2) @ torch.linalg.solve(P, err.unsqueeze(-1))).reshape(-1)
+        nll = 0.5 * (maha + torch.logdet(2 * torch.pi * P)).mean()
+    return WindowLoss(rmse + nll_weight * nll, rmse.detach(), nll.detach())
+
+
+def sequence_rmse(seq: TrainingSequence, method: str, config: NavigationConfig, *, dropout_p: float | None = None) -> float:
+    """Filter RMSE (m) of ``method`` over the whole sequence after the SE(3) Procrustes
+    alignment of Table I (:func:`~flowins.evaluation.metrics.trajectory_errors`), no gradient."""
+    from flowins.evaluation.metrics import trajectory_errors
+
+    with torch.no_grad():
+        result = run_window(seq, method, config, (0, seq.imu.t_s.shape[0] - 1), dropout_p=dropout_p)
+        track = result.track
+        err = trajectory_errors(track.t, track.mean[:, STATE.p], seq.truth.t_s, seq.truth.pos_m, align="se3")
+    return float(err.rmse_m)
