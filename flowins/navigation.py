@@ -41,6 +41,11 @@ class NavigationConfig:
     dtype: torch.dtype = torch.float64
     flow_update: FlowUpdate = field(default_factory=FlowUpdate)
 
+    def filter_settings(self) -> dict:
+        """The keyword arguments of :func:`~flowins.filter.runner.run_filter` this config sets."""
+        return dict(noise=self.noise, output_every=self.output_every, gravity_mps2=self.gravity_mps2,
+                    jacobians=self.jacobians, scheme=self.scheme)
+
 
 @dataclass
 class NavigationResult:
@@ -182,13 +187,9 @@ def navigate(
         gyro_rps=imu.gyro_rps,
         mean0=setup.mean0,
         cov0=setup.cov0,
-        noise=config.noise,
         events=setup.events,
-        output_every=config.output_every,
-        gravity_mps2=config.gravity_mps2,
-        jacobians=config.jacobians,
-        scheme=config.scheme,
         progress=progress,
+        **config.filter_settings(),
     )
     return NavigationResult(
         filter=track,

@@ -120,12 +120,8 @@ def run_window(
         gyro_rps=imu.gyro_rps[i_a : i_b + 1],
         mean0=mean0,
         cov0=cov0,
-        noise=config.noise,
         events=events,
-        output_every=config.output_every,
-        gravity_mps2=config.gravity_mps2,
-        jacobians=config.jacobians,
-        scheme=config.scheme,
+        **config.filter_settings(),
     )
     return WindowResult(track, track.node_mean[-1], track.node_cov[-1])
 
