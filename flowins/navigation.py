@@ -37,6 +37,7 @@ class NavigationConfig:
     output_every: int = 10
     scheme: str = "midpoint"
     gravity_mps2: float = STANDARD_GRAVITY_MPS2
+    #: ``"analytic"`` | ``"autodiff"``: the IMU's and the flow measurements' Jacobians
     jacobians: str = "analytic"
     dtype: torch.dtype = torch.float64
     flow_update: FlowUpdate = field(default_factory=FlowUpdate)
@@ -70,7 +71,8 @@ class NavigationResult:
         return [entry for entry in self.filter.log if entry.get("kind") == "flow"]
 
 
-def flow_frames(pairs, camera, update: FlowUpdate, *, t_min_s: float, t_max_s: float, name: str = "flow") -> tuple[list[FlowFrame], int]:
+def flow_frames(pairs, camera, update: FlowUpdate, *, t_min_s: float, t_max_s: float, name: str = "flow",
+                jacobians: str = "analytic") -> tuple[list[FlowFrame], int]:
     """One :class:`FlowFrame` per frame time of ``pairs`` (a :class:`~flowins.flow.pairs.FlowPairs`).
 
     A pair's points update the filter at its end time; its start time must be the
@@ -90,8 +92,8 @@ def flow_frames(pairs, camera, update: FlowUpdate, *, t_min_s: float, t_max_s: f
             outside += 1
             continue
         if last is None or last != t1:
-            events.append(FlowFrame(t1, FlowPoints(empty, empty, empty), camera, update, f"{name} frame at {t1:.3f} s"))
-        events.append(FlowFrame(t2, pairs.points[k], camera, update, f"{name} pair {k} ({t1:.3f} -> {t2:.3f} s)"))
+            events.append(FlowFrame(t1, FlowPoints(empty, empty, empty), camera, update, f"{name} frame at {t1:.3f} s", jacobians))
+        events.append(FlowFrame(t2, pairs.points[k], camera, update, f"{name} pair {k} ({t1:.3f} -> {t2:.3f} s)", jacobians))
         last = t2
     return events, outside
 
@@ -143,7 +145,7 @@ def prepare_navigation(
         if camera is None:
             raise ValueError("navigate: flow pairs need the camera (a FlowCamera with K and the IMU->camera transform)")
         frames, outside = flow_frames(flow, camera, config.flow_update, t_min_s=float(imu.t_s[0]),
-                                      t_max_s=float(imu.t_s[-1]), name=flow.kind)
+                                      t_max_s=float(imu.t_s[-1]), name=flow.kind, jacobians=config.jacobians)
         events = events + frames
     mean0, cov0 = stationary_initialization(
         t_s=imu.t_s,

@@ -173,12 +173,64 @@ def joseph_update(
     return new_mean, symmetrize(new_cov)
 
 
+def _cholesky_psd(cov: Tensor) -> Tensor:
+    """A Cholesky factor of a positive semi-definite ``cov``: a jitter of ``1e-16`` of the
+    largest variance (rounding level), raised by 100x while the factorisation fails
+    (``P`` is singular right after the pose copy, up to its nugget)."""
+    eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
+    scale = cov.diagonal(dim1=-2, dim2=-1).amax(-1, keepdim=True).unsqueeze(-1).detach().clamp_min(torch.finfo(cov.dtype).tiny)
+    for exponent in range(-16, -5, 2):
+        F, info = torch.linalg.cholesky_ex(cov + (10.0**exponent * scale) * eye)
+        if not bool((info != 0).any()):
+            return F
+    raise ValueError("scalar_update: the state covariance is not positive semi-definite "
+                     "(Cholesky failed even with a jitter of 1e-6 of its largest variance)")
+
+
+def scalar_update(
+    mean: Tensor, cov: Tensor, innovation: Tensor, H: Tensor, noise_var: Tensor
+) -> tuple[Tensor, Tensor]:
+    """The stacked update of ``M`` independent scalar measurements, in ``D x D`` algebra.
+
+    Args:
+        mean ``(..., D)``, cov ``(..., D, D)``, innovation ``(..., M)``, H ``(..., M, D)``,
+        noise_var ``(..., M)`` (``R = diag(noise_var)``).
+
+    The same posterior as :func:`joseph_update` with a diagonal ``R``, without the
+    ``M x M`` innovation covariance: with ``G = Hᵀ R⁻¹ H`` the push-through identity
+    gives the gain from one ``D x D`` solve,
+
+        K = P Hᵀ (H P Hᵀ + R)⁻¹ = (I + P G)⁻¹ P Hᵀ R⁻¹,
+
+    computed symmetrically with a square root ``P = F Fᵀ`` as
+    ``K = F (I + Fᵀ G F)⁻¹ Fᵀ Hᵀ R⁻¹`` (a Cholesky solve of a matrix whose eigenvalues are
+    ``>= 1``; the non-symmetric ``I + P G`` loses digits when ``P`` is near singular). The
+    covariance is the Joseph form ``D P Dᵀ + K R Kᵀ`` (``D = I - K H``) with that gain, so
+    rounding in ``K`` enters ``P⁺`` only at second order and ``P⁺`` stays symmetric positive
+    semi-definite.
+    """
+    Ht_Rinv = (H / noise_var.unsqueeze(-1)).transpose(-1, -2)  # (..., D, M)
+    eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
+    F = _cholesky_psd(cov)
+    FtHtR = F.transpose(-1, -2) @ Ht_Rinv  # (..., D, M)
+    W = torch.linalg.cholesky(eye + FtHtR @ (H @ F))
+    gain = F @ torch.cholesky_solve(FtHtR, W)  # (..., D, M)
+    D = eye - gain @ H
+    new_cov = D @ cov @ D.transpose(-1, -2) + (gain * noise_var.unsqueeze(-2)) @ gain.transpose(-1, -2)
+    new_mean = mean + (gain @ innovation.unsqueeze(-1)).squeeze(-1)
+    return new_mean, symmetrize(new_cov)
+
+
 def block_nis(cov: Tensor, innovation: Tensor, H: Tensor, noise_cov: Tensor) -> Tensor:
     """NIS ``v_iᵀ S_i⁻¹ v_i`` of each of ``M`` measurement blocks.
 
     innovation ``(..., M, d)``, H ``(..., M, d, D)``, noise_cov ``(..., M, d, d)``,
     cov ``(..., D, D)`` -> ``(..., M)``.
     """
+    if innovation.shape[-1] == 1:  # scalars: S_i = h_i P h_iᵀ + r_i without M tiny solves
+        h = H[..., 0, :]
+        S = ((h @ cov) * h).sum(-1) + noise_cov[..., 0, 0]
+        return innovation[..., 0] ** 2 / S
     S = symmetrize(H @ cov.unsqueeze(-3) @ H.transpose(-1, -2) + noise_cov)
     return (innovation * torch.linalg.solve(S, innovation.unsqueeze(-1)).squeeze(-1)).sum(-1)
 
@@ -243,13 +295,17 @@ def ekf_update(
         weight = gate.weights(nis, dof)
         w = weight.unsqueeze(-1)
         *batch, M, d = innovation.shape
-        mean, cov = joseph_update(
-            mean,
-            cov,
-            (w * innovation).reshape(*batch, M * d),
-            (w.unsqueeze(-1) * H).reshape(*batch, M * d, H.shape[-1]),
-            _block_diagonal(noise_cov),
-        )
+        if d == 1:  # independent scalars (the epipolar flow update): D x D algebra
+            mean, cov = scalar_update(mean, cov, (w * innovation)[..., 0], (w.unsqueeze(-1) * H)[..., 0, :],
+                                      noise_cov[..., 0, 0])
+        else:
+            mean, cov = joseph_update(
+                mean,
+                cov,
+                (w * innovation).reshape(*batch, M * d),
+                (w.unsqueeze(-1) * H).reshape(*batch, M * d, H.shape[-1]),
+                _block_diagonal(noise_cov),
+            )
     if normalize:
         mean = normalize_quaternions(mean)
     return UpdateResult(mean, symmetrize(cov), nis, weight)

@@ -192,6 +192,9 @@ class FlowFrame:
     camera: FlowCamera
     update: FlowUpdate = field(default_factory=FlowUpdate)
     name: str = "flow frame"
+    #: ``"analytic"`` | ``"autodiff"``: how ``H_x``, ``H_r`` are computed
+    #: (:func:`flowins.measurements.flow.flow_measurements`)
+    jacobians: str = "analytic"
 
     def noise_sigma(self, sigma_px: Tensor) -> Tensor:
         u = self.update
@@ -217,7 +220,8 @@ class FlowFrame:
             min_parallax = u.min_parallax_sigma * sigma.norm(dim=-1) / 2**0.5
             x_i, result = mean, None
             for _ in range(u.iterations):
-                m = flow_measurements(x_i, points.flow_px, points.uv1_px, self.camera, min_parallax_px=min_parallax)
+                m = flow_measurements(x_i, points.flow_px, points.uv1_px, self.camera, min_parallax_px=min_parallax,
+                                      jacobians=self.jacobians)
                 if not bool(m.valid.any()):
                     break
                 upd = epipolar_update(m, sigma, parallax_inflation=u.parallax_inflation)

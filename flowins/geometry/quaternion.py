@@ -141,6 +141,24 @@ def to_matrix(q: Tensor) -> Tensor:
     return ((_outer(q, q) / norm_sq) @ rot).reshape(*q.shape[:-1], 3, 3)
 
 
+def to_matrix_jacobian(q: Tensor) -> Tensor:
+    """``∂R/∂q_k`` ``(..., 4, 3, 3)`` of :func:`to_matrix` (normalisation included).
+
+    With ``R = M(q qᵀ) / |q|²`` for the constant linear map ``M``:
+    ``∂R/∂q_k = M(e_k qᵀ + q e_kᵀ) / |q|² - 2 q_k R / |q|²``.
+    """
+    _check(q)
+    _, rot = _constants(q.dtype, q.device)
+    eye = torch.eye(4, dtype=q.dtype, device=q.device)
+    qe = q.unsqueeze(-2)  # (..., 1, 4)
+    # (e_k qᵀ + q e_kᵀ)[i, j] = δ_ik q_j + q_i δ_jk, for k = 0..3: (..., 4, 16)
+    d_outer = (_outer(eye, qe) + _outer(qe, eye))
+    norm_sq = (q * q).sum(-1).clamp_min(torch.finfo(q.dtype).tiny ** 0.5)[..., None, None, None]
+    R = ((_outer(q, q) @ rot).reshape(*q.shape[:-1], 1, 3, 3)) / norm_sq
+    dR = (d_outer @ rot).reshape(*q.shape[:-1], 4, 3, 3) / norm_sq
+    return dR - 2.0 * q[..., :, None, None] * R / norm_sq
+
+
 def rotate(q: Tensor, v: Tensor) -> Tensor:
     """``q ⊙ v ⊙ q*`` for vectors ``v`` ``(..., 3)`` (``q`` normalised first)."""
     if v.shape[-1] != 3:

@@ -27,6 +27,7 @@ counted in :class:`FlowMeasurements`.
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -37,10 +38,11 @@ from torch.func import jacrev, vmap
 from flowins.geometry import quaternion as quat
 from flowins.geometry.triangulation import (
     camera_matrix,
+    dlt_matrix,
     project_homogeneous,
     triangulate,
 )
-from flowins.state import STATE_DIM, split
+from flowins.state import STATE, STATE_DIM, split
 
 
 @dataclass(frozen=True)
@@ -106,10 +108,128 @@ def flow_residual(x: Tensor, flow_px: Tensor, uv1_px: Tensor, camera: FlowCamera
     y1, z1 = project_homogeneous(P1, tri.point)
     y2, z2 = project_homogeneous(P2, tri.point)
     h = _to_pixels(y2, camera.K) - _to_pixels(y1, camera.K) - flow_px
-    ray1 = R1 @ torch.cat((x1, torch.ones_like(x1[..., :1])), -1)
-    ray2 = R2 @ torch.cat((x2, torch.ones_like(x2[..., :1])), -1)
-    parallax = ray_angle(ray1, ray2)
-    return h, FlowAux(tri.conditioning, z1, z2, parallax)
+    return h, FlowAux(tri.conditioning, z1, z2, _parallax(R1, R2, x1, x2))
+
+
+def _parallax(R1: Tensor, R2: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
+    """Angle between the world-frame viewing rays of normalised points ``x1``, ``x2`` ``(..., 2)``."""
+    ray1 = (R1 @ torch.cat((x1, torch.ones_like(x1[..., :1])), -1).unsqueeze(-1)).squeeze(-1)
+    ray2 = (R2 @ torch.cat((x2, torch.ones_like(x2[..., :1])), -1).unsqueeze(-1)).squeeze(-1)
+    return ray_angle(ray1, ray2)
+
+
+#: the state entries the flow model depends on (the two camera poses), in this order
+POSE_FIELDS = ("p", "q", "p_prev", "q_prev")
+
+
+def _camera_matrices_and_derivatives(x: Tensor, camera: FlowCamera) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """``P₁, P₂`` ``(3, 4)`` (world origin at camera 1's centre), their derivatives
+    ``∂P/∂(p, q, p⁻, q⁻)`` ``(14, 3, 4)`` (the state entries of :data:`POSE_FIELDS`) and
+    the camera rotations ``R₁, R₂`` (camera→world).
+
+    ``P₁ = [R₁ᵀ | 0]``, ``P₂ = [R₂ᵀ | -R₂ᵀ d]`` with ``R_k = R(q_k) R_ciᵀ`` and
+    ``d = c₂ - c₁``, ``c_k = p_k + R(q_k) c_b`` (``c_b`` the camera centre in the body).
+    """
+    s = split(x)
+    R_ic = camera.R_ci.transpose(-1, -2)
+    c_b = -(R_ic @ camera.t_ci)
+    Rb1, Rb2 = quat.to_matrix(s.q_prev), quat.to_matrix(s.q)
+    dRb1, dRb2 = quat.to_matrix_jacobian(s.q_prev), quat.to_matrix_jacobian(s.q)  # (4, 3, 3)
+    R1, R2 = Rb1 @ R_ic, Rb2 @ R_ic
+    d = (s.p + Rb2 @ c_b) - (s.p_prev + Rb1 @ c_b)  # as camera_pose rounds it (0 when standing still)
+    P1 = torch.cat((R1.T, x.new_zeros(3, 1)), -1)
+    P2 = torch.cat((R2.T, -(R2.T @ d).unsqueeze(-1)), -1)
+    eye, z3, z4 = torch.eye(3, dtype=x.dtype, device=x.device), x.new_zeros(3, 3, 3), x.new_zeros(4, 3, 3)
+    # tangent order p (3), q (4), p_prev (3), q_prev (4)
+    dR1t = torch.cat((z3, z4, z3, (dRb1 @ R_ic).transpose(-1, -2)))
+    dR2t = torch.cat((z3, (dRb2 @ R_ic).transpose(-1, -2), z3, z4))
+    dd = torch.cat((eye, dRb2 @ c_b, -eye, -(dRb1 @ c_b)))  # (14, 3)
+    dP1 = torch.cat((dR1t, x.new_zeros(14, 3, 1)), -1)
+    dP2 = torch.cat((dR2t, -(dR2t @ d + dd @ R2).unsqueeze(-1)), -1)
+    return P1, P2, dP1, dP2, R1, R2
+
+
+class FlowLinearisation(NamedTuple):
+    residual: Tensor  # (M, 2) h
+    H_x: Tensor  # (M, 2, 26)
+    H_r: Tensor  # (M, 2, 2)
+    aux: FlowAux
+
+
+def flow_linearisation(x: Tensor, flow_px: Tensor, uv1_px: Tensor, camera: FlowCamera) -> FlowLinearisation:
+    """``h`` and its Jacobians ``H_x``, ``H_r`` for ``M`` points at once, in closed form.
+
+    The same function as :func:`flow_residual`, differentiated by hand (no
+    ``torch.func``), batched over the points ``(M, 2)``. With ``A`` the row-equilibrated
+    DLT matrix of a point, ``A = U S Vᵀ`` and ``X̃ = v₄``, a perturbation ``dA`` moves the
+    null vector by
+
+        dX̃ = -Σ_{i<4} v_i v_iᵀ (dAᵀ A + Aᵀ dA) X̃ / (s_i² - s_4²)
+
+    (first-order perturbation of the smallest eigenvector of ``AᵀA``), and
+    ``d π(P X̃) = (dy_{1:2} - π dy_3) / y_3`` with ``y = P X̃``, ``dy = dP X̃ + P dX̃``.
+    The ``14 + 2`` tangent directions (the camera poses of :data:`POSE_FIELDS`, then
+    ``δ``) are carried at once; ``H_x`` is zero in the other state columns.
+    Points must be well posed (``s_3 > s_4``, in front of both cameras): screen with
+    :func:`flow_measurements`, which calls this on the valid points only.
+    """
+    K = camera.K
+    M = flow_px.shape[0]
+    P1, P2, dP1, dP2, R1, R2 = _camera_matrices_and_derivatives(x, camera)
+    x1 = normalise_pixels(uv1_px, K)
+    x2 = normalise_pixels(uv1_px + flow_px, K)
+    A = dlt_matrix(P1, P2, x1, x2)  # (M, 4, 4)
+    # dA along the pose directions (M, 14, 4, 4) and along δ (M, 2, 4, 4)
+    rows = (
+        x1[:, 0, None, None] * dP1[:, 2] - dP1[:, 0],
+        x1[:, 1, None, None] * dP1[:, 2] - dP1[:, 1],
+        x2[:, 0, None, None] * dP2[:, 2] - dP2[:, 0],
+        x2[:, 1, None, None] * dP2[:, 2] - dP2[:, 1],
+    )
+    dA_flow = x.new_zeros(2, 4, 4)
+    dA_flow[0, 2] = P2[2] / K[0, 0]
+    dA_flow[1, 3] = P2[2] / K[1, 1]
+    dA = torch.cat((torch.stack(rows, dim=-2), dA_flow.expand(M, 2, 4, 4)), dim=1)  # (M, T, 4, 4)
+    # row equilibration, as in triangulate(): a / |a|
+    norm = A.norm(dim=-1).clamp_min(torch.finfo(A.dtype).tiny ** 0.5)  # (M, 4)
+    As = A / norm.unsqueeze(-1)
+    dAs = (dA - As.unsqueeze(1) * (As.unsqueeze(1) * dA).sum(-1, keepdim=True)) / norm[:, None, :, None]
+    _, S, Vh = torch.linalg.svd(As)
+    X = Vh[:, -1]
+    z1 = (P1[2] * X).sum(-1, keepdim=True)
+    X = torch.where(z1 < 0, -X, X)
+    conditioning = (S[:, -2] - S[:, -1]) / S[:, 0].clamp_min(torch.finfo(A.dtype).tiny)
+    # null-vector perturbation (M, T, 4): g = dAᵀ (A X) + Aᵀ (dA X)
+    AX = (As * X.unsqueeze(1)).sum(-1)  # (M, 4)
+    dAX = (dAs * X[:, None, None, :]).sum(-1)  # (M, T, 4)
+    g = (dAs * AX[:, None, :, None]).sum(-2) + dAX @ As
+    gap = (S[:, :3] ** 2 - S[:, 3:] ** 2).clamp_min(torch.finfo(A.dtype).tiny)  # (M, 3)
+    V3 = Vh[:, :3]  # (M, 3, 4) rows v_i
+    dX = -((g @ V3.transpose(-1, -2)) / gap.unsqueeze(1)) @ V3  # (M, T, 4)
+    f = torch.stack((K[0, 0], K[1, 1]))
+
+    def projection(P: Tensor, dP: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        y = X @ P.T  # (M, 3)
+        dy = dX @ P.T  # (M, T, 3)
+        dPX = (X @ dP.reshape(-1, 4).T).reshape(M, -1, 3)  # (M, 14, 3); zero along δ
+        dy = dy + torch.cat((dPX, dy.new_zeros(M, 2, 3)), dim=1)
+        pi = y[:, :2] / y[:, 2:]
+        dpi = (dy[..., :2] - pi.unsqueeze(1) * dy[..., 2:]) / y[:, None, 2:]
+        return pi, dpi, y[:, 2]
+
+    pi1, dpi1, depth1 = projection(P1, dP1)
+    pi2, dpi2, depth2 = projection(P2, dP2)
+    h = f * (pi2 - pi1) - flow_px
+    dh = (f * (dpi2 - dpi1)).transpose(-1, -2)  # (M, 2, T)
+    H_x = x.new_zeros(M, 2, STATE_DIM).index_copy(-1, _pose_index(x.device), dh[..., :14])
+    H_r = dh[..., 14:] - torch.eye(2, dtype=x.dtype, device=x.device)
+    aux = FlowAux(conditioning, depth1, depth2, _parallax(R1, R2, x1, x2))
+    return FlowLinearisation(h, H_x, H_r, aux)
+
+
+@functools.cache
+def _pose_index(device: torch.device) -> Tensor:
+    return STATE.indices(*POSE_FIELDS).to(device)
 
 
 class FlowMeasurements(NamedTuple):
@@ -134,6 +254,7 @@ def flow_measurements(
     min_conditioning: float = 1e-6,
     min_depth: float = 1e-9,
     min_parallax_px: float | Tensor = 0.0,
+    jacobians: str = "analytic",
 ) -> FlowMeasurements:
     """``h``, ``H_x``, ``H_r`` of ``M`` flow points at the state ``x`` ``(26,)``.
 
@@ -147,6 +268,10 @@ def flow_measurements(
             rays, times the focal length) is below this, a scalar or per point
             ``(M,)``, are left out: when the parallax is comparable to the flow noise
             the triangulated point, and with it ``h``, is strongly nonlinear in ``δ``.
+        jacobians: ``"analytic"`` (:func:`flow_linearisation`, all points in one batch
+            of closed-form derivatives) or ``"autodiff"`` (the reference: ``vmap`` of
+            ``torch.func.jacrev`` of :func:`flow_residual` per point). Both are exact
+            and differentiable; they agree to rounding.
     """
     if x.shape != (STATE_DIM,):
         raise ValueError(f"flow_measurements: x must be ({STATE_DIM},), got {tuple(x.shape)}")
@@ -154,40 +279,70 @@ def flow_measurements(
         raise ValueError(
             f"flow_measurements: flow_px and uv1_px must both be (M, 2); got {tuple(flow_px.shape)}, {tuple(uv1_px.shape)}"
         )
+    if jacobians not in ("analytic", "autodiff"):
+        raise ValueError(f"flow_measurements: jacobians must be 'analytic' or 'autodiff', got {jacobians!r}")
     camera = camera.to(x)
     flow_px, uv1_px = flow_px.to(x), uv1_px.to(x)
     M = flow_px.shape[0]
+    focal = 0.5 * (camera.K[0, 0] + camera.K[1, 1])
+    # without a gradient to carry, one analytic pass over all points serves both the
+    # screening and the valid points (its divisions are guarded; invalid rows are zeroed)
+    tracked = torch.is_grad_enabled() and any(t.requires_grad for t in (x, flow_px, uv1_px, camera.K, camera.R_ci, camera.t_ci))
+    single_pass = jacobians == "analytic" and not tracked and M > 0
 
-    def residual(x_, flow_, uv_):
-        return flow_residual(x_, flow_, uv_, camera)
-
-    # screening pass without gradients: which points have a well-posed triangulation?
     with torch.no_grad():
-        h0, aux = vmap(residual, in_dims=(None, 0, 0))(x.detach(), flow_px.detach(), uv1_px.detach())
+        if single_pass:
+            lin = flow_linearisation(x, flow_px, uv1_px, camera)
+            h0, aux = lin.residual, lin.aux
+        else:
+            h0, aux = flow_residual(x.detach(), flow_px.detach(), uv1_px.detach(), camera)
         finite = torch.isfinite(h0).all(-1)
         well_posed = aux.conditioning > min_conditioning
         in_front = (aux.depth1 > min_depth) & (aux.depth2 > min_depth)
-        focal = 0.5 * (camera.K[0, 0] + camera.K[1, 1])
         parallax_px = focal * aux.parallax
         enough = parallax_px >= torch.as_tensor(min_parallax_px, dtype=x.dtype, device=x.device)
         valid = finite & well_posed & in_front & enough
+    n_behind = int((finite & well_posed & ~in_front).sum())
+    n_low = int((finite & well_posed & in_front & ~enough).sum())
+    n_degenerate = int((~valid).sum()) - n_behind - n_low
+    if single_pass:
+        keep = valid.unsqueeze(-1)
+        return FlowMeasurements(
+            torch.where(keep, lin.residual, 0.0),
+            torch.where(keep.unsqueeze(-1), lin.H_x, 0.0),
+            torch.where(keep.unsqueeze(-1), lin.H_r, 0.0),
+            valid, n_degenerate, n_behind, n_low, parallax_px,
+        )
     residual_out = flow_px.new_zeros(M, 2)
     H_x = flow_px.new_zeros(M, 2, STATE_DIM)
     H_r = flow_px.new_zeros(M, 2, 2)
     index = torch.nonzero(valid).squeeze(-1)
     if index.numel():
-        jac = jacrev(lambda x_, f_, u_: residual(x_, f_, u_)[0], argnums=(0, 1))
-        Hx_v, Hr_v = vmap(jac, in_dims=(None, 0, 0))(x, flow_px[index], uv1_px[index])
-        h_v, aux_v = vmap(lambda f_, u_: residual(x, f_, u_))(flow_px[index], uv1_px[index])
+        if jacobians == "analytic":
+            h_v, Hx_v, Hr_v, aux_v = flow_linearisation(x, flow_px[index], uv1_px[index], camera)
+        else:
+            def residual(x_, flow_, uv_):
+                return flow_residual(x_, flow_, uv_, camera)[0]
+
+            Hx_v, Hr_v = vmap(jacrev(residual, argnums=(0, 1)), in_dims=(None, 0, 0))(x, flow_px[index], uv1_px[index])
+            h_v, aux_v = flow_residual(x, flow_px[index], uv1_px[index], camera)
         residual_out = residual_out.index_copy(0, index, h_v)
         # the parallax of the valid points again, now with its gradient (the noise inflation uses it)
         parallax_px = parallax_px.index_copy(0, index, focal * aux_v.parallax)
         H_x = H_x.index_copy(0, index, Hx_v)
         H_r = H_r.index_copy(0, index, Hr_v)
-    n_behind = int((finite & well_posed & ~in_front).sum())
-    n_low = int((finite & well_posed & in_front & ~enough).sum())
-    n_degenerate = int((~valid).sum()) - n_behind - n_low
     return FlowMeasurements(residual_out, H_x, H_r, valid, n_degenerate, n_behind, n_low, parallax_px)
+
+
+def dominant_direction(H_r: Tensor) -> Tensor:
+    """The dominant left singular vector ``(..., 2)`` of ``2 x 2`` matrices, in closed form.
+
+    The principal eigenvector of ``H_r H_rᵀ = [[a, b], [b, c]]`` is at the angle
+    ``½ atan2(2b, a - c)`` (its sign, as any singular vector's, is arbitrary).
+    """
+    HHt = H_r @ H_r.transpose(-1, -2)
+    angle = 0.5 * torch.atan2(2.0 * HHt[..., 0, 1], HHt[..., 0, 0] - HHt[..., 1, 1])
+    return torch.stack((torch.cos(angle), torch.sin(angle)), dim=-1)
 
 
 class EpipolarUpdate(NamedTuple):
@@ -216,8 +371,7 @@ def epipolar_update(measurements: FlowMeasurements, sigma_px: Tensor, *, paralla
     """
     index = torch.nonzero(measurements.valid).squeeze(-1)
     H_r = measurements.H_r[index]
-    U, _, _ = torch.linalg.svd(H_r)
-    w = U[..., :, 0]  # (m, 2)
+    w = dominant_direction(H_r)  # (m, 2)
     R = torch.diag_embed(sigma_px[index].to(H_r) ** 2)
     noise = (w.unsqueeze(-2) @ H_r @ R @ H_r.transpose(-1, -2) @ w.unsqueeze(-1))  # (m, 1, 1)
     if parallax_inflation:

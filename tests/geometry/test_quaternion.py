@@ -134,6 +134,22 @@ def test_to_matrix_is_a_rotation_equal_to_rodrigues(batch):
 
 
 @pytest.mark.parametrize("batch", BATCHES)
+def test_to_matrix_jacobian_is_the_central_difference(batch):
+    q = random_quaternions(*batch, seed=3, unit=False)
+    J = quat.to_matrix_jacobian(q)
+    assert J.shape == (*batch, 4, 3, 3)
+    eps = 1e-6
+    for k in range(4):
+        e = torch.zeros(4, dtype=F64)
+        e[k] = eps
+        fd = (quat.to_matrix(q + e) - quat.to_matrix(q - e)) / (2 * eps)
+        torch.testing.assert_close(J[..., k, :, :], fd, rtol=0, atol=1e-8)
+    # normalised inside: no change along q itself
+    radial = (J * q[..., :, None, None]).sum(-3)
+    torch.testing.assert_close(radial, torch.zeros_like(radial), rtol=0, atol=1e-13)
+
+
+@pytest.mark.parametrize("batch", BATCHES)
 def test_rotate_equals_matrix_times_vector_and_sandwich_product(batch):
     q = random_quaternions(*batch, seed=8)
     v = random_vectors(*batch, seed=9)

@@ -70,6 +70,69 @@ def test_jacobians_match_central_finite_differences(frame_pair):
     assert float(m.H_x[:, :, STATE.v].abs().max()) == 0.0  # flow says nothing about velocity directly
 
 
+def test_analytic_jacobians_equal_the_torch_func_reference(frame_pair):
+    """The closed-form batched linearisation against vmap(jacrev) through the SVD, on every
+    point of a frame, at a state off the truth."""
+    x, flow, uv1, camera = frame_pair
+    x0 = x.clone()
+    x0[STATE.p] += torch.tensor([0.05, -0.02, 0.03], dtype=F64)
+    x0[STATE.q] = quat.multiply(x0[STATE.q], quat.from_rotation_vector(torch.tensor([0.01, -0.02, 0.005], dtype=F64)))
+    noisy = flow + 0.3
+    fast = flow_measurements(x0, noisy, uv1, camera)
+    ref = flow_measurements(x0, noisy, uv1, camera, jacobians="autodiff")
+    assert torch.equal(fast.valid, ref.valid) and bool(fast.valid.all())
+    torch.testing.assert_close(fast.residual, ref.residual, rtol=0, atol=1e-10)
+    torch.testing.assert_close(fast.H_r, ref.H_r, rtol=0, atol=1e-9)
+    scale = float(ref.H_x.abs().max())
+    torch.testing.assert_close(fast.H_x, ref.H_x, rtol=0, atol=1e-11 * scale)
+    # only the two camera poses enter
+    others = [i for i in range(26) if i not in STATE.indices("p", "q", "p_prev", "q_prev").tolist()]
+    assert float(fast.H_x[..., others].abs().max()) == 0.0
+
+
+def test_analytic_jacobians_carry_the_same_second_derivatives(frame_pair):
+    """Training differentiates through H_x: the gradient of a function of H_x with respect to
+    the state is the same through the closed form as through torch.func."""
+    x, flow, uv1, camera = frame_pair
+    noisy = (flow + 0.3)[:20]
+    weights = torch.randn(20, 2, 26, generator=torch.Generator().manual_seed(2), dtype=F64)
+    grads = []
+    for method in ("analytic", "autodiff"):
+        x_ = x.clone().requires_grad_(True)
+        m = flow_measurements(x_, noisy, uv1[:20], camera, jacobians=method)
+        (grad,) = torch.autograd.grad((m.H_x * weights).sum() + m.residual.sum(), x_)
+        grads.append(grad)
+    torch.testing.assert_close(grads[0], grads[1], rtol=1e-8, atol=1e-8 * float(grads[1].abs().max()))
+
+
+def test_one_pass_without_gradients_equals_the_tracked_two_passes(frame_pair):
+    """Inference screens and linearises in one pass; with a gradient to carry it screens
+    first and differentiates the valid points only. Same numbers, same counts."""
+    x, flow, uv1, camera = frame_pair
+    still = x.clone()
+    still[STATE.p_prev] = still[STATE.p]
+    still[STATE.q_prev] = still[STATE.q]
+    for state in (x, still):
+        with torch.no_grad():
+            fast = flow_measurements(state, flow + 0.2, uv1, camera)
+        tracked = flow_measurements(state.clone().requires_grad_(True), flow + 0.2, uv1, camera)
+        assert torch.equal(fast.valid, tracked.valid) and fast.n_degenerate == tracked.n_degenerate
+        for a, b in ((fast.residual, tracked.residual), (fast.H_x, tracked.H_x), (fast.H_r, tracked.H_r)):
+            assert torch.isfinite(a).all()
+            torch.testing.assert_close(a, b.detach(), rtol=0, atol=1e-9)
+
+
+def test_dominant_direction_is_the_first_left_singular_vector():
+    from flowins.measurements.flow import dominant_direction
+
+    gen = torch.Generator().manual_seed(4)
+    H = torch.randn(50, 2, 2, generator=gen, dtype=F64)
+    H[:10] = torch.randn(10, 2, 1, generator=gen, dtype=F64) * torch.randn(10, 1, 2, generator=gen, dtype=F64)  # rank one
+    w = dominant_direction(H)
+    U = torch.linalg.svd(H).U[..., :, 0]
+    torch.testing.assert_close((w * U).sum(-1).abs(), torch.ones(50, dtype=F64), rtol=0, atol=1e-10)
+
+
 def test_no_translation_is_degenerate_and_finite(frame_pair):
     x, flow, uv1, camera = frame_pair
     still = x.clone()
