@@ -68,6 +68,7 @@ def run(cfg: Mapping[str, Any]) -> dict[str, Any]:
                               progress=bool(cfg.get("progress", True)))
     module = FilterLearner(
         params, base, methods=methods, window_s=float(cfg["window_s"]), nll_weight=float(cfg["model"]["nll_weight"]),
+        orientation_weight_m_per_rad=float(cfg["model"]["orientation_weight_m_per_rad"]),
         lr=float(cfg["model"]["lr"]), gradient_clip=float(cfg["model"]["gradient_clip"]),
         reference={"start": start, "hand-tuned": tuned}, output_dir=str(out),
     )

@@ -38,6 +38,8 @@ class FilterLearner(pl.LightningModule):
         methods: rows of Table I to train on, e.g. ``["ins_dense", "ins_gnss_dense"]``.
         window_s: window length (s) of the truncated backpropagation.
         nll_weight: weight of the Gaussian negative log-likelihood in the loss.
+        orientation_weight_m_per_rad: weight of the orientation RMSE (rad) in the loss
+            (metres per radian; 0: position only).
         lr, gradient_clip: Adam's learning rate (in log-parameter units) and the
             gradient-norm clip of each step.
         reference: named parameter values the held-out test compares with (e.g. the
@@ -52,6 +54,7 @@ class FilterLearner(pl.LightningModule):
         methods: Sequence[str],
         window_s: float = 20.0,
         nll_weight: float = 0.0,
+        orientation_weight_m_per_rad: float = 0.0,
         lr: float = 0.1,
         gradient_clip: float = 1.0,
         reference: Mapping[str, Mapping[str, float]] | None = None,
@@ -64,6 +67,7 @@ class FilterLearner(pl.LightningModule):
         self.methods = list(methods)
         self.window_s = float(window_s)
         self.nll_weight = float(nll_weight)
+        self.orientation_weight = float(orientation_weight_m_per_rad)
         self.lr = float(lr)
         self.gradient_clip = float(gradient_clip)
         self.reference = {k: dict(v) for k, v in (reference or {}).items()}
@@ -72,6 +76,7 @@ class FilterLearner(pl.LightningModule):
         self.trained_windows = 0
         self._heldout: dict[str, dict[str, list[float]]] = {}
         self.save_hyperparameters({"methods": self.methods, "window_s": self.window_s, "nll_weight": self.nll_weight,
+                                   "orientation_weight_m_per_rad": self.orientation_weight,
                                    "lr": self.lr, "gradient_clip": self.gradient_clip, "reference": self.reference,
                                    "learned": params.learned})
 
@@ -95,7 +100,8 @@ class FilterLearner(pl.LightningModule):
                 config = self.params.apply(self.base, training=True)
                 p = self.params.value("dropout_p") if _has_moments(batch, method) else None
                 result = run_window(batch, method, config, window, dropout_p=p, start=start)
-                loss = window_loss(result.track, batch.truth, nll_weight=self.nll_weight)
+                loss = window_loss(result.track, batch.truth, nll_weight=self.nll_weight,
+                                   orientation_weight_m_per_rad=self.orientation_weight)
                 state_ok = bool(torch.isfinite(result.mean).all() and torch.isfinite(result.cov).all())
                 if not bool(torch.isfinite(loss.loss)):
                     self._skip(len(bounds) - i if not state_ok else 1)
@@ -117,6 +123,8 @@ class FilterLearner(pl.LightningModule):
                 self.log("train/loss", loss.loss.detach(), on_step=True, prog_bar=True, batch_size=1)
                 if self.nll_weight > 0:
                     self.log("train/nll", loss.nll, on_step=True, batch_size=1)
+                if self.orientation_weight > 0:
+                    self.log(f"train/{method}/orientation_rmse_rad", loss.orientation_rmse_rad, on_step=True, batch_size=1)
                 for name, value in self.params.values().items():
                     if self.params.raw[name].requires_grad:
                         self.log(f"params/{name}", value, on_step=True, batch_size=1)

@@ -17,8 +17,8 @@ import torch
 from torch import Tensor
 
 from flowins.data.streams import GnssStream, ImuStream, PoseStream
-from flowins.evaluation.alignment import align_yaw, apply_alignment
-from flowins.evaluation.metrics import associate, interpolate_positions
+from flowins.evaluation.alignment import align_yaw, apply_alignment, apply_alignment_to_quaternions
+from flowins.evaluation.metrics import associate, interpolate_positions, interpolate_quaternions
 from flowins.filter.runner import FilterTrack, run_filter
 from flowins.flow.pairs import FlowPairs
 from flowins.measurements.flow import FlowCamera
@@ -130,10 +130,26 @@ class WindowLoss(NamedTuple):
     loss: Tensor  # scalar, what is minimised
     rmse_m: Tensor  # position RMSE after the yaw + translation alignment (no gradient through it)
     nll: Tensor  # mean Gaussian negative log-likelihood of the aligned position errors (0 if unused)
+    orientation_rmse_rad: Tensor = torch.zeros(())  # chordal orientation RMSE after the same alignment (0 if unused)
 
 
-def window_loss(track: FilterTrack, truth: PoseStream, *, nll_weight: float = 0.0, max_dt_s: float = 0.1) -> WindowLoss:
-    """Position error of a window's filter track against the ground truth.
+def orientation_rmse(q_est: Tensor, q_ref: Tensor) -> Tensor:
+    """Chordal RMS orientation error (rad) of unit quaternions ``(K, 4)``: ``2 sqrt(mean(sin²(θ/2)))``
+    with ``sin²(θ/2) = 1 - (q_est · q_ref)²`` (sign-free, smooth at ``θ = 0``; equal to the RMS of
+    ``θ`` to third order)."""
+    dot = (q_est * q_ref).sum(-1) / (q_est.norm(dim=-1) * q_ref.norm(dim=-1))
+    return 2.0 * torch.sqrt((1.0 - dot * dot).clamp_min(0.0).mean() + 1e-16)
+
+
+def window_loss(
+    track: FilterTrack,
+    truth: PoseStream,
+    *,
+    nll_weight: float = 0.0,
+    orientation_weight_m_per_rad: float = 0.0,
+    max_dt_s: float = 0.1,
+) -> WindowLoss:
+    """Position (and optionally orientation) error of a window's filter track against the ground truth.
 
     The estimate is interpolated at the truth's times inside the window and aligned to
     them by a yaw rotation and a translation (:func:`~flowins.evaluation.alignment.align_yaw`;
@@ -142,7 +158,9 @@ def window_loss(track: FilterTrack, truth: PoseStream, *, nll_weight: float = 0.
     contributes nothing to the gradient (envelope theorem). The loss is the aligned
     position RMSE (m), plus ``nll_weight`` times the mean negative log-likelihood
     ``½ (eᵀ P⁻¹ e + log det 2πP)`` of the aligned errors under the filter's position
-    covariance, so the covariances learn to be honest.
+    covariance, so the covariances learn to be honest, plus
+    ``orientation_weight_m_per_rad`` times the orientation RMSE (rad,
+    :func:`orientation_rmse`) of the yaw-aligned attitude (needs a truth with orientations).
     """
     t, pos, cov = track.t, track.mean[:, STATE.p], track.cov[:, STATE.p, STATE.p]
     inside = (truth.t_s >= t[0]) & (truth.t_s <= t[-1])
@@ -166,7 +184,16 @@ def window_loss(track: FilterTrack, truth: PoseStream, *, nll_weight: float = 0.
         P = R @ P @ R.T + 1e-9 * torch.eye(3, dtype=pos.dtype)
         maha = (err.unsqueeze(-2) @ torch.linalg.solve(P, err.unsqueeze(-1))).reshape(-1)
         nll = 0.5 * (maha + torch.logdet(2 * torch.pi * P)).mean()
-    return WindowLoss(rmse + nll_weight * nll, rmse.detach(), nll.detach())
+    attitude = torch.zeros((), dtype=pos.dtype)
+    if orientation_weight_m_per_rad > 0:
+        if truth.quat_wxyz is None:
+            raise ValueError(f"{truth.name}: the orientation loss (orientation_weight_m_per_rad > 0) needs a ground "
+                             "truth with orientations (quat_wxyz); this one has positions only")
+        q_est = apply_alignment_to_quaternions(alignment, interpolate_quaternions(track.mean[:, STATE.q], assoc))
+        q_ref = truth.quat_wxyz[inside].to(pos)[assoc.ref_index]
+        attitude = orientation_rmse(q_est, q_ref)
+    loss = rmse + nll_weight * nll + orientation_weight_m_per_rad * attitude
+    return WindowLoss(loss, rmse.detach(), nll.detach(), attitude.detach())
 
 
 def sequence_rmse(seq: TrainingSequence, method: str, config: NavigationConfig, *, dropout_p: float | None = None) -> float:
