@@ -28,15 +28,18 @@ def keep_probability(p: float, device: torch.device | str = "cpu") -> float:
     return 1.0 - p if torch.device(device).type != "cpu" else 1.0 - int(round(256 * p)) / 256.0
 
 
-def drop_mask(shape: Sequence[int], p: float, *, device: torch.device | str = "cpu") -> Tensor:
-    """The complement of :func:`keep_mask`: ``True`` where an element is dropped."""
+def drop_mask(
+    shape: Sequence[int], p: float, *, device: torch.device | str = "cpu", generator: torch.Generator | None = None
+) -> Tensor:
+    """The complement of :func:`keep_mask`: ``True`` where an element is dropped
+    (drawn from ``generator``, on ``device``, or from torch's global generator)."""
     device = torch.device(device)
     if device.type != "cpu":
-        return torch.rand(tuple(shape), device=device) < p
+        return torch.rand(tuple(shape), device=device, generator=generator) < p
     n = 1
     for d in shape:
         n *= int(d)
-    draws = torch.empty((n + 6) // 7, dtype=torch.int64).random_()
+    draws = torch.empty((n + 6) // 7, dtype=torch.int64).random_(generator=generator)
     bytes_ = draws.view(torch.uint8).view(-1, 8)[:, :7].reshape(-1)[:n]  # the top byte is only 7-bit
     return (bytes_ < int(round(256 * p))).view(tuple(shape))
 
@@ -62,11 +65,13 @@ class MCDropout(nn.Module):
     (on the CPU the rate is ``p`` rounded to a multiple of 1/256).
     """
 
-    def __init__(self, p: float = 0.2):
+    def __init__(self, p: float = 0.2, *, seed: int | None = None):
         super().__init__()
         if not 0.0 <= p < 1.0:
             raise ValueError(f"MCDropout: p={p}; expected 0 <= p < 1")
         self.p = float(p)
+        self.seed = seed
+        self._generators: dict[str, torch.Generator] = {}
 
     def forward(self, x: Tensor) -> Tensor:
         if self.p == 0:
@@ -78,10 +83,26 @@ class MCDropout(nn.Module):
         Monte Carlo passes over the same features scale them once, not once per pass."""
         if self.p == 0:
             return x_scaled
-        return x_scaled.masked_fill(drop_mask(x_scaled.shape, self.p, device=x_scaled.device), 0.0)
+        mask = drop_mask(x_scaled.shape, self.p, device=x_scaled.device, generator=self.generator(x_scaled.device))
+        return x_scaled.masked_fill(mask, 0.0)
+
+    def generator(self, device: torch.device | str) -> torch.Generator | None:
+        """This layer's own generator on ``device``, seeded with ``seed`` (None: torch's global one)."""
+        return _seeded_generator(self._generators, self.seed, device)
 
     def extra_repr(self) -> str:
-        return f"p={self.p}"
+        return f"p={self.p}" + ("" if self.seed is None else f", seed={self.seed}")
+
+
+def _seeded_generator(generators: dict[str, torch.Generator], seed: int | None, device) -> torch.Generator | None:
+    """A generator per device, created on first use and seeded with ``seed``: the masks of a
+    run are reproducible (the same frame pairs in the same batches give the same flow σ)."""
+    if seed is None:
+        return None
+    key = str(torch.device(device))
+    if key not in generators:
+        generators[key] = torch.Generator(device=device).manual_seed(int(seed))
+    return generators[key]
 
 
 class ConcreteDropout(nn.Module):
@@ -91,8 +112,10 @@ class ConcreteDropout(nn.Module):
     and ``x ↦ x (1 - z) / (1 - p)``; differentiable in ``p`` (and in ``x``).
     """
 
-    def __init__(self, p: float = 0.2, temperature: float = 0.1, *, eps: float = 1e-7):
+    def __init__(self, p: float = 0.2, temperature: float = 0.1, *, eps: float = 1e-7, seed: int | None = None):
         super().__init__()
+        self.seed = seed
+        self._generators: dict[str, torch.Generator] = {}
         if not 0.0 < p < 1.0:
             raise ValueError(f"ConcreteDropout: p={p}; expected 0 < p < 1")
         if temperature <= 0:
@@ -107,7 +130,8 @@ class ConcreteDropout(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         p = self.p.to(x.dtype)
-        u = torch.rand_like(x).clamp(self.eps, 1.0 - self.eps)
+        u = torch.rand(x.shape, dtype=x.dtype, device=x.device,
+                       generator=_seeded_generator(self._generators, self.seed, x.device)).clamp(self.eps, 1.0 - self.eps)
         logit = (torch.log(p) - torch.log1p(-p) + torch.log(u) - torch.log1p(-u)) / self.temperature
         keep = 1.0 - torch.sigmoid(logit)
         return x * keep / (1.0 - p)

@@ -16,6 +16,9 @@ network passes run once per recording and provider setting.
 """
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import functools
 import hashlib
 import json
 from collections.abc import Callable
@@ -173,6 +176,36 @@ def run_provider(provider: Callable, first: Tensor, second: Tensor, scale: float
                       grow(result.floor))
 
 
+#: frame pairs between two returns of freed heap memory to the system in the flow loops
+RELEASE_EVERY = 64
+
+
+@functools.cache
+def _malloc_trim():
+    """glibc's ``malloc_trim``, or None on other C libraries (macOS, Windows, musl)."""
+    name = ctypes.util.find_library("c")
+    try:
+        trim = getattr(ctypes.CDLL(name), "malloc_trim") if name else None
+    except (OSError, AttributeError):
+        return None
+    return trim
+
+
+def release_freed_memory() -> None:
+    """Hand heap memory that is free but still held by the C allocator back to the system.
+
+    The flow loops keep a few kB of points per pair while every pair allocates and frees
+    megabytes of images and pyramids; glibc raises its mmap threshold after such frees,
+    so the temporaries come from the heap and the small survivors pin it: measured on
+    the 300 s walk, the sparse pass grew by about 2 MB per pair (7 GB for 3001 pairs).
+    ``malloc_trim(0)`` every :data:`RELEASE_EVERY` pairs keeps it flat (a no-op
+    elsewhere).
+    """
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)
+
+
 def dense_pairs(
     frames,
     provider: Callable,
@@ -221,6 +254,8 @@ def dense_pairs(
                                           floor_px=item(result.floor)))
         cache = {chunk[-1][1]: cache[chunk[-1][1]]}
         bar.update(len(chunk))
+        if (start // batch_size) % max(1, RELEASE_EVERY // batch_size) == 0:
+            release_freed_memory()
     bar.close()
     index = torch.tensor(pairs)
     return FlowPairs(t[index[:, 0]], t[index[:, 1]], points, "dense", description)
@@ -234,8 +269,10 @@ def sparse_pairs(
     t = torch.as_tensor(frames.t_s, dtype=torch.float64)
     points = []
     previous: tuple[int, Tensor] | None = None
-    for a, b in tqdm(pairs, desc=f"sparse flow ({description or type(tracker).__name__})", unit="pair",
-                     disable=None if progress else True):
+    for k, (a, b) in enumerate(tqdm(pairs, desc=f"sparse flow ({description or type(tracker).__name__})", unit="pair",
+                                    disable=None if progress else True)):
+        if k % RELEASE_EVERY == 0:
+            release_freed_memory()
         image1 = previous[1] if previous is not None and previous[0] == a else read_frame(frames, a)
         image2 = read_frame(frames, b)
         result = tracker(image1, image2)

@@ -421,6 +421,8 @@ class SpyNetProvider(FlowProvider):
     default) or ``0..5``; everything before it runs once, the rest ``N`` times.
     ``sigma_floor`` px: σ in textured regions when the dropout spread is smaller
     (see the module docstring for the floor's growth where gradients vanish).
+    ``seed``: the dropout masks come from the provider's own generator seeded with it,
+    so a run is reproducible (None: torch's global generator).
 
     ``provider(image1, image2)`` -> :class:`FlowResult` with ``flow`` the mean of the
     ``N`` samples and ``sigma = max(std over samples, floor)``, both ``(B, 2, H, W)``.
@@ -436,6 +438,7 @@ class SpyNetProvider(FlowProvider):
         sigma_floor: float = 0.05,
         device: str | torch.device = "cpu",
         mc_mode: Literal["sample", "moments"] = "sample",
+        seed: int | None = 0,
     ) -> None:
         super().__init__()
         if mc_mode not in ("sample", "moments"):
@@ -465,7 +468,7 @@ class SpyNetProvider(FlowProvider):
             )
         self.mc_mode = mc_mode
         self.spynet = load_spynet_weights(SpyNet(), weights)
-        self.dropout: nn.Module = ConcreteDropout(p) if concrete else MCDropout(p)
+        self.dropout: nn.Module = ConcreteDropout(p, seed=seed) if concrete else MCDropout(p, seed=seed)
         self.mc_passes = int(mc_passes)
         self.dropout_level = int(dropout_level)
         self.dropout_conv = DROPOUT_CONV

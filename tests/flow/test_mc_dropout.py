@@ -38,6 +38,22 @@ def test_mc_dropout_is_unbiased_and_active_in_eval_mode():
         MCDropout(1.0)
 
 
+@pytest.mark.parametrize("layer", [MCDropout, ConcreteDropout])
+def test_seeded_dropout_repeats_its_masks_and_leaves_the_global_generator_alone(layer):
+    x = torch.ones(64, 300)
+    torch.manual_seed(123)
+    before = torch.get_rng_state()
+    a, b = layer(0.3, seed=7), layer(0.3, seed=7)
+    first = [a(x) for _ in range(3)]
+    assert torch.equal(torch.get_rng_state(), before)  # the layer draws from its own generator
+    assert all(torch.equal(u, v) for u, v in zip(first, [b(x) for _ in range(3)]))  # same seed, same masks
+    assert not torch.equal(first[0], first[1])  # successive calls still differ
+    assert not torch.equal(first[0], layer(0.3, seed=8)(x))
+    unseeded = layer(0.3)
+    unseeded(x)
+    assert not torch.equal(torch.get_rng_state(), before)  # None: torch's global generator
+
+
 def test_mc_samples_runs_the_head_on_repeated_features_with_context():
     torch.manual_seed(2)
     features = torch.randn(3, 4, 5)

@@ -221,6 +221,7 @@ class FlowNet2(FlowNet2CSS):
         passes: int = 10,
         concrete: bool = False,
         chunk: int | None = None,
+        seed: int | None = None,
     ):
         if dropout_option not in DROPOUT_OPTIONS:
             raise ValueError(f"FlowNet2: dropout_option={dropout_option!r}; expected one of {DROPOUT_OPTIONS}")
@@ -235,7 +236,7 @@ class FlowNet2(FlowNet2CSS):
         if dropout_option is None:
             self.mc_dropout = None
         else:
-            self.mc_dropout = ConcreteDropout(p) if concrete else MCDropout(p)
+            self.mc_dropout = ConcreteDropout(p, seed=seed) if concrete else MCDropout(p, seed=seed)
 
     def fusion_input(self, inputs: Tensor) -> Tensor:
         """Everything upstream of the fusion network: ``(B, 3, 2, H, W)`` -> ``(B, 11, H, W)``

@@ -74,6 +74,7 @@ class FlowNet2Provider(FlowProvider):
         concrete: bool = False,
         device: str = "cpu",
         sigma_floor: float = DEFAULT_SIGMA_FLOOR_PX,
+        seed: int | None = 0,
         *,
         allow_random: bool = False,
         chunk: int | None = 1,  # Monte Carlo passes per head batch: 1 is fastest on a CPU and needs no copies
@@ -93,7 +94,8 @@ class FlowNet2Provider(FlowProvider):
         if not sigma_floor > 0:
             raise ValueError(f"FlowNet2Provider: sigma_floor={sigma_floor}; expected > 0 px")
         if variant == "FlowNet2":
-            model = FlowNet2(dropout_option=dropout_option, p=p, passes=passes, concrete=concrete, chunk=chunk)
+            model = FlowNet2(dropout_option=dropout_option, p=p, passes=passes, concrete=concrete, chunk=chunk,
+                             seed=seed)
         else:
             model = build_model(variant)
         self.checkpoint_meta: dict = {}
