@@ -11,8 +11,9 @@ and
 
 ``h`` is the reprojection inconsistency of the two rays: zero when the flow agrees
 with the relative pose. Its Jacobians ``H_x = ∂h/∂x`` (2 x 26) and ``H_r = ∂h/∂δ``
-(2 x 2) come from ``torch.func.jacrev`` through the SVD, for all points at once
-(``vmap``).
+(2 x 2), for all points at once, come in closed form (:func:`flow_linearisation`, the
+default) or from ``torch.func.jacrev`` through the SVD under ``vmap`` (the reference,
+``jacobians="autodiff"``); both are differentiable, as training needs.
 
 Conditioning: the world origin is moved to camera 1's centre and the triangulation
 works in normalised coordinates ``K⁻¹ (u, v, 1)``; the projections are converted back
