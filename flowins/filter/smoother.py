@@ -71,6 +71,28 @@ def _transitions_to_next_key(transition: Tensor, key: Tensor) -> tuple[Tensor, T
     return X, reach
 
 
+def _factor_predicted(cov: Tensor, t_s: Tensor) -> tuple[Tensor, Tensor]:
+    """LU factors of predicted covariances ``(K, D, D)``. A covariance that is singular at
+    the filter's precision (in float32 the pose copy's nugget is below the rounding of the
+    position variances) is factorised with a jitter of ``ε·max(diag)``, raised by 10x until
+    it factorises; one that still fails at ``1e-3·max(diag)`` raises, naming its time."""
+    LU, pivots, info = torch.linalg.lu_factor_ex(cov)
+    bad = torch.nonzero(info != 0).squeeze(-1)
+    if bad.numel() == 0:
+        return LU, pivots
+    eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
+    scale = cov[bad].diagonal(dim1=-2, dim2=-1).amax(-1).clamp_min(torch.finfo(cov.dtype).tiny)[:, None, None]
+    jitter = torch.finfo(cov.dtype).eps
+    while jitter <= 1e-3:
+        LU_b, piv_b, info_b = torch.linalg.lu_factor_ex(cov[bad] + jitter * scale * eye)
+        if not bool((info_b != 0).any()):
+            return LU.index_copy(0, bad, LU_b), pivots.index_copy(0, bad, piv_b)
+        jitter *= 10.0
+    t = float(t_s[bad[0]])
+    raise ValueError(f"rts_smooth: the predicted covariance at t = {t:.3f} s is singular even with a jitter of "
+                     f"1e-3 of its largest variance; run the filter in float64 (filter.dtype=float64)")
+
+
 def rts_smooth(track: FilterTrack, *, normalize: bool = True) -> SmoothedTrack:
     """Smoothed means and covariances at every node of ``track``.
 
@@ -95,7 +117,7 @@ def rts_smooth(track: FilterTrack, *, normalize: bool = True) -> SmoothedTrack:
     Phi_to_key, k_of = _transitions_to_next_key(track.transition, key)
     P = track.node_cov[:-1]
     keys = torch.nonzero(key).squeeze(-1)
-    LU, pivots = torch.linalg.lu_factor(symmetrize(track.pred_cov[keys]))
+    LU, pivots = _factor_predicted(symmetrize(track.pred_cov[keys]), track.t_s[keys])
     slot = torch.searchsorted(keys, k_of)  # which key's factor each node needs
     # 𝒢_jᵀ = (P⁻_k)⁻¹ Φ_{j→k} P_j
     gains = torch.linalg.lu_solve(LU[slot], pivots[slot], Phi_to_key @ P).transpose(-1, -2)

@@ -326,3 +326,28 @@ def test_key_node_smoother_equals_node_by_node_recursion_on_ins_gnss():
     slow = rts_smooth_sequential(result.filter)
     assert_close_scaled(fast.node_mean, slow.node_mean, 1e-9)
     assert_close_scaled(fast.node_cov, slow.node_cov, 1e-9)
+
+
+def test_rts_through_an_exactly_singular_predicted_covariance_equals_batch_posterior():
+    """A state entry known exactly (zero variance, no process noise: a constant, or the
+    float32 fate of the pose copy's nugget) makes the predicted covariances exactly singular;
+    the smoother's gain is still defined on their range and must equal the batch posterior
+    (the factorisation falls back to a rounding-level jitter for those nodes)."""
+    gen = torch.Generator().manual_seed(3)
+    D = 3
+    P0 = torch.zeros(D, D, dtype=F64)
+    P0[:2, :2] = random_spd(gen, 2)
+    chain = LinearChain(torch.tensor([0.0, 0.0, 1.5], dtype=F64), P0)
+    A = torch.tensor([[1.0, 0.1, 0.0], [0.0, 1.0, 0.2], [0.0, 0.0, 1.0]], dtype=F64)
+    Q = torch.diag(torch.tensor([0.01, 0.05, 0.0], dtype=F64))
+    for k in range(3):
+        chain.predict(A, Q)
+        chain.measure(torch.tensor([[1.0, 0.0, 1.0]], dtype=F64), torch.tensor([0.3 * k + 1.0], dtype=F64),
+                      0.1 * torch.eye(1, dtype=F64))
+    track = chain.chain.finish()
+    with pytest.raises(RuntimeError):  # what a plain factorisation does with it
+        torch.linalg.lu_factor(track.pred_cov[1])
+    smoothed = rts_smooth(track, normalize=False)
+    mean, cov, _, _ = chain.batch_posterior()
+    assert_close_scaled(smoothed.mean, mean, 1e-9)
+    assert_close_scaled(smoothed.cov, cov, 1e-9)

@@ -82,3 +82,19 @@ def test_every_combination_runs_on_a_simulated_walk_and_flow_bounds_the_drift(sm
     (again,) = run(cfg2)
     assert again.filter_rmse_m == rows["ins_dense"].filter_rmse_m
     assert len(list((tmp_path / "cache" / "flow").glob("dense-*.npz"))) == 1
+
+
+def test_a_float32_filter_is_refused_with_the_reason():
+    """float32 filtering gave a 3.6e6 m smoother (ins_gnss) and NaN (ins_dense) on the 60 s
+    walk: the config says so instead of producing them."""
+    from omegaconf import OmegaConf
+
+    from flowins.jobs.evaluate import navigation_config
+
+    with initialize_config_dir(config_dir=CONFIGS, version_base=None):
+        cfg = OmegaConf.to_container(compose("evaluate", overrides=["filter.dtype=float32"]), resolve=False)
+    with pytest.raises(ValueError, match="filter.dtype.*float32 is not precise enough"):
+        navigation_config(cfg["filter"])
+    with initialize_config_dir(config_dir=CONFIGS, version_base=None):
+        cfg = OmegaConf.to_container(compose("evaluate"), resolve=False)
+    assert navigation_config(cfg["filter"]).dtype == torch.float64
