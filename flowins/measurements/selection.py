@@ -73,16 +73,14 @@ def rotation_parallax_px(x: Tensor, points: FlowPoints, K: Tensor, R_ci: Tensor)
         raise ValueError(f"rotation_parallax_px: x must be (..., {STATE_DIM}), got {tuple(x.shape)}")
     s = split(x)
     R_ic = R_ci.transpose(-1, -2).to(x)
-    R1 = quat.to_matrix(s.q_prev) @ R_ic
-    R2 = quat.to_matrix(s.q) @ R_ic
+    R_b = quat.to_matrix(torch.stack((s.q_prev, s.q), dim=-2))  # (..., 2, 3, 3) body -> world
+    # the angle is rotation invariant: compare in camera 1's frame, ray 2 rotated by R₁ᵀ R₂
+    R_rel = R_ci.to(x) @ R_b[..., 0, :, :].transpose(-1, -2) @ R_b[..., 1, :, :] @ R_ic
     K = K.to(x)
-
-    def ray(uv: Tensor) -> Tensor:
-        xy = normalise_pixels(uv.to(x), K)
-        return torch.cat((xy, torch.ones_like(xy[..., :1])), -1)
-
-    r1 = ray(points.uv1_px) @ R1.transpose(-1, -2)
-    r2 = ray(points.uv1_px + points.flow_px) @ R2.transpose(-1, -2)
+    uv1 = points.uv1_px.to(x)
+    xy = normalise_pixels(torch.stack((uv1, uv1 + points.flow_px.to(x))), K)  # (2, M, 2)
+    rays = torch.cat((xy, torch.ones_like(xy[..., :1])), -1)
+    r1, r2 = rays[0], rays[1] @ R_rel.transpose(-1, -2)
     return 0.5 * (K[0, 0] + K[1, 1]) * ray_angle(r1, r2)
 
 
