@@ -3,9 +3,11 @@
 Reads the default simulated walk and its dense flow pairs (both cached by
 ``python evaluate.py``; computed here if missing) and times, in one run:
 
-* flowins: analytic batched IMU Jacobians, one stacked update of the frame's points;
-* the paper's straightforward way: per-sample ``torch.func.jacrev`` for the IMU
-  Jacobians and the point-by-point sequential update, on the first ``--reference-s``
+* flowins: closed-form batched IMU and flow Jacobians, one stacked update of the frame's
+  points in 26x26 algebra;
+* the paper's straightforward way: ``torch.func.jacrev`` for the IMU Jacobians (per
+  sample) and the flow Jacobians (per point, through the SVD) and the point-by-point
+  sequential update, on the first ``--reference-s``
   seconds of the walk (it is slow), with its real-time factor scaled from that window.
 
     python benchmarks/bench_flow_filter.py [--points 256] [--reference-s 20] [--repeats 3]
