@@ -56,6 +56,31 @@ def dlt_matrix(P1: Tensor, P2: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
     return torch.stack(rows, dim=-2)
 
 
+class DltSolution(NamedTuple):
+    """:func:`solve_dlt`'s result: the triangulation and the pieces its derivative needs."""
+
+    point: Tensor  # (..., 4) unit null vector, oriented in front of camera 1
+    conditioning: Tensor  # (...,) (σ₃ - σ₄) / σ₁
+    singular_values: Tensor  # (..., 4) of the equilibrated matrix, descending
+    right_vectors: Tensor  # (..., 4, 4) Vᴴ: rows are the right singular vectors
+    rows: Tensor  # (..., 4, 4) the equilibrated matrix A / |rows|
+    row_norm: Tensor  # (..., 4) the row norms divided out
+
+
+def solve_dlt(A: Tensor, P1: Tensor) -> DltSolution:
+    """The smallest right singular vector of the row-equilibrated ``A`` ``(..., 4, 4)``, its
+    sign chosen so that the point is in front of camera ``P1`` ``(..., 3, 4)``."""
+    norm = A.norm(dim=-1).clamp_min(torch.finfo(A.dtype).tiny ** 0.5)
+    rows = A / norm.unsqueeze(-1)  # equilibrate the rows (the solution is invariant)
+    _, S, Vh = torch.linalg.svd(rows)
+    point = Vh[..., -1, :]
+    # the singular vector's sign is arbitrary: choose the one in front of camera 1
+    z1 = (P1[..., 2, :] * point).sum(-1, keepdim=True)
+    point = torch.where(z1 < 0, -point, point)
+    conditioning = (S[..., -2] - S[..., -1]) / S[..., 0].clamp_min(torch.finfo(A.dtype).tiny)
+    return DltSolution(point, conditioning, S, Vh, rows, norm)
+
+
 def triangulate(P1: Tensor, P2: Tensor, x1: Tensor, x2: Tensor) -> Triangulation:
     """Homogeneous point ``(..., 4)`` from normalised cameras ``(..., 3, 4)`` and
     normalised image points ``x = K⁻¹ (u, v, 1)`` (first two entries) ``(..., 2)``.
@@ -63,16 +88,8 @@ def triangulate(P1: Tensor, P2: Tensor, x1: Tensor, x2: Tensor) -> Triangulation
     Callers should express both cameras in a frame whose origin is near camera 1
     (see :func:`flowins.measurements.flow`), which keeps the system well scaled.
     """
-    A = dlt_matrix(P1, P2, x1, x2)
-    scale = A.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(A.dtype).tiny ** 0.5)
-    A = A / scale  # equilibrate the rows (the solution is invariant)
-    _, S, Vh = torch.linalg.svd(A)
-    point = Vh[..., -1, :]
-    # the singular vector's sign is arbitrary: choose the one in front of camera 1
-    z1 = (P1[..., 2, :] * point).sum(-1, keepdim=True)
-    point = torch.where(z1 < 0, -point, point)
-    conditioning = (S[..., -2] - S[..., -1]) / S[..., 0].clamp_min(torch.finfo(A.dtype).tiny)
-    return Triangulation(point, conditioning)
+    solution = solve_dlt(dlt_matrix(P1, P2, x1, x2), P1)
+    return Triangulation(solution.point, solution.conditioning)
 
 
 def project_homogeneous(P: Tensor, X: Tensor) -> tuple[Tensor, Tensor]:

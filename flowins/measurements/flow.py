@@ -41,6 +41,7 @@ from flowins.geometry.triangulation import (
     camera_matrix,
     dlt_matrix,
     project_homogeneous,
+    solve_dlt,
     triangulate,
 )
 from flowins.state import STATE, STATE_DIM, split
@@ -59,6 +60,11 @@ class FlowCamera:
         """From a :class:`~flowins.data.PinholeCamera` and a :class:`~flowins.geometry.camera.RigidTransform`."""
         return cls(camera.K, imu_to_camera.rotation_matrix, imu_to_camera.translation_m)
 
+    @property
+    def centre_b(self) -> Tensor:
+        """The camera centre in the body (IMU) frame ``(3,)``: ``-R_ciᵀ t_ci``."""
+        return -(self.R_ci.transpose(-1, -2) @ self.t_ci.unsqueeze(-1)).squeeze(-1)
+
     def to(self, like: Tensor) -> FlowCamera:
         return FlowCamera(self.K.to(like), self.R_ci.to(like), self.t_ci.to(like))
 
@@ -74,8 +80,7 @@ def camera_pose(q: Tensor, p: Tensor, camera: FlowCamera) -> tuple[Tensor, Tenso
     """``(R_wc, c_w)``: camera orientation (camera→world) and centre from the IMU pose ``(q, p)``."""
     R_wb = quat.to_matrix(q)
     R_wc = R_wb @ camera.R_ci.transpose(-1, -2)
-    c_b = -(camera.R_ci.transpose(-1, -2) @ camera.t_ci.unsqueeze(-1)).squeeze(-1)
-    return R_wc, p + (R_wb @ c_b.unsqueeze(-1)).squeeze(-1)
+    return R_wc, p + (R_wb @ camera.centre_b.unsqueeze(-1)).squeeze(-1)
 
 
 def ray_angle(ray1: Tensor, ray2: Tensor) -> Tensor:
@@ -132,14 +137,16 @@ def _camera_matrices_and_derivatives(x: Tensor, camera: FlowCamera) -> tuple[Ten
     ``d = c₂ - c₁``, ``c_k = p_k + R(q_k) c_b`` (``c_b`` the camera centre in the body).
     """
     s = split(x)
+    # the values exactly as flow_residual forms them
+    R1, c1 = camera_pose(s.q_prev, s.p_prev, camera)
+    R2, c2 = camera_pose(s.q, s.p, camera)
+    d = c2 - c1  # 0 when standing still
+    P1 = camera_matrix(R1, torch.zeros_like(c1))
+    P2 = camera_matrix(R2, d)
+    # their derivatives: ∂R_k/∂q_k = ∂R(q_k)/∂q_k R_ciᵀ, ∂c_k/∂q_k = ∂R(q_k)/∂q_k c_b
     R_ic = camera.R_ci.transpose(-1, -2)
-    c_b = -(R_ic @ camera.t_ci)
-    Rb1, Rb2 = quat.to_matrix(s.q_prev), quat.to_matrix(s.q)
+    c_b = camera.centre_b
     dRb1, dRb2 = quat.to_matrix_jacobian(s.q_prev), quat.to_matrix_jacobian(s.q)  # (4, 3, 3)
-    R1, R2 = Rb1 @ R_ic, Rb2 @ R_ic
-    d = (s.p + Rb2 @ c_b) - (s.p_prev + Rb1 @ c_b)  # as camera_pose rounds it (0 when standing still)
-    P1 = torch.cat((R1.T, x.new_zeros(3, 1)), -1)
-    P2 = torch.cat((R2.T, -(R2.T @ d).unsqueeze(-1)), -1)
     eye, z3, z4 = torch.eye(3, dtype=x.dtype, device=x.device), x.new_zeros(3, 3, 3), x.new_zeros(4, 3, 3)
     # tangent order p (3), q (4), p_prev (3), q_prev (4)
     dR1t = torch.cat((z3, z4, z3, (dRb1 @ R_ic).transpose(-1, -2)))
@@ -180,6 +187,8 @@ def flow_linearisation(x: Tensor, flow_px: Tensor, uv1_px: Tensor, camera: FlowC
     x1 = normalise_pixels(uv1_px, K)
     x2 = normalise_pixels(uv1_px + flow_px, K)
     A = dlt_matrix(P1, P2, x1, x2)  # (M, 4, 4)
+    # the triangulation exactly as triangulate() solves it, with its SVD
+    X, conditioning, S, Vh, As, norm = solve_dlt(A, P1)
     # dA along the pose directions (M, 14, 4, 4) and along δ (M, 2, 4, 4)
     rows = (
         x1[:, 0, None, None] * dP1[:, 2] - dP1[:, 0],
@@ -191,15 +200,8 @@ def flow_linearisation(x: Tensor, flow_px: Tensor, uv1_px: Tensor, camera: FlowC
     dA_flow[0, 2] = P2[2] / K[0, 0]
     dA_flow[1, 3] = P2[2] / K[1, 1]
     dA = torch.cat((torch.stack(rows, dim=-2), dA_flow.expand(M, 2, 4, 4)), dim=1)  # (M, T, 4, 4)
-    # row equilibration, as in triangulate(): a / |a|
-    norm = A.norm(dim=-1).clamp_min(torch.finfo(A.dtype).tiny ** 0.5)  # (M, 4)
-    As = A / norm.unsqueeze(-1)
+    # derivative of the row equilibration a / |a|
     dAs = (dA - As.unsqueeze(1) * (As.unsqueeze(1) * dA).sum(-1, keepdim=True)) / norm[:, None, :, None]
-    _, S, Vh = torch.linalg.svd(As)
-    X = Vh[:, -1]
-    z1 = (P1[2] * X).sum(-1, keepdim=True)
-    X = torch.where(z1 < 0, -X, X)
-    conditioning = (S[:, -2] - S[:, -1]) / S[:, 0].clamp_min(torch.finfo(A.dtype).tiny)
     # null-vector perturbation (M, T, 4): g = dAᵀ (A X) + Aᵀ (dA X)
     AX = (As * X.unsqueeze(1)).sum(-1)  # (M, 4)
     dAX = (dAs * X[:, None, None, :]).sum(-1)  # (M, T, 4)

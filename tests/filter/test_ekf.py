@@ -60,7 +60,7 @@ def test_scalar_update_with_a_singular_covariance_is_as_exact_as_joseph():
     """Right after the pose copy P is singular (p_prev = p), and a frame's points observe the
     state far better than the prior: against a 50-digit textbook update the D x D form is as
     accurate as the M x M Joseph form, and stays positive semi-definite."""
-    mpmath = pytest.importorskip("mpmath")
+    import mpmath  # a dependency of torch (through sympy)
     gen = torch.Generator().manual_seed(6)
     D, M = 9, 30
     P = random_spd(gen, 6, scale=100.0)
