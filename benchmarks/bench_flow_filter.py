@@ -10,7 +10,7 @@ Reads the default simulated walk and its dense flow pairs (both cached by
   sequential update, on the first ``--reference-s``
   seconds of the walk (it is slow), with its real-time factor scaled from that window.
 
-    python benchmarks/bench_flow_filter.py [--points 256] [--reference-s 20] [--repeats 3]
+    python benchmarks/bench_flow_filter.py [--points 256] [--reference-s 20] [--repeats 3] [--breakdown-s 60]
 """
 from __future__ import annotations
 
@@ -25,7 +25,6 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from flowins.data.streams import GnssStream, ImuStream
-from flowins.filter.smoother import rts_smooth
 from flowins.jobs.evaluate import load_flow, load_sequence, navigation_config
 from flowins.navigation import navigate
 
@@ -45,10 +44,52 @@ def crop(rec, pairs, t_end):
 
 
 def run(imu, gnss, pairs, camera, config):
+    """Filter + smoother (``navigate`` runs both)."""
     start = time.perf_counter()
     result = navigate(imu, gnss, config=config, flow=pairs, camera=camera)
-    rts_smooth(result.filter)
     return time.perf_counter() - start, result
+
+
+#: (module, function) timed by --breakdown, in the order they are printed
+STAGES = (
+    ("flowins.measurements.flow", "flow_measurements"),
+    ("flowins.filter.runner", "propagate_batched"),
+    ("flowins.measurements.selection", "select_points"),
+    ("flowins.filter.events", "ekf_update"),
+    ("flowins.measurements.flow", "epipolar_update"),
+    ("flowins.navigation", "rts_smooth"),
+)
+
+
+def breakdown(imu, gnss, pairs, camera, config) -> None:
+    """Wall time per stage, per flow frame: each stage's function is wrapped in a timer
+    where its caller looks it up (the wrappers add a few microseconds per call)."""
+    import importlib
+
+    spent: dict[str, float] = {name: 0.0 for _, name in STAGES}
+    saved = []
+    for module_name, name in STAGES:
+        module = importlib.import_module(module_name)
+        original = getattr(module, name)
+        saved.append((module, name, original))
+
+        def timed(*a, _f=original, _name=name, **k):
+            t0 = time.perf_counter()
+            out = _f(*a, **k)
+            spent[_name] += time.perf_counter() - t0
+            return out
+
+        setattr(module, name, timed)
+    try:
+        total, _ = run(imu, gnss, pairs, camera, config)
+    finally:
+        for module, name, original in saved:
+            setattr(module, name, original)
+    n = len(pairs)
+    print(f"breakdown over {n} frames: {1e3 * total / n:.2f} ms per frame in all")
+    for _, name in STAGES:
+        print(f"  {name:18s} {1e3 * spent[name] / n:6.2f} ms per frame")
+    print(f"  {'the rest':18s} {1e3 * (total - sum(spent.values())) / n:6.2f} ms per frame")
 
 
 def main() -> None:
@@ -56,6 +97,8 @@ def main() -> None:
     parser.add_argument("--points", type=int, default=256)
     parser.add_argument("--reference-s", type=float, default=20.0)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--breakdown-s", type=float, default=60.0,
+                        help="also time each stage over the first this many seconds (0: skip)")
     args = parser.parse_args()
     with initialize_config_dir(config_dir=CONFIGS, version_base=None):
         cfg = OmegaConf.to_container(compose("evaluate", overrides=[f"filter.flow.n_points={args.points}"]), resolve=False)
@@ -85,6 +128,8 @@ def main() -> None:
     fast_c, _ = run(imu_c, gnss_c, pairs_c, rec.camera, config)
     print(f"paper's way:   {slow:7.2f} s for the first {span:.0f} s -> {span / slow:6.1f}x real time "
           f"(flowins on the same window: {fast_c:.2f} s, {slow / fast_c:.1f}x faster)")
+    if args.breakdown_s > 0:
+        breakdown(*crop(rec, pairs, args.breakdown_s), rec.camera, config)
 
 
 if __name__ == "__main__":
