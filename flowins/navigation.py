@@ -12,12 +12,13 @@ from torch import Tensor
 from flowins.data.streams import GnssStream, ImuStream
 from flowins.filter.ekf import Gate
 from flowins.filter.events import FlowFrame, FlowUpdate, ZeroVelocity, gnss_fixes
+from flowins.filter.heading import HeadingAlignment
 from flowins.filter.runner import FilterTrack, run_filter
 from flowins.filter.smoother import SmoothedTrack, rts_smooth
 from flowins.geometry.geodesy import LocalTangentPlane, gnss_to_enu
 from flowins.ins.initialization import InitialUncertainty, stationary_initialization
 from flowins.ins.mechanization import STANDARD_GRAVITY_MPS2, ProcessNoise
-from flowins.measurements.gnss import gnss_noise
+from flowins.measurements.gnss import correlation_inflation, gnss_noise
 
 
 @dataclass(frozen=True)
@@ -34,6 +35,11 @@ class NavigationConfig:
     initial_yaw_rad: float = 0.0
     gnss_gate: Gate = field(default_factory=Gate)
     gnss_noise_scale: float = 1.0
+    #: correlation time of the GNSS errors (s): each fix's R is inflated by
+    #: :func:`~flowins.measurements.gnss.correlation_inflation`; 0: white, as in the paper
+    gnss_correlation_s: float = 0.0
+    #: heading from the first fixes while the yaw is unknown (:mod:`flowins.filter.heading`)
+    gnss_heading: HeadingAlignment = field(default_factory=HeadingAlignment)
     output_every: int = 10
     scheme: str = "midpoint"
     gravity_mps2: float = STANDARD_GRAVITY_MPS2
@@ -130,8 +136,9 @@ def prepare_navigation(
     enu = None
     if gnss is not None:
         enu, _, frame = gnss_to_enu(gnss, origin=frame)
-        cov = gnss_noise(gnss.h_acc_m, gnss.v_acc_m, config.gnss_noise_scale)
-        events = gnss_fixes(gnss.t_s, enu, cov, gate=config.gnss_gate, name=gnss.name)
+        inflation = correlation_inflation(gnss.t_s, config.gnss_correlation_s).to(gnss.h_acc_m.dtype)
+        cov = gnss_noise(gnss.h_acc_m, gnss.v_acc_m, config.gnss_noise_scale) * inflation.reshape(-1, 1, 1)
+        events = gnss_fixes(gnss.t_s, enu, cov, gate=config.gnss_gate, name=gnss.name, heading=config.gnss_heading)
         initial = InitialUncertainty(
             **{**initial.__dict__, "position_m": float(max(gnss.h_acc_m[0], gnss.v_acc_m[0]))}
         )
@@ -153,7 +160,7 @@ def prepare_navigation(
         gyro_rps=imu.gyro_rps,
         duration_s=config.stationary_s,
         yaw_rad=config.initial_yaw_rad,
-        position_m=None,
+        position_m=None if enu is None else enu[0].to(config.dtype),
         uncertainty=initial,
         dtype=config.dtype,
         name=imu.name,

@@ -63,9 +63,10 @@ def predict(
     return f(mean, noise, *args), propagate_covariance(cov, F_x, F_eps, noise_cov)
 
 
-def linear_predict(mean: Tensor, cov: Tensor, A: Tensor, Q: Tensor) -> tuple[Tensor, Tensor]:
-    """Linear Kalman prediction ``m = A m``, ``P = A P Aᵀ + Q`` (symmetrised)."""
-    return (A @ mean.unsqueeze(-1)).squeeze(-1), symmetrize(A @ cov @ A.transpose(-1, -2) + Q)
+def linear_predict(mean: Tensor, cov: Tensor, A: Tensor, Q: Tensor, b: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Linear Kalman prediction ``m = A m + b``, ``P = A P Aᵀ + Q`` (symmetrised)."""
+    m = (A @ mean.unsqueeze(-1)).squeeze(-1)
+    return m if b is None else m + b, symmetrize(A @ cov @ A.transpose(-1, -2) + Q)
 
 
 # --------------------------------------------------------------------------- gating

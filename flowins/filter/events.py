@@ -15,6 +15,14 @@ from torch import Tensor
 
 from flowins.filter.augmentation import augment_pose, copy_matrices, forgetting_matrices
 from flowins.filter.ekf import Gate, ekf_update
+from flowins.filter.heading import (
+    HeadingAlignment,
+    fit_heading,
+    heading_jacobian,
+    heading_noise,
+    heading_transform,
+    yaw_conditional_variance,
+)
 from flowins.filter.runner import ChainBuilder
 
 if TYPE_CHECKING:
@@ -26,7 +34,12 @@ from flowins.state import STATE
 
 @dataclass(frozen=True)
 class GnssFix:
-    """A GNSS position fix ``z`` (local ENU, m) with noise ``R`` ``(3, 3)``."""
+    """A GNSS position fix ``z`` (local ENU, m) with noise ``R`` ``(3, 3)``.
+
+    With ``heading`` enabled, a fix that finds the filter's yaw unknown is held back
+    until the held fixes can set it (:mod:`flowins.filter.heading`); the fixes that
+    set it are not applied again as position updates.
+    """
 
     time_s: float
     position_m: Tensor  # (3,)
@@ -34,8 +47,11 @@ class GnssFix:
     gate: Gate = field(default_factory=Gate)
     lever_arm_m: Tensor | None = None
     name: str = "GNSS fix"
+    heading: HeadingAlignment | None = None
 
     def apply(self, chain: ChainBuilder) -> None:
+        if self.heading is not None and self.heading.enabled and self._held_for_heading(chain):
+            return
         mean, cov = chain.mean, chain.cov
         lever = None if self.lever_arm_m is None else self.lever_arm_m.to(mean)
         H = gnss_jacobian_analytic(mean, lever)
@@ -57,6 +73,59 @@ class GnssFix:
             accepted=float(result.weight[0].detach()),
         )
 
+    def _held_for_heading(self, chain: ChainBuilder) -> bool:
+        """Hold this fix while the yaw is unknown; align when the held fixes allow (True: held).
+
+        The filter's track is worth waiting for only while it drifts less than a fix is
+        off: once its position variance (given its yaw) has grown since the first held
+        fix by more than this fix's variance, it aligns with what it holds or, if that
+        cannot set the heading, gives up and applies fixes as they come from then on.
+        """
+        memory = chain.memory
+        if memory.get("heading") in ("known", "given up"):
+            return False
+        a = self.heading
+        mean, cov = chain.mean, chain.cov
+        held = memory.setdefault("heading_fixes", [])
+        if not held:
+            h = heading_jacobian(mean)
+            if float((h @ cov @ h).detach()) <= a.unknown_yaw_sigma_rad**2:
+                memory["heading"] = "known"
+                return False
+        xy = slice(STATE.p.start, STATE.p.start + 2)
+        filter_var = torch.diagonal(yaw_conditional_variance(mean, cov, xy)).mean()
+        fix_var = torch.diagonal(self.noise_cov.to(mean)[:2, :2]).mean()
+        drift_var = (filter_var - held[0][2]).clamp_min(0.0) if held else filter_var.new_zeros(())
+        held.append((mean[xy], self.position_m.to(mean)[:2], filter_var, filter_var + fix_var))
+        chain.log.append({"t_s": chain.time_s, "kind": "gnss", "name": self.name, "accepted": 0.0,
+                          "status": "held for heading"})
+        drifted = bool((drift_var > fix_var).detach())
+        fixes = torch.stack([f for _, f, _, _ in held])
+        fit = None
+        if len(held) >= a.min_fixes and float((fixes - fixes[0]).norm(dim=-1).max().detach()) >= a.baseline_m:
+            fit = fit_heading(torch.stack([p for p, _, _, _ in held]), fixes, torch.stack([v for *_, v in held]),
+                              outlier_probability=a.outlier_probability)
+            if not float(fit.sigma_rad.detach()) <= a.max_sigma_rad:
+                fit = None
+        if fit is None:
+            if drifted:
+                memory["heading"] = "given up"
+                chain.log.append({"t_s": chain.time_s, "kind": "heading", "name": self.name, "status": "given up",
+                                  "fixes": len(held), "reason": "the track drifted more than a fix before the held "
+                                  "fixes could set the heading; fixes are applied as they come"})
+            return True
+        # 1. condition on the filter's own heading; 2. rotate into the fixes' frame
+        h = heading_jacobian(mean).reshape(1, 1, -1)
+        sigma_c = torch.as_tensor(a.condition_sigma_rad, dtype=mean.dtype)
+        chain.update(ekf_update(mean, cov, innovation=mean.new_zeros(1, 1), H=h, noise_cov=(sigma_c**2).reshape(1, 1, 1)))
+        A, b = heading_transform(fit, dtype=mean.dtype)
+        Q = heading_noise(A @ chain.mean + b, fit)
+        chain.change_frame(A, Q, b, kind="heading", name=self.name, status="aligned", yaw_rad=float(fit.yaw_rad.detach()),
+                           sigma_rad=float(fit.sigma_rad.detach()), fixes=int(fit.used.sum()),
+                           outliers=int((~fit.used).sum()))
+        memory["heading"] = "known"
+        return True
+
 
 def gnss_fixes(
     t_s: Tensor,
@@ -66,11 +135,12 @@ def gnss_fixes(
     gate: Gate | None = None,
     lever_arm_m: Tensor | None = None,
     name: str = "GNSS",
+    heading: HeadingAlignment | None = None,
 ) -> list[GnssFix]:
     """One :class:`GnssFix` per row of ``t_s (G,)``, ``position_m (G, 3)``, ``noise_cov (G, 3, 3)``."""
     gate = gate or Gate()
     return [
-        GnssFix(float(t_s[i]), position_m[i], noise_cov[i], gate, lever_arm_m, f"{name} row {i}")
+        GnssFix(float(t_s[i]), position_m[i], noise_cov[i], gate, lever_arm_m, f"{name} row {i}", heading)
         for i in range(t_s.shape[0])
     ]
 

@@ -25,7 +25,7 @@ from tqdm.auto import tqdm
 from flowins.filter.ekf import UpdateResult, linear_predict
 from flowins.filter.propagation import propagate_batched, propagate_reference
 from flowins.ins.mechanization import STANDARD_GRAVITY_MPS2, ProcessNoise
-from flowins.state import STATE_DIM, symmetrize
+from flowins.state import STATE_DIM, normalize_quaternions, symmetrize
 
 
 class Event(Protocol):
@@ -48,6 +48,10 @@ class ChainBuilder:
 
     t_s: list[float] = field(default_factory=list)
     log: list[dict[str, Any]] = field(default_factory=list)
+    #: what events carry from one to the next (e.g. GNSS fixes held back for the heading)
+    memory: dict[str, Any] = field(default_factory=dict)
+    #: ``(node, A, b, Q)`` of each change of frame (:meth:`change_frame`)
+    frame_changes: list[tuple[int, Tensor, Tensor, Tensor]] = field(default_factory=list)
     _transition: list[Tensor] = field(default_factory=list)  # chunks (n, 26, 26)
     _pred_mean: list[Tensor] = field(default_factory=list)  # chunks (n, 26)
     _pred_cov: list[Tensor] = field(default_factory=list)
@@ -89,12 +93,18 @@ class ChainBuilder:
         if info:
             self.log.append({"t_s": self.time_s, **info})
 
-    def linear_predict(self, A: Tensor, Q: Tensor, **info: Any) -> None:
-        """Append a node at the same time: ``m = A m``, ``P = A P Aᵀ + Q``."""
-        mean, cov = linear_predict(self.mean, self.cov, A, Q)
+    def linear_predict(self, A: Tensor, Q: Tensor, b: Tensor | None = None, **info: Any) -> None:
+        """Append a node at the same time: ``m = A m + b``, ``P = A P Aᵀ + Q``."""
+        mean, cov = linear_predict(self.mean, self.cov, A, Q, b)
         self.add_node(self.time_s, A, mean, cov)
         if info:
             self.log.append({"t_s": self.time_s, **info})
+
+    def change_frame(self, A: Tensor, Q: Tensor, b: Tensor, **info: Any) -> None:
+        """A :meth:`linear_predict` that re-expresses the state in another frame (the heading
+        alignment): the smoother maps the nodes before it into the new frame too."""
+        self.linear_predict(A, Q, b, **info)
+        self.frame_changes.append((len(self.t_s) - 1, A, b, Q))
 
     def finish(self) -> FilterTrack:
         return FilterTrack(
@@ -105,6 +115,7 @@ class ChainBuilder:
             node_mean=torch.cat(self._mean),
             node_cov=torch.cat(self._cov),
             log=self.log,
+            frame_changes=self.frame_changes,
         )
 
 
@@ -151,6 +162,36 @@ class FilterTrack(_NodeOutputs):
     node_mean: Tensor  # (J, 26) filtered
     node_cov: Tensor  # (J, 26, 26) filtered
     log: list[dict[str, Any]]
+    #: ``(node, A, b, Q)``: node ``node`` re-expressed the state by ``x ↦ A x + b`` (noise
+    #: ``Q``); the filter's nodes before it stay in the frame they were computed in
+    frame_changes: list[tuple[int, Tensor, Tensor, Tensor]] = field(default_factory=list)
+
+    def in_final_frame(self) -> NodeTrack:
+        """The filtered nodes with those before each change of frame re-expressed after it
+        (``m ↦ A m + b``, ``P ↦ A P Aᵀ + Q``): each node is still the filter's estimate from
+        the data up to its time, relative to its start; only its frame is the final one."""
+        if not self.frame_changes:
+            return NodeTrack(self.t_s, self.node_mean, self.node_cov)
+        mean, cov = to_final_frame(self.node_mean, self.node_cov, self.frame_changes)
+        return NodeTrack(self.t_s, normalize_quaternions(mean), symmetrize(cov))
+
+
+@dataclass
+class NodeTrack(_NodeOutputs):
+    """Nodes ``t_s (J,)``, ``node_mean (J, 26)``, ``node_cov (J, 26, 26)`` and their outputs."""
+
+    t_s: Tensor
+    node_mean: Tensor
+    node_cov: Tensor
+
+
+def to_final_frame(mean: Tensor, cov: Tensor, frame_changes) -> tuple[Tensor, Tensor]:
+    """Nodes ``(J, 26)``, ``(J, 26, 26)`` before each change of frame ``(node, A, b, Q)``
+    re-expressed in the frame after it: ``m ↦ A m + b``, ``P ↦ A P Aᵀ + Q``."""
+    for node, A, b, Q in reversed(frame_changes):
+        mean = torch.cat(((mean[:node] @ A.T) + b, mean[node:]))
+        cov = torch.cat((A @ cov[:node] @ A.T + Q, cov[node:]))
+    return mean, cov
 
 
 def _step_grid(t_imu: Tensor, event_times: Tensor) -> tuple[Tensor, Tensor]:

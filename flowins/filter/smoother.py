@@ -14,20 +14,15 @@ forgetting and augmentation step the filter recorded.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 from torch import Tensor
 
-from flowins.filter.runner import FilterTrack, _NodeOutputs
+from flowins.filter.runner import FilterTrack, NodeTrack, to_final_frame
 from flowins.state import normalize_quaternions, symmetrize
 
 
-@dataclass
-class SmoothedTrack(_NodeOutputs):
-    t_s: Tensor  # (J,) node times
-    node_mean: Tensor  # (J, 26)
-    node_cov: Tensor  # (J, 26, 26)
+class SmoothedTrack(NodeTrack):
+    """The smoothed nodes, all in the final frame."""
 
 
 def rts_gains(track: FilterTrack) -> Tensor:
@@ -144,9 +139,11 @@ def rts_smooth(track: FilterTrack, *, normalize: bool = True) -> SmoothedTrack:
     r_P = torch.stack([residual_cov[k] for k in key_list])[slot]
     mean = torch.cat((node_mean[:-1] + (gains @ r_m.unsqueeze(-1)).squeeze(-1), node_mean[-1:]))
     cov = torch.cat((P + gains @ r_P @ gains.transpose(-1, -2), node_cov[-1:]))
+    mean, cov = to_final_frame(mean, cov, track.frame_changes)
     if normalize:
         mean = normalize_quaternions(mean)
     return SmoothedTrack(track.t_s, mean, symmetrize(cov))
+
 
 
 def rts_smooth_sequential(track: FilterTrack, *, normalize: bool = True) -> SmoothedTrack:
@@ -165,8 +162,8 @@ def rts_smooth_sequential(track: FilterTrack, *, normalize: bool = True) -> Smoo
             P_s = node_cov[j] + G @ (P_s - pred_cov[j + 1]) @ G.T
             means.append(m_s)
             covs.append(P_s)
-    mean = torch.stack(means[::-1])
+    mean, cov = to_final_frame(torch.stack(means[::-1]), torch.stack(covs[::-1]), track.frame_changes)
     if normalize:
         mean = normalize_quaternions(mean)
     # the recursion keeps P symmetric up to rounding; symmetrise the outputs once
-    return SmoothedTrack(track.t_s, mean, symmetrize(torch.stack(covs[::-1])))
+    return SmoothedTrack(track.t_s, mean, symmetrize(cov))

@@ -24,6 +24,7 @@ from flowins.data.streams import GnssStream, ImuStream, PoseStream
 from flowins.evaluation import plot_trajectory, trajectory_errors, write_tum
 from flowins.filter.ekf import Gate
 from flowins.filter.events import FlowUpdate
+from flowins.filter.heading import HeadingAlignment
 from flowins.flow.pairs import (
     FlowPairs,
     cache_key,
@@ -67,6 +68,8 @@ def navigation_config(cfg: Mapping[str, Any]) -> NavigationConfig:
         initial_yaw_rad=cfg["initial_yaw_rad"],
         gnss_gate=Gate(mode=cfg["gnss_gate"]["mode"], probability=cfg["gnss_gate"]["probability"]),
         gnss_noise_scale=cfg["gnss_noise_scale"],
+        gnss_correlation_s=cfg["gnss_correlation_s"],
+        gnss_heading=HeadingAlignment(**dict(cfg["gnss_heading"])),
         output_every=cfg["output_every"],
         scheme=cfg["scheme"],
         gravity_mps2=cfg["gravity_mps2"],
@@ -213,7 +216,9 @@ def format_table(rows: list[Row]) -> str:
 def _export(out: Path, name: str, result: NavigationResult, rec: EvalInputs, plots: bool) -> dict[str, Any]:
     metrics: dict[str, Any] = {}
     tracks = {}
-    for kind, track in (("filter", result.filter), ("smoother", result.smoother)):
+    # the filter's nodes before a heading alignment are re-expressed in the aligned frame
+    # (FilterTrack.in_final_frame): one frame per track, as the smoother's
+    for kind, track in (("filter", result.filter.in_final_frame()), ("smoother", result.smoother)):
         pos, q = track.mean[:, STATE.p].double(), track.mean[:, STATE.q].double()  # metrics in float64 whatever filter.dtype
         write_tum(out / f"{name}_{kind}.tum", track.t, pos, q)
         if rec.truth is None:

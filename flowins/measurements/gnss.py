@@ -5,6 +5,14 @@
 with ``ℓ`` the antenna lever arm in the IMU frame (zero by default, as in the
 paper), and noise ``R = s² diag(σ_h², σ_h², σ_v²)`` from the fix's reported
 horizontal and vertical 1-σ accuracies, scaled by ``s`` (a tuning parameter, 1 by default).
+
+GNSS errors are correlated in time (atmosphere, multipath, the receiver's own
+filter: tens of seconds). A filter that takes them as white believes ``n`` fixes
+average their errors down by ``n``. For a first-order Gauss-Markov error with
+correlation time ``τ`` sampled every ``Δt`` (lag-one correlation ``ρ = exp(-Δt/τ)``)
+the mean of ``n`` fixes has variance ``(σ²/n)(1 + ρ)/(1 - ρ)`` for large ``n``, so
+:func:`correlation_inflation` scales each fix's ``R`` by that factor: the white-noise
+filter then draws the information the fixes really hold (``τ = 0``: no change).
 """
 from __future__ import annotations
 
@@ -47,3 +55,21 @@ def gnss_noise(h_acc_m: Tensor, v_acc_m: Tensor, scale: float | Tensor = 1.0) ->
     """``R`` ``(..., 3, 3)`` from horizontal and vertical 1-σ accuracies ``(...)``."""
     sigmas = torch.stack((h_acc_m, h_acc_m, v_acc_m), dim=-1) * scale
     return torch.diag_embed(sigmas * sigmas)
+
+
+def correlation_inflation(t_s: Tensor, correlation_s: float | Tensor) -> Tensor:
+    """Variance factor ``(1 + ρ) / (1 - ρ)`` ``(G,)`` per fix, ``ρ = exp(-Δt / τ)``.
+
+    ``Δt`` is the time since the previous fix (for the first, to the next one);
+    ``τ = correlation_s = 0`` gives ones.
+    """
+    t = torch.as_tensor(t_s, dtype=torch.float64)
+    tau = torch.as_tensor(correlation_s, dtype=torch.float64)
+    if bool((tau < 0).any()):
+        raise ValueError(f"GNSS correlation time must be >= 0 s, got {float(tau)}")
+    if t.shape[0] < 2 or float(tau) == 0.0:
+        return torch.ones_like(t) + 0.0 * tau
+    dt = torch.diff(t)
+    dt = torch.cat((dt[:1], dt))
+    rho = torch.exp(-dt / tau)
+    return (1.0 + rho) / (1.0 - rho)

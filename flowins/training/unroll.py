@@ -17,9 +17,17 @@ import torch
 from torch import Tensor
 
 from flowins.data.streams import GnssStream, ImuStream, PoseStream
-from flowins.evaluation.alignment import align_yaw, apply_alignment, apply_alignment_to_quaternions
-from flowins.evaluation.metrics import associate, interpolate_positions, interpolate_quaternions
-from flowins.filter.runner import FilterTrack, run_filter
+from flowins.evaluation.alignment import (
+    align_yaw,
+    apply_alignment,
+    apply_alignment_to_quaternions,
+)
+from flowins.evaluation.metrics import (
+    associate,
+    interpolate_positions,
+    interpolate_quaternions,
+)
+from flowins.filter.runner import NodeTrack, run_filter
 from flowins.flow.pairs import FlowPairs
 from flowins.measurements.flow import FlowCamera
 from flowins.navigation import NavigationConfig, prepare_navigation
@@ -78,7 +86,9 @@ def window_bounds(t_s: Tensor, window_s: float) -> list[tuple[int, int]]:
 
 
 class WindowResult(NamedTuple):
-    track: FilterTrack
+    #: the filtered nodes, all in the window's final frame (a heading alignment re-expresses
+    #: the nodes before it, :meth:`~flowins.filter.runner.FilterTrack.in_final_frame`)
+    track: NodeTrack
     mean: Tensor  # (26,) the state at the window's end (with the graph)
     cov: Tensor  # (26, 26)
 
@@ -123,7 +133,7 @@ def run_window(
         events=events,
         **config.filter_settings(),
     )
-    return WindowResult(track, track.node_mean[-1], track.node_cov[-1])
+    return WindowResult(track.in_final_frame(), track.node_mean[-1], track.node_cov[-1])
 
 
 class WindowLoss(NamedTuple):
@@ -142,7 +152,7 @@ def orientation_rmse(q_est: Tensor, q_ref: Tensor) -> Tensor:
 
 
 def window_loss(
-    track: FilterTrack,
+    track: NodeTrack,
     truth: PoseStream,
     *,
     nll_weight: float = 0.0,

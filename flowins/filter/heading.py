@@ -1,0 +1,194 @@
+"""Heading alignment from GNSS fixes: the filter's yaw, unobservable at a still start, set
+from the track the fixes draw.
+
+A stationary start fixes roll and pitch but not yaw (:mod:`flowins.ins.initialization`
+starts it with σ = π). A linearised GNSS update cannot turn a heading that is wrong by
+tens of degrees: the position error it has to explain grows with the distance walked,
+so the fixes are rejected by the gate or pull the track sideways. While the yaw is
+unknown, the fixes are therefore held back; once they span ``baseline_m``, the rigid
+horizontal transform that best maps the filter's positions at the fix times onto the
+fixes (weighted 2D Procrustes) is estimated,
+
+    g_i ≈ R(ψ) (p_i - c_p) + c_g,    weights w_i = 1 / (σ²_g,i + σ²_p,i),
+
+with ``c_p``, ``c_g`` the weighted centroids, and the filter is reset in two steps:
+
+1. *Condition on the filter's own heading*: an update that observes the rotation
+   of ``q`` about the world vertical (:func:`heading_jacobian`) as zero with
+   ``condition_sigma_rad``. It removes the σ = π yaw and the position and velocity
+   errors linearly tied to it; what is left is the track's error in its own heading
+   frame.
+2. *Rotate into the fixes' frame*: the state map ``x ↦ A x + b`` rotates ``p``,
+   ``v``, ``p_prev`` about the vertical through ``c_p``, moves ``c_p`` to ``c_g`` and
+   left-multiplies ``q``, ``q_prev`` by the yaw quaternion; biases and scale are body
+   quantities and stay. The estimate's uncertainty enters as process noise
+   ``Q = J_θ Σ_θ J_θᵀ`` with ``θ = (ψ, c_g)``, ``σ²_ψ = 1 / Σ w_i |p_i - c_p|²`` and
+   ``Σ_c = I / Σ w_i`` (the rotation about the centroid and the centroid are
+   uncorrelated).
+
+For fixed ``θ`` the map is linear, so the chain records it as a linear step and the RTS
+smoother carries the rotation back over the held-back stretch. Fixes whose normalised
+residual exceeds the χ²₂ gate are left out of the fit one at a time, worst first (multipath).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from flowins.filter.ekf import chi2_quantile
+from flowins.geometry import quaternion as quat
+from flowins.state import STATE, STATE_DIM, split
+
+
+@dataclass(frozen=True)
+class HeadingAlignment:
+    """When and how GNSS fixes set an unknown heading (see the module docstring).
+
+    Attributes:
+        enabled: hold fixes while the yaw is unknown; False (default) applies every
+            fix as it comes, as the paper does.
+        unknown_yaw_sigma_rad: the heading counts as unknown while the filter's yaw σ
+            exceeds this at a fix; a filter started with a known yaw never aligns.
+        baseline_m: align once the held-back fixes reach this far from the first one.
+        max_sigma_rad: ... and the fit's σ_ψ is at most this (a filter track too short
+            or too uncertain waits for more fixes).
+        min_fixes: at least this many fixes in the fit.
+        outlier_probability: χ²₂ acceptance of a fix's residual in the fit.
+        condition_sigma_rad: σ of the step-1 yaw conditioning.
+    """
+
+    enabled: bool = False
+    unknown_yaw_sigma_rad: float = 0.5
+    baseline_m: float = 20.0
+    max_sigma_rad: float = 0.2
+    min_fixes: int = 3
+    outlier_probability: float = 0.999
+    condition_sigma_rad: float = 1e-4
+
+    def __post_init__(self) -> None:
+        if self.baseline_m < 0 or self.max_sigma_rad <= 0 or self.unknown_yaw_sigma_rad <= 0:
+            raise ValueError("HeadingAlignment: baseline_m must be >= 0, max_sigma_rad and "
+                             f"unknown_yaw_sigma_rad > 0; got {self}")
+        if self.min_fixes < 2:
+            raise ValueError(f"HeadingAlignment.min_fixes must be >= 2 (a rotation needs two points), got {self.min_fixes}")
+        if self.condition_sigma_rad <= 0:
+            raise ValueError(f"HeadingAlignment.condition_sigma_rad must be > 0, got {self.condition_sigma_rad}")
+
+
+def heading_jacobian(x: Tensor) -> Tensor:
+    """``∂θ_z/∂x`` ``(..., 26)``: the rotation angle about the world vertical of a change of ``q``.
+
+    ``q + δq = (1, ½δθ) ⊙ q`` gives ``δθ = 2 vec(δq ⊙ q*)``, whose vertical component
+    is row ``z`` of ``2 R⊙(q*)``. Unlike an Euler yaw it is defined at every attitude
+    (a phone held upright has its body x axis near the vertical).
+    """
+    H = x.new_zeros(x.shape)
+    H[..., STATE.q] = 2.0 * quat.right_matrix(quat.conjugate(split(x).q))[..., 3, :]
+    return H
+
+
+def yaw_conditional_variance(x: Tensor, P: Tensor, sl: slice) -> Tensor:
+    """Covariance ``(k, k)`` of the block ``sl`` of ``P (26, 26)`` given the yaw of ``q``."""
+    h = heading_jacobian(x)
+    Ph = P @ h
+    s = (h @ Ph).clamp_min(torch.finfo(P.dtype).tiny)
+    return P[sl, sl] - torch.outer(Ph[sl], Ph[sl]) / s
+
+
+class HeadingFit(NamedTuple):
+    yaw_rad: Tensor  # ψ, rotation from the filter's heading frame to the fixes' (about z)
+    sigma_rad: Tensor  # σ_ψ
+    centre_filter_m: Tensor  # c_p (2,)
+    centre_fix_m: Tensor  # c_g (2,)
+    centre_var_m2: Tensor  # Σ_c = centre_var I₂
+    used: Tensor  # (n,) bool, fixes kept in the fit
+
+
+def _procrustes(p: Tensor, g: Tensor, w: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    W = w.sum()
+    c_p = (w.unsqueeze(-1) * p).sum(0) / W
+    c_g = (w.unsqueeze(-1) * g).sum(0) / W
+    dp, dg = p - c_p, g - c_g
+    cross = (w * (dp[:, 0] * dg[:, 1] - dp[:, 1] * dg[:, 0])).sum()
+    dot = (w * (dp * dg).sum(-1)).sum()
+    psi = torch.atan2(cross, dot)
+    info = (w * (dp * dp).sum(-1)).sum()
+    return psi, info, c_p, c_g, W
+
+
+def rotation_2d(psi: Tensor) -> Tensor:
+    """``R(ψ)`` ``(..., 2, 2)``, counter-clockwise about the vertical."""
+    c, s = torch.cos(psi), torch.sin(psi)
+    return torch.stack((torch.stack((c, -s), -1), torch.stack((s, c), -1)), -2)
+
+
+def fit_heading(filter_xy_m: Tensor, fix_xy_m: Tensor, var_m2: Tensor, *, outlier_probability: float = 0.999) -> HeadingFit:
+    """Weighted 2D Procrustes fit ``fix ≈ R(ψ)(filter - c_p) + c_g`` (module docstring).
+
+    Args:
+        filter_xy_m ``(n, 2)``: the filter's horizontal positions at the fix times.
+        fix_xy_m ``(n, 2)``: the fixes.
+        var_m2 ``(n,)``: each pair's variance per axis (fix plus filter).
+
+    While the worst residual ``w_i |r_i|²`` exceeds χ²₂(outlier_probability), that fix
+    is left out and the fit repeated, for at most a fifth of the fixes (at least two are kept). ``σ_ψ`` is infinite when the
+    filter's positions do not spread (no rotation is observable).
+    """
+    n = filter_xy_m.shape[0]
+    if fix_xy_m.shape != (n, 2) or filter_xy_m.shape != (n, 2) or var_m2.shape != (n,):
+        raise ValueError(f"fit_heading expects (n, 2), (n, 2), (n,); got {tuple(filter_xy_m.shape)}, "
+                         f"{tuple(fix_xy_m.shape)}, {tuple(var_m2.shape)}")
+    if n < 2:
+        raise ValueError(f"fit_heading needs at least 2 fixes, got {n}")
+    w = 1.0 / var_m2
+    used = torch.ones(n, dtype=torch.bool)
+    threshold = chi2_quantile(outlier_probability, 2)
+    while True:
+        psi, info, c_p, c_g, W = _procrustes(filter_xy_m[used], fix_xy_m[used], w[used])
+        resid = fix_xy_m - c_g - (rotation_2d(psi) @ (filter_xy_m - c_p).unsqueeze(-1)).squeeze(-1)
+        score = torch.where(used, (w * (resid * resid).sum(-1)).detach(), torch.zeros_like(w))
+        worst = int(score.argmax())
+        if float(score[worst]) <= threshold or int(used.sum()) <= max(2, n - n // 5):
+            break
+        used = used.clone()
+        used[worst] = False  # the worst fix only: one outlier drags every residual of the first fit
+    sigma = torch.where(info > 0, info.clamp_min(torch.finfo(info.dtype).tiny).rsqrt(), torch.full_like(info, torch.inf))
+    return HeadingFit(psi, sigma, c_p, c_g, 1.0 / W, used)
+
+
+def heading_transform(fit: HeadingFit, *, dtype: torch.dtype = torch.float64) -> tuple[Tensor, Tensor]:
+    """The state map ``x ↦ A x + b`` of the fit: ``A (26, 26)``, ``b (26,)``."""
+    psi = fit.yaw_rad.to(dtype)
+    R2 = rotation_2d(psi)
+    R3 = torch.block_diag(R2, torch.ones(1, 1, dtype=dtype))
+    zero = torch.zeros_like(psi)
+    L = quat.left_matrix(torch.stack((torch.cos(0.5 * psi), zero, zero, torch.sin(0.5 * psi))))
+    shift = fit.centre_fix_m.to(dtype) - R2 @ fit.centre_filter_m.to(dtype)
+    shift3 = torch.cat((shift, shift.new_zeros(1)))
+    rotated = {"p": R3, "v": R3, "p_prev": R3, "q": L, "q_prev": L}
+    shifted = {"p": shift3, "p_prev": shift3}
+    sizes = dict(STATE.sizes)
+    A = torch.block_diag(*(rotated.get(name, torch.eye(sizes[name], dtype=dtype)) for name in STATE.names))
+    b = torch.cat([shifted.get(name, torch.zeros(sizes[name], dtype=dtype)) for name in STATE.names])
+    return A, b
+
+
+def heading_noise(x: Tensor, fit: HeadingFit) -> Tensor:
+    """``Q = J_θ Σ_θ J_θᵀ`` ``(26, 26)`` at the transformed state ``x``, ``θ = (ψ, c_g)``."""
+    s = split(x)
+    J = x.new_zeros(STATE_DIM, 3)
+    S = x.new_tensor([[0.0, -1.0], [1.0, 0.0]])
+    e_z = x.new_tensor([0.0, 0.0, 0.0, 1.0])
+    for p_name in ("p", "p_prev"):
+        sl = STATE.slice(p_name)
+        rel = getattr(s, p_name)[:2] - fit.centre_fix_m.to(x)
+        J[sl.start : sl.start + 2, 0] = S @ rel
+        J[sl.start : sl.start + 2, 1:] = torch.eye(2, dtype=x.dtype)
+    J[STATE.v.start : STATE.v.start + 2, 0] = S @ s.v[:2]
+    for q_name in ("q", "q_prev"):
+        J[STATE.slice(q_name), 0] = 0.5 * quat.multiply(e_z, getattr(s, q_name))
+    sigma = torch.stack((fit.sigma_rad**2, fit.centre_var_m2, fit.centre_var_m2)).to(x)
+    return (J * sigma) @ J.T

@@ -1,0 +1,174 @@
+"""Heading alignment from GNSS fixes (flowins.filter.heading) and correlated GNSS noise."""
+import math
+
+import pytest
+import torch
+
+from flowins.filter.heading import (
+    HeadingAlignment,
+    HeadingFit,
+    fit_heading,
+    heading_jacobian,
+    heading_noise,
+    heading_transform,
+    rotation_2d,
+)
+from flowins.geometry import quaternion as quat
+from flowins.measurements.gnss import correlation_inflation
+from flowins.state import STATE, make_state, split
+
+F64 = torch.float64
+
+
+def _random_state(gen: torch.Generator, pitch_rad: float = 0.3) -> torch.Tensor:
+    q = quat.from_euler(torch.tensor(0.2, dtype=F64), torch.tensor(pitch_rad, dtype=F64), torch.tensor(1.1, dtype=F64))
+    q_prev = quat.from_euler(torch.tensor(-0.1, dtype=F64), torch.tensor(pitch_rad, dtype=F64), torch.tensor(0.9, dtype=F64))
+    r = lambda: torch.randn(3, generator=gen, dtype=F64)
+    return make_state(p=5 * r(), v=r(), q=q, b_a=0.1 * r(), b_w=0.01 * r(), T_a=1 + 0.01 * r(), p_prev=5 * r(), q_prev=q_prev)
+
+
+@pytest.mark.parametrize("pitch_rad", [0.3, math.pi / 2 - 1e-3])  # level-ish, and a phone held upright
+def test_heading_jacobian_measures_rotation_about_the_vertical(pitch_rad):
+    x = _random_state(torch.Generator().manual_seed(0), pitch_rad)
+    h = heading_jacobian(x)
+    q = split(x).q
+    for axis, expected in ((2, 1.0), (0, 0.0), (1, 0.0)):
+        eps = 1e-6
+        rotvec = torch.zeros(3, dtype=F64)
+        rotvec[axis] = eps
+        dq = quat.multiply(quat.from_rotation_vector(rotvec), q) - q  # world-frame rotation
+        assert float(h[STATE.q] @ dq) / eps == pytest.approx(expected, abs=1e-5)
+
+
+def test_fit_heading_recovers_the_rotation_with_the_stated_spread():
+    gen = torch.Generator().manual_seed(1)
+    n, sigma, psi = 40, 2.0, 2.0
+    steps = torch.randn(n, 2, generator=gen, dtype=F64) * 3.0 + torch.tensor([1.5, 0.5], dtype=F64)
+    track = torch.cumsum(steps, 0)
+    world = (rotation_2d(torch.tensor(psi, dtype=F64)) @ track.unsqueeze(-1)).squeeze(-1) + torch.tensor([10.0, -4.0], dtype=F64)
+    var = torch.full((n,), sigma**2, dtype=F64)
+    estimates, sigmas = [], []
+    for _ in range(400):
+        fixes = world + sigma * torch.randn(n, 2, generator=gen, dtype=F64)
+        fit = fit_heading(track, fixes, var)
+        estimates.append(float(fit.yaw_rad))
+        sigmas.append(float(fit.sigma_rad))
+    est = torch.tensor(estimates, dtype=F64)
+    assert float(est.mean()) == pytest.approx(psi, abs=3 * sigmas[0] / 20)
+    # the stated σ_ψ is the spread of the estimate (Fisher information of the fit)
+    assert float(est.std()) == pytest.approx(sigmas[0], rel=0.15)
+
+
+def test_fit_heading_leaves_out_a_multipath_fix_and_a_still_track_has_no_heading():
+    gen = torch.Generator().manual_seed(2)
+    track = torch.cumsum(torch.full((20, 2), 1.0, dtype=F64) + torch.randn(20, 2, generator=gen, dtype=F64), 0)
+    fixes = (rotation_2d(torch.tensor(-1.0, dtype=F64)) @ track.unsqueeze(-1)).squeeze(-1)
+    fixes = fixes + 0.5 * torch.randn(20, 2, generator=gen, dtype=F64)
+    fixes[7] += torch.tensor([40.0, 0.0], dtype=F64)
+    fit = fit_heading(track, fixes, torch.full((20,), 0.25, dtype=F64))
+    assert not bool(fit.used[7]) and int(fit.used.sum()) == 19
+    assert float(fit.yaw_rad) == pytest.approx(-1.0, abs=0.05)
+    still = fit_heading(torch.zeros(5, 2, dtype=F64), fixes[:5], torch.ones(5, dtype=F64))
+    assert math.isinf(float(still.sigma_rad))
+    with pytest.raises(ValueError, match="at least 2"):
+        fit_heading(track[:1], fixes[:1], torch.ones(1, dtype=F64))
+
+
+def _fit(psi=0.7, c_p=(1.0, 2.0), c_g=(-3.0, 5.0), sigma=0.1, var=4.0) -> HeadingFit:
+    return HeadingFit(torch.tensor(psi, dtype=F64), torch.tensor(sigma, dtype=F64), torch.tensor(c_p, dtype=F64),
+                      torch.tensor(c_g, dtype=F64), torch.tensor(var, dtype=F64), torch.ones(3, dtype=torch.bool))
+
+
+def _rotate_state(x: torch.Tensor, fit: HeadingFit) -> torch.Tensor:
+    """The alignment written out part by part (reference for heading_transform)."""
+    s = split(x)
+    R = rotation_2d(fit.yaw_rad)
+    q_psi = quat.from_rotation_vector(torch.stack((torch.zeros_like(fit.yaw_rad), torch.zeros_like(fit.yaw_rad), fit.yaw_rad)))
+
+    def move(p):
+        return torch.cat((R @ (p[:2] - fit.centre_filter_m) + fit.centre_fix_m, p[2:]))
+
+    return make_state(p=move(s.p), v=torch.cat((R @ s.v[:2], s.v[2:])), q=quat.multiply(q_psi, s.q), b_a=s.b_a,
+                      b_w=s.b_w, T_a=s.T_a, p_prev=move(s.p_prev), q_prev=quat.multiply(q_psi, s.q_prev))
+
+
+def test_heading_transform_rotates_every_world_quantity_and_keeps_body_ones():
+    x = _random_state(torch.Generator().manual_seed(3))
+    fit = _fit()
+    A, b = heading_transform(fit)
+    torch.testing.assert_close(A @ x + b, _rotate_state(x, fit), rtol=0, atol=1e-12)
+
+
+def test_heading_noise_is_the_fit_uncertainty_pushed_through_the_transform():
+    x = _random_state(torch.Generator().manual_seed(4))
+    fit = _fit(sigma=0.2, var=3.0)
+    x1 = _rotate_state(x, fit)
+    eps = 1e-6
+    cols = []
+    for k in range(3):  # θ = (ψ, c_g,x, c_g,y), central differences
+        def at(delta, k=k):
+            d = torch.zeros(3, dtype=F64)
+            d[k] = delta
+            f = fit._replace(yaw_rad=fit.yaw_rad + d[0], centre_fix_m=fit.centre_fix_m + d[1:])
+            return _rotate_state(x, f)
+        cols.append((at(eps) - at(-eps)) / (2 * eps))
+    J = torch.stack(cols, -1)
+    expected = J @ torch.diag(torch.tensor([0.2**2, 3.0, 3.0], dtype=F64)) @ J.T
+    torch.testing.assert_close(heading_noise(x1, fit), expected, rtol=1e-7, atol=1e-9)
+
+
+def test_correlation_inflation_is_the_variance_of_the_mean_of_gauss_markov_errors():
+    """Exact variance of the mean of n AR(1) samples: σ²/n [1 + 2 Σ_k (1 - k/n) ρ^k]."""
+    tau, dt, n = 10.0, 1.0, 20000
+    rho = math.exp(-dt / tau)
+    k = torch.arange(1, n, dtype=F64)
+    exact = 1.0 + 2.0 * ((1.0 - k / n) * rho**k).sum()
+    t = torch.arange(n, dtype=F64) * dt
+    factor = correlation_inflation(t, tau)
+    assert float(factor[0]) == pytest.approx(float(exact), rel=1e-3)
+    torch.testing.assert_close(factor, factor[:1].expand(n))
+    torch.testing.assert_close(correlation_inflation(t[:5], 0.0), torch.ones(5, dtype=F64))
+    with pytest.raises(ValueError, match=">= 0"):
+        correlation_inflation(t, -1.0)
+
+
+def test_heading_alignment_config_rejects_nonsense():
+    with pytest.raises(ValueError, match="min_fixes"):
+        HeadingAlignment(min_fixes=1)
+    with pytest.raises(ValueError, match="baseline_m"):
+        HeadingAlignment(baseline_m=-1.0)
+
+
+def test_a_filter_started_at_a_wrong_heading_is_aligned_and_its_early_track_re_expressed():
+    """INS + GNSS on a synthetic walk, a good IMU, the filter's yaw 2 rad off with σ = π:
+    the held fixes set the heading; the filter's early nodes, re-expressed in the aligned
+    frame, and the smoother's are metres from the truth, the causal ones are not."""
+    from flowins.data.synthetic import ImuErrors, synthetic_walk_recording
+    from flowins.geometry.geodesy import LocalTangentPlane
+    from flowins.ins.initialization import InitialUncertainty
+    from flowins.ins.mechanization import ProcessNoise
+    from flowins.navigation import NavigationConfig, navigate
+
+    origin = (60.1699, 24.9384, 20.0)
+    rec = synthetic_walk_recording(duration_s=90.0, seed=4, origin=origin, imu_errors=ImuErrors(
+        acc_noise=2e-4, gyro_noise=1e-5, acc_bias_std=0.002, gyro_bias_std=2e-5, acc_bias_walk=0.0,
+        gyro_bias_walk=0.0, acc_scale_std=0.0))
+    config = NavigationConfig(noise=ProcessNoise(acc_noise=2e-4, gyro_noise=1e-5),
+                              initial=InitialUncertainty(acc_bias_mps2=0.005, gyro_bias_rps=1e-4, acc_scale=1e-3),
+                              initial_yaw_rad=2.0, gnss_heading=HeadingAlignment(enabled=True, baseline_m=15.0, max_sigma_rad=0.5))
+    result = navigate(rec.imu, rec.gnss, config=config, frame=LocalTangentPlane(*origin))
+    (entry,) = [e for e in result.filter.log if e.get("kind") == "heading"]
+    assert entry["status"] == "aligned"
+    held = [e for e in result.filter.log if e.get("status") == "held for heading"]
+    assert len(held) == entry["fixes"] + entry["outliers"]
+
+    def early_error(track) -> float:
+        before = track.t < entry["t_s"] - 1.0
+        i = torch.searchsorted(rec.truth.t_s, track.t[before]).clamp(max=rec.truth.t_s.shape[0] - 1)
+        e = track.mean[before][:, STATE.p][:, :2] - rec.truth.pos_m[i][:, :2]
+        return float(e.pow(2).sum(-1).mean().sqrt())
+
+    final, causal, smoothed = early_error(result.filter.in_final_frame()), early_error(result.filter), early_error(result.smoother)
+    assert final < 6.0 and smoothed < 6.0, (final, smoothed)
+    assert causal > 2.0 * final, (causal, final)
+    assert torch.isfinite(result.smoother.node_cov).all()
