@@ -18,10 +18,10 @@ from flowins.filter.ekf import Gate, ekf_update
 from flowins.filter.heading import (
     HeadingAlignment,
     fit_heading,
+    heading_conditional_covariance,
     heading_jacobian,
     heading_noise,
     heading_transform,
-    yaw_conditional_variance,
 )
 from flowins.filter.runner import ChainBuilder
 
@@ -93,7 +93,7 @@ class GnssFix:
                 memory["heading"] = "known"
                 return False
         xy = slice(STATE.p.start, STATE.p.start + 2)
-        filter_var = torch.diagonal(yaw_conditional_variance(mean, cov, xy)).mean()
+        filter_var = torch.diagonal(heading_conditional_covariance(mean, cov, xy)).mean()
         fix_var = torch.diagonal(self.noise_cov.to(mean)[:2, :2]).mean()
         drift_var = (filter_var - held[0][2]).clamp_min(0.0) if held else filter_var.new_zeros(())
         held.append((mean[xy], self.position_m.to(mean)[:2], filter_var, filter_var + fix_var))

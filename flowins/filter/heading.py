@@ -90,8 +90,9 @@ def heading_jacobian(x: Tensor) -> Tensor:
     return H
 
 
-def yaw_conditional_variance(x: Tensor, P: Tensor, sl: slice) -> Tensor:
-    """Covariance ``(k, k)`` of the block ``sl`` of ``P (26, 26)`` given the yaw of ``q``."""
+def heading_conditional_covariance(x: Tensor, P: Tensor, sl: slice) -> Tensor:
+    """Covariance ``(k, k)`` of the block ``sl`` of ``P (26, 26)`` given the heading of ``q``
+    (its rotation about the vertical, :func:`heading_jacobian`)."""
     h = heading_jacobian(x)
     Ph = P @ h
     s = (h @ Ph).clamp_min(torch.finfo(P.dtype).tiny)

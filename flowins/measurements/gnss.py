@@ -66,9 +66,10 @@ def correlation_inflation(t_s: Tensor, correlation_s: float | Tensor) -> Tensor:
     t = torch.as_tensor(t_s, dtype=torch.float64)
     tau = torch.as_tensor(correlation_s, dtype=torch.float64)
     if bool((tau < 0).any()):
-        raise ValueError(f"GNSS correlation time must be >= 0 s, got {float(tau)}")
+        raise ValueError(f"correlation_s (filter.gnss_correlation_s), the GNSS error correlation time, must be "
+                         f">= 0 s, got {float(tau)}")
     if t.shape[0] < 2 or float(tau) == 0.0:
-        return torch.ones_like(t) + 0.0 * tau
+        return torch.ones_like(t)
     dt = torch.diff(t)
     dt = torch.cat((dt[:1], dt))
     rho = torch.exp(-dt / tau)
