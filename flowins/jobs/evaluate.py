@@ -231,6 +231,9 @@ def _export(out: Path, name: str, result: NavigationResult, rec: EvalInputs, plo
     if result.gnss_accepted is not None:
         metrics["gnss_accepted"] = int(result.gnss_accepted.sum())
         metrics["gnss_fixes"] = int(result.gnss_accepted.numel())
+    heading = [{k: v for k, v in e.items() if k not in ("kind", "name")} for e in result.filter.log if e.get("kind") == "heading"]
+    if heading:
+        metrics["heading_alignment"] = heading  # filter.gnss_heading: when and how the heading was set (or given up)
     if plots and rec.truth is not None:
         gnss = radius = None
         if result.gnss_enu_m is not None:
