@@ -22,6 +22,7 @@ from flowins.cache import cache_root
 from flowins.data.sequence import Sequence
 from flowins.data.streams import GnssStream, ImuStream, PoseStream
 from flowins.evaluation import plot_trajectory, trajectory_errors, write_tum
+from flowins.evaluation.gnss_floor import gnss_floor
 from flowins.filter.ekf import Gate
 from flowins.filter.events import FlowUpdate
 from flowins.filter.heading import HeadingAlignment
@@ -287,6 +288,33 @@ def _flow_stats(result: NavigationResult, pairs: FlowPairs) -> dict[str, Any]:
     }
 
 
+def gnss_floor_metrics(rec: EvalInputs) -> dict[str, Any]:
+    """:func:`~flowins.evaluation.gnss_floor.gnss_floor` of the sequence's fixes against its truth."""
+    from flowins.geometry.geodesy import gnss_to_enu
+
+    enu, cov, _ = gnss_to_enu(rec.gnss)
+    floor = gnss_floor(rec.gnss.t_s, enu, cov.diagonal(dim1=-2, dim2=-1).sqrt(), rec.truth.t_s, rec.truth.pos_m)
+    return {
+        "rmse_m": floor.rmse_m,
+        "horizontal_rmse_m": floor.horizontal_rmse_m,
+        "correlation_s": floor.correlation_s,
+        "fixes_used": floor.fixes_used,
+        "fixes": floor.fixes,
+        "error_rms_enu_m": list(floor.error_sigma_m),
+    }
+
+
+def describe_gnss_floor(floor: Mapping[str, Any]) -> str:
+    e, n, u = floor["error_rms_enu_m"]
+    return (
+        f"GNSS floor (flowins.evaluation.gnss_floor): a causal filter that knew the motion exactly and weighted\n"
+        f"the fixes by their true error model would score {floor['rmse_m']:.2f} m ({floor['horizontal_rmse_m']:.2f} m "
+        f"if it also knew the height); the fixes'\nerrors are {e:.1f}/{n:.1f}/{u:.1f} m RMS (E/N/U), correlated over "
+        f"{floor['correlation_s']:.1f} s ({floor['fixes_used']} of {floor['fixes']} fixes pass the gate).\n"
+        f"A GNSS filter scores below it only by trusting the fixes less than they deserve; the smoother has no such floor."
+    )
+
+
 def run(cfg: Mapping[str, Any]) -> list[Row]:
     """Run the job; returns the table rows (also printed and written to ``metrics.json``)."""
     out = Path(cfg["output_dir"])
@@ -353,6 +381,14 @@ def run(cfg: Mapping[str, Any]) -> list[Row]:
     table = format_table(rows)
     print("\nRMSE after Procrustes alignment (rotation + translation) to the ground truth\n")
     print(table)
+    uses_gnss = any(methods[name]["gnss"] for name in cfg["combinations"])
+    if uses_gnss and rec.gnss is not None and rec.truth is not None and len(rec.gnss) >= 3:
+        try:
+            metrics["gnss_floor"] = gnss_floor_metrics(rec)
+            print("\n" + describe_gnss_floor(metrics["gnss_floor"]))
+        except ValueError as error:  # e.g. too few fixes inside the truth's time span: reported, not fatal
+            metrics["gnss_floor"] = {"status": "not computed", "reason": str(error)}
+            print(f"\nGNSS floor not computed: {error}")
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=float))
     print(f"\nwrote {out}/metrics.json, *.tum" + (", *.png" if plots else ""))
     for r in rows:

@@ -45,6 +45,9 @@ def test_the_default_configuration_composes_and_runs_quick(tmp_path):
     cfg = _compose([f"output_dir={tmp_path}", "quick=true", "plots=false", "progress=false", "combinations=[ins_gnss]"])
     (row,) = run(cfg)
     assert row.name == "ins_gnss" and row.filter_rmse_m is not None and row.filter_rmse_m < 30.0
+    # the GNSS floor is recorded, and the ins_gnss filter (its motion not known exactly) is not below it
+    floor = json.loads((tmp_path / "metrics.json").read_text())["gnss_floor"]
+    assert 0.0 < floor["rmse_m"] <= row.filter_rmse_m and floor["fixes_used"] <= floor["fixes"]
 
 
 @pytest.fixture(scope="module")
