@@ -128,33 +128,58 @@ def _parallax(R1: Tensor, R2: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
 POSE_FIELDS = ("p", "q", "p_prev", "q_prev")
 
 
-def _camera_matrices_and_derivatives(x: Tensor, camera: FlowCamera) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """``P₁, P₂`` ``(3, 4)`` (world origin at camera 1's centre), their derivatives
-    ``∂P/∂(p, q, p⁻, q⁻)`` ``(14, 3, 4)`` (the state entries of :data:`POSE_FIELDS`) and
-    the camera rotations ``R₁, R₂`` (camera→world).
+def _relative_pose_and_derivatives(x: Tensor, camera: FlowCamera) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Camera 2 in camera 1's frame, ``P₂' = [R | t]`` ``(3, 4)`` with ``R = R₂ᵀ R₁`` and
+    ``t = -R₂ᵀ d``, its derivatives ``J`` ``(6, 14)`` along the state entries of
+    :data:`POSE_FIELDS` in the tangent coordinates ``(ω, t)`` of ``dR = R [ω]×`` and
+    ``dt``, and the camera rotations ``R₁, R₂`` (camera→world).
 
-    ``P₁ = [R₁ᵀ | 0]``, ``P₂ = [R₂ᵀ | -R₂ᵀ d]`` with ``R_k = R(q_k) R_ciᵀ`` and
-    ``d = c₂ - c₁``, ``c_k = p_k + R(q_k) c_b`` (``c_b`` the camera centre in the body).
+    ``R_k = R(q_k) R_ciᵀ``, ``d = c₂ - c₁``, ``c_k = p_k + R(q_k) c_b`` (``c_b`` the camera
+    centre in the body). :func:`~flowins.geometry.quaternion.to_matrix` normalises, so
+    each ``∂R/∂x_j`` is tangent to the rotations and ``Rᵀ ∂R/∂x_j`` is skew.
     """
     s = split(x)
     # the values exactly as flow_residual forms them
     R1, c1 = camera_pose(s.q_prev, s.p_prev, camera)
     R2, c2 = camera_pose(s.q, s.p, camera)
     d = c2 - c1  # 0 when standing still
-    P1 = camera_matrix(R1, torch.zeros_like(c1))
-    P2 = camera_matrix(R2, d)
-    # their derivatives: ∂R_k/∂q_k = ∂R(q_k)/∂q_k R_ciᵀ, ∂c_k/∂q_k = ∂R(q_k)/∂q_k c_b
+    R2t = R2.transpose(-1, -2)
+    R = R2t @ R1
+    t = -(R2t @ d)
+    P2 = torch.cat((R, t.unsqueeze(-1)), -1)
+    # ∂R_k/∂q_k = ∂R(q_k)/∂q_k R_ciᵀ, ∂c_k/∂q_k = ∂R(q_k)/∂q_k c_b; tangent order p, q, p_prev, q_prev
     R_ic = camera.R_ci.transpose(-1, -2)
     c_b = camera.centre_b
     dRb1, dRb2 = quat.to_matrix_jacobian(s.q_prev), quat.to_matrix_jacobian(s.q)  # (4, 3, 3)
-    eye, z3, z4 = torch.eye(3, dtype=x.dtype, device=x.device), x.new_zeros(3, 3, 3), x.new_zeros(4, 3, 3)
-    # tangent order p (3), q (4), p_prev (3), q_prev (4)
-    dR1t = torch.cat((z3, z4, z3, (dRb1 @ R_ic).transpose(-1, -2)))
-    dR2t = torch.cat((z3, (dRb2 @ R_ic).transpose(-1, -2), z3, z4))
+    dR1, dR2t = dRb1 @ R_ic, (dRb2 @ R_ic).transpose(-1, -2)  # ∂R₁/∂q⁻, ∂R₂ᵀ/∂q
+    # dR = ∂R₂ᵀ R₁ + R₂ᵀ ∂R₁ -> ω = vee(Rᵀ dR), Rᵀ ∂R₂ᵀ R₁ = R₁ᵀ R₂ ∂R₂ᵀ R₁, Rᵀ R₂ᵀ ∂R₁ = R₁ᵀ ∂R₁
+    S_q = R.transpose(-1, -2) @ dR2t @ R1  # (4, 3, 3) along q
+    S_qp = R1.transpose(-1, -2) @ dR1  # along q_prev
+    omega = torch.zeros(14, 3, dtype=x.dtype, device=x.device)
+    omega[3:7] = _vee(S_q)
+    omega[10:14] = _vee(S_qp)
+    # dt = -(∂R₂ᵀ d + R₂ᵀ ∂d), ∂d/∂(p, q, p⁻, q⁻) = (I, ∂R(q) c_b, -I, -∂R(q⁻) c_b)
+    eye = torch.eye(3, dtype=x.dtype, device=x.device)
     dd = torch.cat((eye, dRb2 @ c_b, -eye, -(dRb1 @ c_b)))  # (14, 3)
-    dP1 = torch.cat((dR1t, x.new_zeros(14, 3, 1)), -1)
-    dP2 = torch.cat((dR2t, -(dR2t @ d + dd @ R2).unsqueeze(-1)), -1)
-    return P1, P2, dP1, dP2, R1, R2
+    dt = -(dd @ R2)  # rows: R₂ᵀ ∂d
+    dt[3:7] -= dR2t @ d
+    J = torch.cat((omega, dt), -1).T  # (6, 14)
+    return P2, J, R, R1, R2
+
+
+def _vee(S: Tensor) -> Tensor:
+    """``ω`` ``(..., 3)`` of the skew part of ``S`` ``(..., 3, 3)`` (``S = [ω]×`` for skew ``S``)."""
+    return 0.5 * torch.stack(
+        (S[..., 2, 1] - S[..., 1, 2], S[..., 0, 2] - S[..., 2, 0], S[..., 1, 0] - S[..., 0, 1]), dim=-1
+    )
+
+
+def _skew(v: Tensor) -> Tensor:
+    """``[v]×`` ``(..., 3, 3)`` of ``v`` ``(..., 3)``."""
+    z = torch.zeros_like(v[..., 0])
+    return torch.stack(
+        (z, -v[..., 2], v[..., 1], v[..., 2], z, -v[..., 0], -v[..., 1], v[..., 0], z), dim=-1
+    ).reshape(*v.shape[:-1], 3, 3)
 
 
 class FlowLinearisation(NamedTuple):
@@ -168,65 +193,71 @@ def flow_linearisation(x: Tensor, flow_px: Tensor, uv1_px: Tensor, camera: FlowC
     """``h`` and its Jacobians ``H_x``, ``H_r`` for ``M`` points at once, in closed form.
 
     The same function as :func:`flow_residual`, differentiated by hand (no
-    ``torch.func``), batched over the points ``(M, 2)``. With ``A`` the row-equilibrated
-    DLT matrix of a point, ``A = U S Vᵀ`` and ``X̃ = v₄``, a perturbation ``dA`` moves the
-    null vector by
+    ``torch.func``), batched over the points ``(M, 2)``. It is computed in camera 1's
+    frame, ``P₁' = [I | 0]``, ``P₂' = [R | t]`` (:func:`_relative_pose_and_derivatives`):
+    the DLT matrix there is the world one times an orthogonal matrix, so its
+    equilibrated singular values, the projections and ``h`` are the same, and only
+    the last two rows of the DLT matrix depend on the pose and the flow. With ``A``
+    the row-equilibrated DLT matrix of a point, ``A = U S Vᵀ`` and ``X̃ = v₄``, a
+    perturbation ``dA`` moves the null vector by
 
         dX̃ = -Σ_{i<4} v_i v_iᵀ (dAᵀ A + Aᵀ dA) X̃ / (s_i² - s_4²)
 
     (first-order perturbation of the smallest eigenvector of ``AᵀA``), and
     ``d π(P X̃) = (dy_{1:2} - π dy_3) / y_3`` with ``y = P X̃``, ``dy = dP X̃ + P dX̃``.
-    The ``14 + 2`` tangent directions (the camera poses of :data:`POSE_FIELDS`, then
-    ``δ``) are carried at once; ``H_x`` is zero in the other state columns.
+    The ``6 + 2`` tangent directions (the relative pose ``(ω, t)``, then ``δ``) are
+    carried at once and the pose part is mapped to the state by ``J`` ``(6, 14)``;
+    ``H_x`` is zero outside :data:`POSE_FIELDS`.
     Points must be well posed (``s_3 > s_4``, in front of both cameras): screen with
     :func:`flow_measurements`, which calls this on the valid points only.
     """
     K = camera.K
     M = flow_px.shape[0]
-    P1, P2, dP1, dP2, R1, R2 = _camera_matrices_and_derivatives(x, camera)
+    P2, J, R, R1, R2 = _relative_pose_and_derivatives(x, camera)
+    P1 = torch.eye(3, 4, dtype=x.dtype, device=x.device)
     x1 = normalise_pixels(uv1_px, K)
     x2 = normalise_pixels(uv1_px + flow_px, K)
     A = dlt_matrix(P1, P2, x1, x2)  # (M, 4, 4)
     # the triangulation exactly as triangulate() solves it, with its SVD
     X, conditioning, S, Vh, As, norm = solve_dlt(A, P1)
-    # dA along the pose directions (M, 14, 4, 4) and along δ (M, 2, 4, 4)
-    rows = (
-        x1[:, 0, None, None] * dP1[:, 2] - dP1[:, 0],
-        x1[:, 1, None, None] * dP1[:, 2] - dP1[:, 1],
-        x2[:, 0, None, None] * dP2[:, 2] - dP2[:, 0],
-        x2[:, 1, None, None] * dP2[:, 2] - dP2[:, 1],
-    )
-    dA_flow = x.new_zeros(2, 4, 4)
-    dA_flow[0, 2] = P2[2] / K[0, 0]
-    dA_flow[1, 3] = P2[2] / K[1, 1]
-    dA = torch.cat((torch.stack(rows, dim=-2), dA_flow.expand(M, 2, 4, 4)), dim=1)  # (M, T, 4, 4)
+    # ∂P₂'/∂(ω, t) (6, 3, 4): [R [e_i]× | 0] and [0 | e_i]
+    eye = torch.eye(3, dtype=x.dtype, device=x.device)
+    dP2 = torch.zeros(6, 3, 4, dtype=x.dtype, device=x.device)
+    dP2[:3, :, :3] = R @ _skew(eye)
+    dP2[3:, :, 3] = eye
+    dP2X = (X @ dP2.reshape(-1, 4).T).reshape(M, 6, 3)
+    # rows 3, 4 of dA (rows 1, 2 of [I | 0] do not move): x₂ dP₂'[2] - dP₂'[0], y₂ dP₂'[2] - dP₂'[1]
+    rows = torch.stack(
+        (x2[:, 0, None, None] * dP2[:, 2] - dP2[:, 0], x2[:, 1, None, None] * dP2[:, 2] - dP2[:, 1]), dim=-2
+    )  # (M, 6, 2, 4)
+    flow_rows = torch.zeros(2, 2, 4, dtype=x.dtype, device=x.device)
+    flow_rows[0, 0] = P2[2] / K[0, 0]
+    flow_rows[1, 1] = P2[2] / K[1, 1]
+    dA = torch.cat((rows, flow_rows.expand(M, 2, 2, 4)), dim=1)  # (M, 8, 2, 4) rows 3, 4
+    As34, norm34 = As[:, 2:], norm[:, 2:]
     # derivative of the row equilibration a / |a|
-    dAs = (dA - As.unsqueeze(1) * (As.unsqueeze(1) * dA).sum(-1, keepdim=True)) / norm[:, None, :, None]
-    # null-vector perturbation (M, T, 4): g = dAᵀ (A X) + Aᵀ (dA X)
-    AX = (As * X.unsqueeze(1)).sum(-1)  # (M, 4)
-    dAX = (dAs * X[:, None, None, :]).sum(-1)  # (M, T, 4)
-    g = (dAs * AX[:, None, :, None]).sum(-2) + dAX @ As
+    dAs = (dA - As34.unsqueeze(1) * (As34.unsqueeze(1) * dA).sum(-1, keepdim=True)) / norm34[:, None, :, None]
+    # null-vector perturbation (M, T, 4): g = dAᵀ (A X) + Aᵀ (dA X), over rows 3, 4 only
+    AX = (As34 * X.unsqueeze(1)).sum(-1)  # (M, 2)
+    dAX = (dAs * X[:, None, None, :]).sum(-1)  # (M, T, 2)
+    g = (dAs * AX[:, None, :, None]).sum(-2) + dAX @ As34
     gap = (S[:, :3] ** 2 - S[:, 3:] ** 2).clamp_min(torch.finfo(A.dtype).tiny)  # (M, 3)
     V3 = Vh[:, :3]  # (M, 3, 4) rows v_i
     dX = -((g @ V3.transpose(-1, -2)) / gap.unsqueeze(1)) @ V3  # (M, T, 4)
     f = torch.stack((K[0, 0], K[1, 1]))
-
-    def projection(P: Tensor, dP: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        y = X @ P.T  # (M, 3)
-        dy = dX @ P.T  # (M, T, 3)
-        dPX = (X @ dP.reshape(-1, 4).T).reshape(M, -1, 3)  # (M, 14, 3); zero along δ
-        dy = dy + torch.cat((dPX, dy.new_zeros(M, 2, 3)), dim=1)
-        pi = y[:, :2] / y[:, 2:]
-        dpi = (dy[..., :2] - pi.unsqueeze(1) * dy[..., 2:]) / y[:, None, 2:]
-        return pi, dpi, y[:, 2]
-
-    pi1, dpi1, depth1 = projection(P1, dP1)
-    pi2, dpi2, depth2 = projection(P2, dP2)
+    # camera 1: y = X̃₁:₃
+    pi1 = X[:, :2] / X[:, 2:3]
+    dpi1 = (dX[..., :2] - pi1.unsqueeze(1) * dX[..., 2:3]) / X[:, None, 2:3]
+    # camera 2: y = P₂' X̃
+    y2 = X @ P2.T  # (M, 3)
+    dy2 = dX @ P2.T + torch.cat((dP2X, X.new_zeros(M, 2, 3)), 1)
+    pi2 = y2[:, :2] / y2[:, 2:]
+    dpi2 = (dy2[..., :2] - pi2.unsqueeze(1) * dy2[..., 2:]) / y2[:, None, 2:]
     h = f * (pi2 - pi1) - flow_px
-    dh = (f * (dpi2 - dpi1)).transpose(-1, -2)  # (M, 2, T)
-    H_x = x.new_zeros(M, 2, STATE_DIM).index_copy(-1, _pose_index(x.device), dh[..., :14])
-    H_r = dh[..., 14:] - torch.eye(2, dtype=x.dtype, device=x.device)
-    aux = FlowAux(conditioning, depth1, depth2, _parallax(R1, R2, x1, x2))
+    dh = (f * (dpi2 - dpi1)).transpose(-1, -2)  # (M, 2, 8)
+    H_x = x.new_zeros(M, 2, STATE_DIM).index_copy(-1, _pose_index(x.device), dh[..., :6] @ J)
+    H_r = dh[..., 6:] - eye[:2, :2]
+    aux = FlowAux(conditioning, X[:, 2], y2[:, 2], _parallax(R1, R2, x1, x2))
     return FlowLinearisation(h, H_x, H_r, aux)
 
 
