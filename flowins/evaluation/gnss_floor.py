@@ -102,11 +102,12 @@ def offset_estimates(
     offsets, sigmas, used = [], [], []
     for k in range(G):
         if started:
-            # predict: z ← φ z + w
-            F = torch.tensor([[1.0, 0.0], [0.0, float(phi[k])]], dtype=torch.float64)
+            # predict: z ← φ z + w, i.e. P ← F P Fᵀ + Q with F = diag(1, φ), Q = diag(0, 1 - φ²)
             z = phi[k] * z
-            P = F @ P @ F.T
-            P[:, 1, 1] += 1.0 - phi[k] ** 2
+            P = P.clone()
+            P[:, 0, 1] *= phi[k]
+            P[:, 1, 0] *= phi[k]
+            P[:, 1, 1] = phi[k] ** 2 * P[:, 1, 1] + 1.0 - phi[k] ** 2
             H = torch.stack((torch.ones(D, dtype=torch.float64), s[k]), -1)  # (D, 2)
             innovation = y[k] - (b + s[k] * z)
             PH = (P @ H.unsqueeze(-1)).squeeze(-1)  # (D, 2)
@@ -199,6 +200,9 @@ def gnss_floor(
             f"gnss_floor: fix_m and fix_sigma_m must be (G, 3) and fix_t_s (G,); got {tuple(fix_m.shape)}, "
             f"{tuple(fix_sigma_m.shape)}, {tuple(fix_t_s.shape)}"
         )
+    if not bool((fix_sigma_m > 0).all()):
+        row = int((fix_sigma_m <= 0).any(-1).nonzero()[0])
+        raise ValueError(f"gnss_floor: fix_sigma_m must be > 0; row {row} is {fix_sigma_m[row].tolist()}")
     truth_t = truth_t_s.to(torch.float64)
     truth = truth_m.to(torch.float64)
     association = associate(truth_t, fix_t_s.to(torch.float64), max_dt_s=max_dt_s)
@@ -222,21 +226,21 @@ def gnss_floor(
     latest = (torch.searchsorted(t, truth_t, right=True) - 1).clamp_min(0)
     truth_in_fix_frame = apply_alignment(to_fix_frame, truth)
 
-    def rmse(offset: Tensor) -> float:
-        track = truth_in_fix_frame + offset[latest]
+    def rmse(track: Tensor) -> float:
         return trajectory_errors(truth_t, track, truth_t, truth, align="se3", max_dt_s=max_dt_s).rmse_m
 
     offset = estimates.offset_m
+    track = truth_in_fix_frame + offset[latest]
     horizontal = torch.cat((offset[:, :2], torch.zeros_like(offset[:, 2:])), -1)
     used = estimates.used
     err_rms = errors[used].pow(2).mean(0).sqrt()
     return GnssFloor(
-        rmse_m=rmse(offset),
-        horizontal_rmse_m=rmse(horizontal),
+        rmse_m=rmse(track),
+        horizontal_rmse_m=rmse(truth_in_fix_frame + horizontal[latest]),
         correlation_s=float(correlation_s),
         fixes_used=int(used.sum()),
         fixes=int(used.numel()),
         error_sigma_m=tuple(float(v) for v in err_rms),
         track_t_s=truth_t,
-        track_m=truth_in_fix_frame + offset[latest],
+        track_m=track,
     )

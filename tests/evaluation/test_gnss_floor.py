@@ -140,3 +140,13 @@ def test_bad_input_is_named():
         offset_estimates(y, torch.ones(5, 3, dtype=F64), torch.tensor([0.0, 1.0, 1.0, 2.0, 3.0], dtype=F64), correlation_s=1.0)
     with pytest.raises(ValueError, match="correlation_s"):
         offset_estimates(y, torch.ones(5, 3, dtype=F64), t, correlation_s=-1.0)
+
+
+def test_a_bad_sigma_is_named_by_the_callers_row():
+    t, truth = walk()
+    fix_t = torch.cat((torch.tensor([-5.0], dtype=F64), t[::10]))  # the first fix is before the truth
+    fixes = torch.cat((truth[:1], truth[::10]))
+    sigma = torch.ones_like(fixes)
+    sigma[4, 2] = -1.0
+    with pytest.raises(ValueError, match="fix_sigma_m must be > 0; row 4"):
+        gnss_floor(fix_t, fixes, sigma, t, truth)
