@@ -167,6 +167,16 @@ def _relative_pose_and_derivatives(x: Tensor, camera: FlowCamera) -> tuple[Tenso
     return P2, J, R, R1, R2
 
 
+def _relative_camera_derivative(R: Tensor) -> Tensor:
+    """``∂P₂'/∂(ω, t)`` ``(6, 3, 4)`` of ``P₂' = [R | t]`` along ``dR = R [ω]×``, ``dt``:
+    ``[R [e_i]× | 0]`` and ``[0 | e_i]``."""
+    eye = torch.eye(3, dtype=R.dtype, device=R.device)
+    dP2 = R.new_zeros(6, 3, 4)
+    dP2[:3, :, :3] = R @ _skew(eye)
+    dP2[3:, :, 3] = eye
+    return dP2
+
+
 def _vee(S: Tensor) -> Tensor:
     """``ω`` ``(..., 3)`` of the skew part of ``S`` ``(..., 3, 3)`` (``S = [ω]×`` for skew ``S``)."""
     return 0.5 * torch.stack(
@@ -221,30 +231,33 @@ def flow_linearisation(x: Tensor, flow_px: Tensor, uv1_px: Tensor, camera: FlowC
     # the triangulation exactly as triangulate() solves it, with its SVD
     X, conditioning, S, Vh, As, norm = solve_dlt(A, P1)
     # ∂P₂'/∂(ω, t) (6, 3, 4): [R [e_i]× | 0] and [0 | e_i]
-    eye = torch.eye(3, dtype=x.dtype, device=x.device)
-    dP2 = torch.zeros(6, 3, 4, dtype=x.dtype, device=x.device)
-    dP2[:3, :, :3] = R @ _skew(eye)
-    dP2[3:, :, 3] = eye
+    dP2 = _relative_camera_derivative(R)
     dP2X = (X @ dP2.reshape(-1, 4).T).reshape(M, 6, 3)
-    # rows 3, 4 of dA (rows 1, 2 of [I | 0] do not move): x₂ dP₂'[2] - dP₂'[0], y₂ dP₂'[2] - dP₂'[1]
-    rows = torch.stack(
-        (x2[:, 0, None, None] * dP2[:, 2] - dP2[:, 0], x2[:, 1, None, None] * dP2[:, 2] - dP2[:, 1]), dim=-2
-    )  # (M, 6, 2, 4)
-    flow_rows = torch.zeros(2, 2, 4, dtype=x.dtype, device=x.device)
-    flow_rows[0, 0] = P2[2] / K[0, 0]
-    flow_rows[1, 1] = P2[2] / K[1, 1]
-    dA = torch.cat((rows, flow_rows.expand(M, 2, 2, 4)), dim=1)  # (M, 8, 2, 4) rows 3, 4
-    As34, norm34 = As[:, 2:], norm[:, 2:]
-    # derivative of the row equilibration a / |a|
-    dAs = (dA - As34.unsqueeze(1) * (As34.unsqueeze(1) * dA).sum(-1, keepdim=True)) / norm34[:, None, :, None]
-    # null-vector perturbation (M, T, 4): g = dAᵀ (A X) + Aᵀ (dA X), over rows 3, 4 only
-    AX = (As34 * X.unsqueeze(1)).sum(-1)  # (M, 2)
-    dAX = (dAs * X[:, None, None, :]).sum(-1)  # (M, T, 2)
-    g = (dAs * AX[:, None, :, None]).sum(-2) + dAX @ As34
+    # Only rows 3, 4 of dA move ([I | 0] does not): along a pose tangent t, row r is
+    # x₂ᵣ dP₂'[t, 2] - dP₂'[t, r]; along the flow Δu (Δv) only row 3 (4), by P₂'[2] / f.
+    # With the equilibrated rows aᵣ = Aᵣ / nᵣ, eᵣ = aᵣ·dAᵣ, dᵣ = dAᵣ·X̃ and cᵣ = aᵣ·X̃,
+    # d(aᵣ) = (dAᵣ - aᵣ eᵣ) / nᵣ and the null-vector right-hand side is
+    #     g = Σᵣ (cᵣ / nᵣ) dAᵣ + Σᵣ ((dᵣ - 2 cᵣ eᵣ) / nᵣ) aᵣ,
+    # formed from per-point scalars without building dA (M, 8, 2, 4).
+    a, n = As[:, 2:], norm[:, 2:]  # (M, 2, 4), (M, 2)
+    c = (a * X.unsqueeze(1)).sum(-1)  # (M, 2)
+    coef = c / n
+    e_all = (a @ dP2.permute(2, 0, 1).reshape(4, 18)).reshape(M, 2, 6, 3)  # aᵣ·dP₂'[t, j]
+    e_pose = x2.unsqueeze(-1) * e_all[..., 2] - torch.stack((e_all[:, 0, :, 0], e_all[:, 1, :, 1]), 1)  # (M, 2, 6)
+    d_pose = x2.unsqueeze(-1) * dP2X[..., 2].unsqueeze(1) - dP2X[..., :2].transpose(1, 2)  # (M, 2, 6)
+    w = torch.cat((-coef, (coef * x2).sum(-1, keepdim=True)), -1)  # Σᵣ cᵣ/nᵣ dAᵣ = Σⱼ wⱼ dP₂'[t, j]
+    g_pose = (w @ dP2.transpose(0, 1).reshape(3, 24)).reshape(M, 6, 4) + (
+        (d_pose - 2.0 * c.unsqueeze(-1) * e_pose) / n.unsqueeze(-1)
+    ).transpose(1, 2) @ a
+    f = torch.stack((K[0, 0], K[1, 1]))
+    row3 = P2[2] / f.unsqueeze(-1)  # (2, 4): ∂A_r/∂δ_r
+    e_flow = a @ P2[2] / f  # (M, 2)
+    d_flow = (X @ P2[2]).unsqueeze(-1) / f  # (M, 2)
+    g_flow = coef.unsqueeze(-1) * row3 + ((d_flow - 2.0 * c * e_flow) / n).unsqueeze(-1) * a
+    g = torch.cat((g_pose, g_flow), 1)  # (M, 8, 4)
     gap = (S[:, :3] ** 2 - S[:, 3:] ** 2).clamp_min(torch.finfo(A.dtype).tiny)  # (M, 3)
     V3 = Vh[:, :3]  # (M, 3, 4) rows v_i
     dX = -((g @ V3.transpose(-1, -2)) / gap.unsqueeze(1)) @ V3  # (M, T, 4)
-    f = torch.stack((K[0, 0], K[1, 1]))
     # camera 1: y = X̃₁:₃
     pi1 = X[:, :2] / X[:, 2:3]
     dpi1 = (dX[..., :2] - pi1.unsqueeze(1) * dX[..., 2:3]) / X[:, None, 2:3]
@@ -256,7 +269,7 @@ def flow_linearisation(x: Tensor, flow_px: Tensor, uv1_px: Tensor, camera: FlowC
     h = f * (pi2 - pi1) - flow_px
     dh = (f * (dpi2 - dpi1)).transpose(-1, -2)  # (M, 2, 8)
     H_x = x.new_zeros(M, 2, STATE_DIM).index_copy(-1, _pose_index(x.device), dh[..., :6] @ J)
-    H_r = dh[..., 6:] - eye[:2, :2]
+    H_r = dh[..., 6:] - torch.eye(2, dtype=x.dtype, device=x.device)
     aux = FlowAux(conditioning, X[:, 2], y2[:, 2], _parallax(R1, R2, x1, x2))
     return FlowLinearisation(h, H_x, H_r, aux)
 

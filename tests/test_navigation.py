@@ -1,0 +1,50 @@
+"""navigate(): inference mode when nothing needs a gradient, the graph when something does."""
+import dataclasses
+
+import pytest
+import torch
+
+from flowins.data.synthetic import synthetic_walk_recording
+from flowins.filter.heading import HeadingAlignment
+from flowins.navigation import NavigationConfig, carries_gradient, navigate
+
+
+@pytest.fixture(scope="module")
+def recording():
+    return synthetic_walk_recording(duration_s=12.0, seed=5)
+
+
+def test_carries_gradient_finds_a_tensor_deep_in_a_config():
+    config = NavigationConfig()
+    assert not carries_gradient(config, [1.0, "a"], {"k": torch.zeros(2)})
+    scale = torch.tensor(2.0, requires_grad=True)
+    deep = dataclasses.replace(config, flow_update=dataclasses.replace(config.flow_update, sigma_scale=scale))
+    assert carries_gradient(deep)
+    assert carries_gradient({"a": [(None, scale)]})
+    with torch.no_grad():
+        assert not carries_gradient(deep)
+
+
+def test_navigate_gradient_matches_finite_differences_and_the_fast_path_matches_its_values(recording):
+    """With a noise scale that needs a gradient the filter keeps its graph (autograd agrees
+    with central differences); without, it runs in inference mode and gives the same numbers."""
+    rec = recording
+
+    def final_position(scale):
+        result = navigate(rec.imu, rec.gnss, config=NavigationConfig(gnss_noise_scale=scale, gnss_heading=HeadingAlignment(enabled=False)))
+        return result, result.smoother.mean[-1, :2].sum() + result.filter.mean[-1, :2].sum()
+
+    s0 = 1.5
+    scale = torch.tensor(s0, dtype=torch.float64, requires_grad=True)
+    tracked, value = final_position(scale)
+    (grad,) = torch.autograd.grad(value, scale)
+    eps = 1e-4
+    fd = (final_position(s0 + eps)[1] - final_position(s0 - eps)[1]) / (2 * eps)
+    assert torch.isfinite(grad)
+    assert abs(float(grad) - float(fd)) <= 1e-5 * max(1.0, abs(float(fd)))
+
+    fast, fast_value = final_position(s0)
+    assert torch.is_inference(fast.filter.node_mean) and not torch.is_inference(tracked.filter.node_mean)
+    assert torch.allclose(fast.filter.node_mean, tracked.filter.node_mean.detach(), rtol=0, atol=1e-12)
+    assert torch.allclose(fast.smoother.node_cov, tracked.smoother.node_cov.detach(), rtol=0, atol=1e-12)
+    assert float(fast_value) == pytest.approx(float(value.detach()), abs=1e-12)
