@@ -9,7 +9,14 @@ For cameras ``P₁, P₂`` ``(3, 4)`` and pixels ``(u₁, v₁)``, ``(u₂, v₂
     [ v₂ P₂[3,:] - P₂[2,:] ]
 
 in the least-squares sense: ``X̃`` is the right singular vector of the smallest
-singular value (``torch.linalg.svd``), batched over any leading dimensions.
+singular value, batched over any leading dimensions.
+
+It is computed as the eigenvector of the smallest eigenvalue of ``AᵀA``
+(``torch.linalg.eigh``, about twice as fast as ``torch.linalg.svd`` on a batch of
+``4 x 4`` matrices) followed by one Newton step whose residual ``Aᵀ(A X̃)`` is formed
+from ``A``, not from ``AᵀA``: the squared conditioning of ``AᵀA`` would otherwise cost
+digits (up to 1e-9 on the default walk's points), the step brings the vector back to
+the SVD's to ~1e-13, and ``σ₄ = |A X̃|`` to rounding.
 
 Conditioning: the rows are formed in normalised image coordinates
 (``K⁻¹ (u, v, 1)``) and with the world origin moved to camera 1's centre
@@ -62,22 +69,34 @@ class DltSolution(NamedTuple):
     point: Tensor  # (..., 4) unit null vector, oriented in front of camera 1
     conditioning: Tensor  # (...,) (σ₃ - σ₄) / σ₁
     singular_values: Tensor  # (..., 4) of the equilibrated matrix, descending
-    right_vectors: Tensor  # (..., 4, 4) Vᴴ: rows are the right singular vectors
+    right_vectors: Tensor  # (..., 4, 4) Vᴴ: rows are the right singular vectors (the last is ``point``)
     rows: Tensor  # (..., 4, 4) the equilibrated matrix A / |rows|
     row_norm: Tensor  # (..., 4) the row norms divided out
 
 
 def solve_dlt(A: Tensor, P1: Tensor) -> DltSolution:
     """The smallest right singular vector of the row-equilibrated ``A`` ``(..., 4, 4)``, its
-    sign chosen so that the point is in front of camera ``P1`` ``(..., 3, 4)``."""
-    norm = A.norm(dim=-1).clamp_min(torch.finfo(A.dtype).tiny ** 0.5)
+    sign chosen so that the point is in front of camera ``P1`` ``(..., 3, 4)`` (see the
+    module doc for how it is computed)."""
+    tiny = torch.finfo(A.dtype).tiny
+    norm = A.norm(dim=-1).clamp_min(tiny**0.5)
     rows = A / norm.unsqueeze(-1)  # equilibrate the rows (the solution is invariant)
-    _, S, Vh = torch.linalg.svd(rows)
-    point = Vh[..., -1, :]
-    # the singular vector's sign is arbitrary: choose the one in front of camera 1
+    lam, V = torch.linalg.eigh(rows.transpose(-1, -2) @ rows)  # ascending
+    X, V3 = V[..., 0], V[..., 1:].flip(-1).transpose(-1, -2)  # V3: rows v₁, v₂, v₃
+    lam3 = lam[..., 1:].flip(-1).clamp_min(0.0)  # σ₁², σ₂², σ₃²
+    # Newton step X ← X - Σᵢ vᵢ vᵢᵀ (AᵀA X) / (σᵢ² - σ₄²); the gap is at least rounding
+    # (the rows have unit norm, so σ₁² >= 1): a degenerate point stays finite
+    gap = (lam3 - lam[..., :1]).clamp_min(torch.finfo(A.dtype).eps)
+    r = (rows.transpose(-1, -2) @ (rows @ X.unsqueeze(-1))).squeeze(-1)
+    X = X - (((V3 @ r.unsqueeze(-1)).squeeze(-1) / gap).unsqueeze(-2) @ V3).squeeze(-2)
+    point = X / X.norm(dim=-1, keepdim=True)
+    # the vector's sign is arbitrary: choose the one in front of camera 1
     z1 = (P1[..., 2, :] * point).sum(-1, keepdim=True)
     point = torch.where(z1 < 0, -point, point)
-    conditioning = (S[..., -2] - S[..., -1]) / S[..., 0].clamp_min(torch.finfo(A.dtype).tiny)
+    s4 = (rows @ point.unsqueeze(-1)).squeeze(-1).norm(dim=-1, keepdim=True)
+    S = torch.cat((lam3.sqrt(), s4), -1)
+    Vh = torch.cat((V3, point.unsqueeze(-2)), -2)
+    conditioning = (S[..., -2] - S[..., -1]) / S[..., 0].clamp_min(tiny)
     return DltSolution(point, conditioning, S, Vh, rows, norm)
 
 

@@ -4,7 +4,8 @@ For a flow point ``δ = (Δu, Δv)`` at pixel ``(u₁, v₁)`` of the previous f
 cameras ``P₁ = K [R₁ᵀ | -R₁ᵀ c₁]`` (from the augmented pose ``p⁻, q⁻``) and
 ``P₂ = K [R₂ᵀ | -R₂ᵀ c₂]`` (from the current pose ``p, q``), both including the
 IMU→camera transform, triangulate ``X̃`` from ``(u₁, v₁)`` and ``(u₁ + Δu, v₁ + Δv)``
-(:func:`flowins.geometry.triangulation.triangulate`, the paper's linear system by SVD)
+(:func:`flowins.geometry.triangulation.triangulate`, the paper's linear system, solved for its
+smallest right singular vector)
 and
 
     h(x, δ) = π(P₂ X̃) - π(P₁ X̃) - δ          (pixels, ``0 = h(x, δ + r)``)
@@ -12,7 +13,7 @@ and
 ``h`` is the reprojection inconsistency of the two rays: zero when the flow agrees
 with the relative pose. Its Jacobians ``H_x = ∂h/∂x`` (2 x 26) and ``H_r = ∂h/∂δ``
 (2 x 2), for all points at once, come in closed form (:func:`flow_linearisation`, the
-default) or from ``torch.func.jacrev`` through the SVD under ``vmap`` (the reference,
+default) or from ``torch.func.jacrev`` through the triangulation under ``vmap`` (the reference,
 ``jacobians="autodiff"``); both are differentiable, as training needs.
 
 Conditioning: the world origin is moved to camera 1's centre and the triangulation
@@ -228,7 +229,7 @@ def flow_linearisation(x: Tensor, flow_px: Tensor, uv1_px: Tensor, camera: FlowC
     x1 = normalise_pixels(uv1_px, K)
     x2 = normalise_pixels(uv1_px + flow_px, K)
     A = dlt_matrix(P1, P2, x1, x2)  # (M, 4, 4)
-    # the triangulation exactly as triangulate() solves it, with its SVD
+    # the triangulation exactly as triangulate() solves it
     X, conditioning, S, Vh, As, norm = solve_dlt(A, P1)
     # ∂P₂'/∂(ω, t) (6, 3, 4): [R [e_i]× | 0] and [0 | e_i]
     dP2 = _relative_camera_derivative(R)
