@@ -64,3 +64,27 @@ def test_triangulation_gradient_matches_finite_differences():
         return tri.point[:3] / tri.point[3]
 
     assert torch.autograd.gradcheck(euclidean, (p2.clone().requires_grad_(), x2.clone().requires_grad_()))
+
+
+@pytest.mark.parametrize("baseline", [1.0, 1e-3])
+def test_eigh_with_newton_step_equals_the_svd_null_vector(baseline):
+    """solve_dlt (eigh of AᵀA, one Newton step) against torch.linalg.svd of the same
+    equilibrated matrix, on noisy points down to a small baseline (ill-conditioned)."""
+    from flowins.geometry.triangulation import dlt_matrix, solve_dlt
+
+    gen = torch.Generator().manual_seed(4)
+    R1, p1, R2, p2, X = random_rig(gen, (500,), baseline=baseline)
+    P1, P2 = camera_matrix(R1, p1 - p1), camera_matrix(R2, p2 - p1)
+    Xh = torch.cat((X - p1, torch.ones(500, 1, dtype=F64)), -1)
+    x1, _ = project_homogeneous(P1, Xh)
+    x2, _ = project_homogeneous(P2, Xh)
+    x2 = x2 + 3e-4 * torch.randn(500, 2, generator=gen, dtype=F64)
+    solution = solve_dlt(dlt_matrix(P1, P2, x1, x2), P1)
+    _, S, Vh = torch.linalg.svd(solution.rows)
+    reference = Vh[..., -1, :] * torch.sign((Vh[..., -1, :] * solution.point).sum(-1, keepdim=True))
+    if baseline < 1:
+        assert float(solution.conditioning.min()) < 1e-4  # ill-conditioned points among them
+    # either method's rounding error is ~ eps / conditioning; eigh alone is ~ eps / conditioning²
+    bound = 2e-14 / solution.conditioning
+    assert ((solution.point - reference).norm(dim=-1) <= bound).all()
+    assert ((solution.singular_values - S).abs().max(-1).values <= bound).all()
