@@ -17,6 +17,8 @@ relative ``P_pp / σ²_{p,0}`` per frame; :func:`copy_pose` is the exact
 """
 from __future__ import annotations
 
+import functools
+
 import torch
 from torch import Tensor
 
@@ -86,7 +88,16 @@ def augment_pose(mean: Tensor, cov: Tensor, *, nugget_var: float | Tensor) -> tu
 def copy_matrices(
     nugget_var: float | Tensor, *, dtype: torch.dtype, device=None
 ) -> tuple[Tensor, Tensor]:
-    """``(T, Q)`` of :func:`copy_pose` as a linear step ``x = T x + w``, ``w ~ N(0, Q)``."""
+    """``(T, Q)`` of :func:`copy_pose` as a linear step ``x = T x + w``, ``w ~ N(0, Q)``.
+
+    For a plain-number nugget the pair is built once per dtype and device (the filter
+    asks for it every frame); callers must not modify it in place."""
+    if isinstance(nugget_var, Tensor):
+        return _copy_matrices(nugget_var, dtype, device)
+    return _cached_copy_matrices(float(nugget_var), dtype, None if device is None else torch.device(device))
+
+
+def _copy_matrices(nugget_var: float | Tensor, dtype: torch.dtype, device) -> tuple[Tensor, Tensor]:
     T = torch.zeros(STATE_DIM, STATE_DIM, dtype=dtype, device=device)
     T[:CORE_DIM, :CORE_DIM] = torch.eye(CORE_DIM, dtype=dtype, device=device)
     T[STATE.p_prev, STATE.p] = torch.eye(3, dtype=dtype, device=device)
@@ -95,6 +106,12 @@ def copy_matrices(
     Q = torch.zeros_like(T)
     Q[CORE_DIM:, CORE_DIM:] = nugget * torch.eye(STATE_DIM - CORE_DIM, dtype=dtype, device=device)
     return T, Q
+
+
+@functools.cache
+def _cached_copy_matrices(nugget_var: float, dtype: torch.dtype, device) -> tuple[Tensor, Tensor]:
+    with torch.inference_mode(False):  # plain tensors, usable by a later run that needs gradients
+        return _copy_matrices(nugget_var, dtype, device)
 
 
 def copy_pose(mean: Tensor, cov: Tensor, *, nugget_var: float | Tensor) -> tuple[Tensor, Tensor]:

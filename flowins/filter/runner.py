@@ -278,9 +278,16 @@ def run_filter(
             event.apply(chain)
     propagate = propagate_batched if jacobians == "analytic" else propagate_reference
     node_index = torch.nonzero(is_node).squeeze(-1)
+    node_t_s = grid[node_index].tolist()
+    # each segment's nodes: node_index[first[i]:last[i]] (the last step of a segment is a node)
+    ends = torch.tensor(segment_ends, dtype=node_index.dtype)
+    first = torch.searchsorted(node_index, torch.cat((ends.new_zeros(1), ends[:-1] + 1))).tolist()
+    last = torch.searchsorted(node_index, ends, right=True).tolist()
     start = 0
-    for end in tqdm(segment_ends, desc="filter", unit="update", disable=None if progress else True, leave=False):
-        nodes = node_index[(node_index >= start) & (node_index <= end)] - start
+    segments = zip(segment_ends, first, last)
+    for end, i0, i1 in tqdm(segments, total=len(segment_ends), desc="filter", unit="update",
+                            disable=None if progress else True, leave=False):
+        nodes = node_index[i0:i1] - start
         out = propagate(
             chain.mean,
             chain.cov,
@@ -292,7 +299,7 @@ def run_filter(
             gravity_mps2=gravity_mps2,
             scheme=scheme,
         )
-        chain.add_nodes(grid[nodes + start].tolist(), out.transition, out.mean, out.cov)
+        chain.add_nodes(node_t_s[i0:i1], out.transition, out.mean, out.cov)
         for event in events_by_step.get(end, []):
             event.apply(chain)
         start = end + 1

@@ -105,8 +105,7 @@ def flow_residual(x: Tensor, flow_px: Tensor, uv1_px: Tensor, camera: FlowCamera
         x ``(26,)`` state; flow_px ``δ`` ``(2,)``; uv1_px ``(2,)`` pixel in the previous frame.
     """
     s = split(x)
-    R1, c1 = camera_pose(s.q_prev, s.p_prev, camera)
-    R2, c2 = camera_pose(s.q, s.p, camera)
+    (R1, R2), (c1, c2) = camera_pose(torch.stack((s.q_prev, s.q)), torch.stack((s.p_prev, s.p)), camera)
     P1 = camera_matrix(R1, torch.zeros_like(c1))  # world origin at camera 1's centre
     P2 = camera_matrix(R2, c2 - c1)
     x1 = normalise_pixels(uv1_px, camera.K)
@@ -141,8 +140,7 @@ def _relative_pose_and_derivatives(x: Tensor, camera: FlowCamera) -> tuple[Tenso
     """
     s = split(x)
     # the values exactly as flow_residual forms them
-    R1, c1 = camera_pose(s.q_prev, s.p_prev, camera)
-    R2, c2 = camera_pose(s.q, s.p, camera)
+    (R1, R2), (c1, c2) = camera_pose(torch.stack((s.q_prev, s.q)), torch.stack((s.p_prev, s.p)), camera)
     d = c2 - c1  # 0 when standing still
     R2t = R2.transpose(-1, -2)
     R = R2t @ R1
@@ -151,17 +149,19 @@ def _relative_pose_and_derivatives(x: Tensor, camera: FlowCamera) -> tuple[Tenso
     # ∂R_k/∂q_k = ∂R(q_k)/∂q_k R_ciᵀ, ∂c_k/∂q_k = ∂R(q_k)/∂q_k c_b; tangent order p, q, p_prev, q_prev
     R_ic = camera.R_ci.transpose(-1, -2)
     c_b = camera.centre_b
-    dRb1, dRb2 = quat.to_matrix_jacobian(s.q_prev), quat.to_matrix_jacobian(s.q)  # (4, 3, 3)
-    dR1, dR2t = dRb1 @ R_ic, (dRb2 @ R_ic).transpose(-1, -2)  # ∂R₁/∂q⁻, ∂R₂ᵀ/∂q
+    dRb = quat.to_matrix_jacobian(torch.stack((s.q_prev, s.q)))  # (2, 4, 3, 3)
+    dR = dRb @ R_ic
+    dR1, dR2t = dR[0], dR[1].transpose(-1, -2)  # ∂R₁/∂q⁻, ∂R₂ᵀ/∂q
     # dR = ∂R₂ᵀ R₁ + R₂ᵀ ∂R₁ -> ω = vee(Rᵀ dR), Rᵀ ∂R₂ᵀ R₁ = R₁ᵀ R₂ ∂R₂ᵀ R₁, Rᵀ R₂ᵀ ∂R₁ = R₁ᵀ ∂R₁
-    S_q = R.transpose(-1, -2) @ dR2t @ R1  # (4, 3, 3) along q
-    S_qp = R1.transpose(-1, -2) @ dR1  # along q_prev
-    omega = torch.zeros(14, 3, dtype=x.dtype, device=x.device)
-    omega[3:7] = _vee(S_q)
-    omega[10:14] = _vee(S_qp)
+    R1t = R1.transpose(-1, -2)
+    vee = _vee(torch.stack((R1t @ R2 @ dR2t @ R1, R1t @ dR1)))  # (2, 4, 3): along q, along q_prev
+    omega = x.new_zeros(14, 3)
+    omega[3:7] = vee[0]
+    omega[10:14] = vee[1]
     # dt = -(∂R₂ᵀ d + R₂ᵀ ∂d), ∂d/∂(p, q, p⁻, q⁻) = (I, ∂R(q) c_b, -I, -∂R(q⁻) c_b)
     eye = torch.eye(3, dtype=x.dtype, device=x.device)
-    dd = torch.cat((eye, dRb2 @ c_b, -eye, -(dRb1 @ c_b)))  # (14, 3)
+    dRc = dRb @ c_b  # (2, 4, 3)
+    dd = torch.cat((eye, dRc[1], -eye, -dRc[0]))  # (14, 3)
     dt = -(dd @ R2)  # rows: R₂ᵀ ∂d
     dt[3:7] -= dR2t @ d
     J = torch.cat((omega, dt), -1).T  # (6, 14)
