@@ -97,8 +97,6 @@ class GnssFix:
         fix_var = torch.diagonal(self.noise_cov.to(mean)[:2, :2]).mean()
         drift_var = (filter_var - held[0][2]).clamp_min(0.0) if held else filter_var.new_zeros(())
         held.append((mean[xy], self.position_m.to(mean)[:2], filter_var, filter_var + fix_var))
-        chain.log.append({"t_s": chain.time_s, "kind": "gnss", "name": self.name, "accepted": 0.0,
-                          "status": "held for heading"})
         drifted = bool((drift_var > fix_var).detach())
         fixes = torch.stack([f for _, f, _, _ in held])
         fit = None
@@ -109,10 +107,16 @@ class GnssFix:
                 fit = None
         if fit is None:
             if drifted:
+                # the fixes held so far are in the past and are not applied; this one and
+                # every later one are, as they come
                 memory["heading"] = "given up"
                 chain.log.append({"t_s": chain.time_s, "kind": "heading", "name": self.name, "status": "given up",
-                                  "fixes": len(held), "reason": "the track drifted more than a fix before the held "
-                                  "fixes could set the heading; fixes are applied as they come"})
+                                  "fixes": len(held) - 1, "reason": "the track drifted more than a fix before the "
+                                  "held fixes could set the heading; they are left out, this fix and the later ones "
+                                  "are applied as they come"})
+                return False
+            chain.log.append({"t_s": chain.time_s, "kind": "gnss", "name": self.name, "accepted": 0.0,
+                              "status": "held for heading"})
             return True
         # 1. condition on the filter's own heading; 2. rotate into the fixes' frame
         h = heading_jacobian(mean).reshape(1, 1, -1)
@@ -124,6 +128,8 @@ class GnssFix:
                            sigma_rad=float(fit.sigma_rad.detach()), fixes=int(fit.used.sum()),
                            outliers=int((~fit.used).sum()))
         memory["heading"] = "known"
+        chain.log.append({"t_s": chain.time_s, "kind": "gnss", "name": self.name, "accepted": 0.0,
+                          "status": "set the heading"})
         return True
 
 

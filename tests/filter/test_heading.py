@@ -160,7 +160,9 @@ def test_a_filter_started_at_a_wrong_heading_is_aligned_and_its_early_track_re_e
     (entry,) = [e for e in result.filter.log if e.get("kind") == "heading"]
     assert entry["status"] == "aligned"
     held = [e for e in result.filter.log if e.get("status") == "held for heading"]
-    assert len(held) == entry["fixes"] + entry["outliers"]
+    (last,) = [e for e in result.filter.log if e.get("status") == "set the heading"]
+    assert last["t_s"] == entry["t_s"]
+    assert len(held) + 1 == entry["fixes"] + entry["outliers"]
 
     def early_error(track) -> float:
         before = track.t < entry["t_s"] - 1.0
@@ -172,3 +174,22 @@ def test_a_filter_started_at_a_wrong_heading_is_aligned_and_its_early_track_re_e
     assert final < 6.0 and smoothed < 6.0, (final, smoothed)
     assert causal > 2.0 * final, (causal, final)
     assert torch.isfinite(result.smoother.node_cov).all()
+
+
+def test_giving_up_the_heading_applies_the_fix_that_gives_up_and_every_later_one():
+    """INS + GNSS without flow, the yaw 2 rad off: the track drifts before the held fixes
+    can set the heading. The held fixes are left out (counted); the fix that gives up and
+    all later ones update the filter, so every fix is either held or applied, once."""
+    from flowins.data.synthetic import synthetic_walk_recording
+    from flowins.navigation import NavigationConfig, navigate
+
+    rec = synthetic_walk_recording(duration_s=60.0, seed=1)
+    result = navigate(rec.imu, rec.gnss, config=NavigationConfig(initial_yaw_rad=2.0))
+    (entry,) = [e for e in result.filter.log if e.get("kind") == "heading"]
+    assert entry["status"] == "given up"
+    gnss = [e for e in result.filter.log if e.get("kind") == "gnss"]
+    held = [e for e in gnss if e.get("status") == "held for heading"]
+    applied = [e for e in gnss if "nis" in e]
+    assert len(held) == entry["fixes"] > 0
+    assert len(held) + len(applied) == len(gnss) == len(rec.gnss)
+    assert max(e["t_s"] for e in held) < entry["t_s"] == min(e["t_s"] for e in applied)
