@@ -189,6 +189,11 @@ def navigate(
     ``flow`` (a :class:`~flowins.flow.pairs.FlowPairs`, dense or sparse) with
     ``camera`` (:class:`~flowins.measurements.flow.FlowCamera`) adds the paper's flow
     frames (:func:`flow_frames`, settings ``config.flow_update``).
+
+    When no input or config tensor needs a gradient (:func:`carries_gradient`) the run is
+    made in ``torch.inference_mode`` and the result's tensors are inference tensors:
+    read them freely, but ``clone()`` one before changing it in place. With a tensor that
+    needs a gradient the result carries the graph back to it.
     """
     # without a gradient to carry, inference mode skips autograd's bookkeeping on every
     # one of the filter's many small operations (about 15 % of its time)
