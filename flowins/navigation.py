@@ -73,6 +73,19 @@ class NavigationResult:
         return torch.tensor(flags) if flags else None
 
     @property
+    def heading_status(self) -> list[dict]:
+        """The GNSS heading alignment's log entries (``filter.gnss_heading``), aligned or given
+        up; if fixes were still held when the run ended, a last entry ``"never set"`` counts
+        them: they never updated the filter (the run was too short for them to set the heading)."""
+        entries = [e for e in self.filter.log if e.get("kind") == "heading"]
+        held = [e for e in self.filter.log if e.get("status") == "held for heading"]
+        if held and not entries:
+            entries.append({"t_s": held[-1]["t_s"], "kind": "heading", "status": "never set", "fixes": len(held),
+                            "reason": "the run ended before the held fixes could set the heading "
+                            "(filter.gnss_heading: baseline_m, max_sigma_rad); they never updated the filter"})
+        return entries
+
+    @property
     def flow_log(self) -> list[dict]:
         """The log entries of the flow frames (points, valid, degenerate, accepted, ...)."""
         return [entry for entry in self.filter.log if entry.get("kind") == "flow"]

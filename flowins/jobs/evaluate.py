@@ -232,7 +232,7 @@ def _export(out: Path, name: str, result: NavigationResult, rec: EvalInputs, plo
     if result.gnss_accepted is not None:
         metrics["gnss_accepted"] = int(result.gnss_accepted.sum())
         metrics["gnss_fixes"] = int(result.gnss_accepted.numel())
-    heading = [{k: v for k, v in e.items() if k not in ("kind", "name")} for e in result.filter.log if e.get("kind") == "heading"]
+    heading = [{k: v for k, v in e.items() if k not in ("kind", "name")} for e in result.heading_status]
     if heading:
         metrics["heading_alignment"] = heading  # filter.gnss_heading: when and how the heading was set (or given up)
     if plots and rec.truth is not None:
@@ -376,6 +376,9 @@ def run(cfg: Mapping[str, Any]) -> list[Row]:
         rows.append(Row(name, sources, m["filter_rmse_m"], m["smoother_rmse_m"], note, seconds=m["seconds"]))
         fr = "n/a" if m["filter_rmse_m"] is None else f"{m['filter_rmse_m']:.2f} m"
         print(f"  {name:<16} filter RMSE {fr} ({m['seconds']:.1f} s)")
+        for entry in m.get("heading_alignment", []):
+            if entry["status"] == "never set":
+                print(f"  {'':<16} GNSS: {entry['fixes']} fixes held for the heading to the end: {entry['reason']}")
     if plots and isinstance(flows.get("dense"), FlowPairs) and int(cfg.get("flow_panels", 0)) > 0:
         flow_panels(rec, cfg, out, int(cfg["flow_panels"]))
     table = format_table(rows)

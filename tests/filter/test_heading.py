@@ -1,4 +1,5 @@
 """Heading alignment from GNSS fixes (flowins.filter.heading) and correlated GNSS noise."""
+import dataclasses
 import math
 
 import pytest
@@ -193,3 +194,24 @@ def test_giving_up_the_heading_applies_the_fix_that_gives_up_and_every_later_one
     assert len(held) == entry["fixes"] > 0
     assert len(held) + len(applied) == len(gnss) == len(rec.gnss)
     assert max(e["t_s"] for e in held) < entry["t_s"] == min(e["t_s"] for e in applied)
+
+
+def test_fixes_still_held_when_the_run_ends_are_reported_as_never_set():
+    """A good IMU (no drift, so no give-up) and a run too short for the fixes to reach the
+    baseline: every fix is held to the end and the result says so, with the count."""
+    from flowins.data.synthetic import ImuErrors, synthetic_walk_recording
+    from flowins.ins.mechanization import ProcessNoise
+    from flowins.navigation import NavigationConfig, navigate
+
+    rec = synthetic_walk_recording(duration_s=12.0, seed=4, imu_errors=ImuErrors(
+        acc_noise=2e-4, gyro_noise=1e-5, acc_bias_std=0.002, gyro_bias_std=2e-5, acc_bias_walk=0.0,
+        gyro_bias_walk=0.0, acc_scale_std=0.0))
+    config = NavigationConfig(noise=ProcessNoise(acc_noise=2e-4, gyro_noise=1e-5), initial_yaw_rad=2.0)
+    result = navigate(rec.imu, rec.gnss, config=config)
+    gnss = [e for e in result.filter.log if e.get("kind") == "gnss"]
+    assert len(gnss) == len(rec.gnss) and not any("nis" in e for e in gnss)
+    (status,) = result.heading_status
+    assert status["status"] == "never set" and status["fixes"] == len(rec.gnss)
+    # with the heading known from the start nothing is held and nothing is reported
+    known = navigate(rec.imu, rec.gnss, config=dataclasses.replace(config, gnss_heading=HeadingAlignment(enabled=False)))
+    assert known.heading_status == []
