@@ -140,33 +140,23 @@ def _prefix_compose(F: Tensor, S: Tensor) -> tuple[Tensor, Tensor]:
     return F, S
 
 
-def _group_steps(pieces: StepPieces, node_steps: Tensor) -> StepPieces:
-    """The steps' pieces ``(K, ...)`` grouped into node intervals ``(m, L, ...)``.
+def _group_steps(F: Tensor, W: Tensor, node_steps: Tensor) -> tuple[Tensor, Tensor]:
+    """The steps' transitions and noises ``(K, D, D)`` grouped into node intervals ``(m, L, D, D)``.
 
     Equal intervals are a free view; otherwise short intervals are padded with
-    ``Δt = 0`` steps, whose transition is the identity and whose noise is zero
-    (only the small per-step pieces are gathered, never the matrices).
+    identity transitions and zero noise (one gather of each).
     """
-    K = node_steps[-1].item() + 1
+    K = F.shape[0]
     m = node_steps.shape[0]
     starts = torch.cat((node_steps.new_zeros(1), node_steps[:-1] + 1))
     lengths = node_steps - starts + 1
     if K % m == 0 and bool((lengths == K // m).all()):
-        return StepPieces(*(t.reshape(m, K // m, *t.shape[1:]) for t in pieces))
+        return F.reshape(m, K // m, *F.shape[1:]), W.reshape(m, K // m, *W.shape[1:])
     L = int(lengths.max())
     offsets = torch.arange(L, device=node_steps.device)
-    index = starts.unsqueeze(1) + offsets.unsqueeze(0)  # (m, L)
-    pad = offsets.unsqueeze(0) >= lengths.unsqueeze(1)
-    index = torch.where(pad, index.new_zeros(()), index)
-    grouped = StepPieces(*(t[index] for t in pieces))
-    # a padding step repeats step 0's attitude with Δt = 0, θ = 0, E = 1: the identity map
-    dt = torch.where(pad.unsqueeze(-1), torch.zeros_like(grouped.dt), grouped.dt)
-    theta = torch.where(pad.unsqueeze(-1), torch.zeros_like(grouped.theta), grouped.theta)
-    one = torch.zeros_like(grouped.E)
-    one[..., 0] = 1.0
-    E = torch.where(pad.unsqueeze(-1), one, grouped.E)
-    E_rot = torch.where(pad.unsqueeze(-1), one, grouped.E_rot)
-    return grouped._replace(dt=dt, theta=theta, E=E, E_rot=E_rot)
+    index = torch.where(offsets.unsqueeze(0) < lengths.unsqueeze(1), starts.unsqueeze(1) + offsets.unsqueeze(0), K)
+    eye = torch.eye(F.shape[-1], dtype=F.dtype, device=F.device).unsqueeze(0)
+    return torch.cat((F, eye))[index], torch.cat((W, torch.zeros_like(eye)))[index]
 
 
 def _check_nodes(node_steps: Tensor, num_steps: int) -> None:
@@ -198,10 +188,9 @@ def propagate_batched(
     K = dt_s.shape[0]
     _check_nodes(node_steps, K)
     means, pieces = _run_pieces(x0, acc_mps2, gyro_rps, dt_s, gravity_mps2, scheme)
-    grouped = _group_steps(pieces, node_steps)
-    F, G = core_jacobians_from_pieces(grouped, scheme)  # (m, L, 19, 19), (m, L, 19, 15)
-    W = (G * noise.variances(grouped.dt.squeeze(-1)).unsqueeze(-2)) @ G.transpose(-1, -2)
-    Phi_core, S_core = _compose_pairs(F, W)
+    F, G = core_jacobians_from_pieces(pieces, scheme)  # (K, 19, 19), (K, 19, 15)
+    W = (G * noise.variances(dt_s).unsqueeze(-2)) @ G.transpose(-1, -2)
+    Phi_core, S_core = _compose_pairs(*_group_steps(F, W, node_steps))  # over (m, L, 19, 19)
     Phi, S = embed_core(Phi_core)[0], pad_core(S_core)
     # covariance at every node at once: P_j = Φ_{0→j} P0 Φ_{0→j}ᵀ + S_{0→j}
     Phi_pre, S_pre = _prefix_compose(Phi, S)

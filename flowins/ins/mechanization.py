@@ -34,6 +34,8 @@ perfect sensor.
 """
 from __future__ import annotations
 
+import functools
+
 from dataclasses import dataclass
 
 import torch
@@ -152,27 +154,44 @@ class ProcessNoise:
         return torch.diag_embed(self.variances(dt_s))
 
     def variances(self, dt_s: Tensor) -> Tensor:
-        """The diagonal of :meth:`covariance`, ``(..., 15)``."""
+        """The diagonal of :meth:`covariance`, ``(..., 15)``: the squared densities times
+        ``1/Δt`` (``density``; 0 for a ``Δt = 0`` padding step, whose Jacobian column is zero
+        anyway) or ``Δt`` (``paper``) for the white inputs, times ``Δt`` for the walks."""
         dt = dt_s.unsqueeze(-1)
-
-        def per_axis(value: float | Tensor) -> Tensor:
-            v = torch.as_tensor(value, dtype=dt_s.dtype, device=dt_s.device)
-            return (v * v).expand(3) if v.ndim == 0 else v * v
-
+        squared = self._squared_densities(dt_s.dtype, dt_s.device)  # (15,)
         if self.discretization == "density":
-            # white input noise sampled over Δt has variance σ²/Δt; a Δt = 0
-            # padding step carries no noise (its Jacobian column is zero anyway)
+            # white input noise sampled over Δt has variance σ²/Δt
             white_scale = torch.where(dt > 0, 1.0 / torch.where(dt > 0, dt, torch.ones_like(dt)), torch.zeros_like(dt))
         else:
             white_scale = dt
-        white = torch.cat((per_axis(self.acc_noise), per_axis(self.gyro_noise)), -1) * white_scale
-        walks = (
-            torch.cat(
-                (per_axis(self.acc_bias_walk), per_axis(self.gyro_bias_walk), per_axis(self.acc_scale_walk)), -1
-            )
-            * dt
-        )
-        out = torch.cat((white, walks), -1)
-        assert out.shape[-1] == NOISE_DIM
-        return out
+        return squared * torch.where(_WHITE_INPUTS.to(dt_s.device), white_scale, dt)
 
+    def _squared_densities(self, dtype: torch.dtype, device) -> Tensor:
+        """``σ²`` per noise axis ``(15,)`` in the NOISE layout (built once for plain numbers)."""
+        values = (self.acc_noise, self.gyro_noise, self.acc_bias_walk, self.gyro_bias_walk, self.acc_scale_walk)
+        if any(isinstance(v, Tensor) for v in values):
+            return _squared_densities(values, dtype, device)
+        return _cached_squared_densities(tuple(float(v) for v in values), dtype, device)
+
+
+
+#: which of the 15 noise axes are white inputs (accelerometer, gyroscope) rather than walks
+_WHITE_INPUTS = torch.zeros(NOISE_DIM, dtype=torch.bool)
+_WHITE_INPUTS[NOISE.acc] = True
+_WHITE_INPUTS[NOISE.gyro] = True
+
+
+def _squared_densities(values, dtype: torch.dtype, device) -> Tensor:
+    def per_axis(value: float | Tensor) -> Tensor:
+        v = torch.as_tensor(value, dtype=dtype, device=device)
+        return (v * v).expand(3) if v.ndim == 0 else v * v
+
+    out = torch.cat([per_axis(v) for v in values])
+    assert out.shape[-1] == NOISE_DIM
+    return out
+
+
+@functools.cache
+def _cached_squared_densities(values: tuple[float, ...], dtype: torch.dtype, device) -> Tensor:
+    with torch.inference_mode(False):  # a plain tensor, usable by a later run with gradients
+        return _squared_densities(values, dtype, device)
