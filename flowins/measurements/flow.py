@@ -63,10 +63,24 @@ class FlowCamera:
 
     @property
     def centre_b(self) -> Tensor:
-        """The camera centre in the body (IMU) frame ``(3,)``: ``-R_ciᵀ t_ci``."""
+        """The camera centre in the body (IMU) frame ``(3,)``: ``-R_ciᵀ t_ci`` (kept after the
+        first use unless the transform carries a gradient)."""
+        if self.R_ci.requires_grad or self.t_ci.requires_grad:
+            return self._centre_b()
+        cached = self.__dict__.get("_centre_b_cache")
+        if cached is None:
+            with torch.inference_mode(False):  # a plain tensor, usable by later runs with gradients
+                cached = self._centre_b()
+            object.__setattr__(self, "_centre_b_cache", cached)
+        return cached
+
+    def _centre_b(self) -> Tensor:
         return -(self.R_ci.transpose(-1, -2) @ self.t_ci.unsqueeze(-1)).squeeze(-1)
 
     def to(self, like: Tensor) -> FlowCamera:
+        """This camera in ``like``'s dtype and device (itself when it already is)."""
+        if all(t.dtype == like.dtype and t.device == like.device for t in (self.K, self.R_ci, self.t_ci)):
+            return self
         return FlowCamera(self.K.to(like), self.R_ci.to(like), self.t_ci.to(like))
 
 
@@ -91,11 +105,11 @@ def ray_angle(ray1: Tensor, ray2: Tensor) -> Tensor:
 
 def normalise_pixels(uv: Tensor, K: Tensor) -> Tensor:
     """Pixels ``(..., 2)`` -> normalised image coordinates ``K⁻¹ (u, v, 1)`` without the 1."""
-    return torch.stack(((uv[..., 0] - K[0, 2]) / K[0, 0], (uv[..., 1] - K[1, 2]) / K[1, 1]), dim=-1)
+    return (uv - K[:2, 2]) / torch.diagonal(K)[:2]
 
 
 def _to_pixels(xy: Tensor, K: Tensor) -> Tensor:
-    return torch.stack((K[0, 0] * xy[..., 0] + K[0, 2], K[1, 1] * xy[..., 1] + K[1, 2]), dim=-1)
+    return xy * torch.diagonal(K)[:2] + K[:2, 2]
 
 
 def flow_residual(x: Tensor, flow_px: Tensor, uv1_px: Tensor, camera: FlowCamera) -> tuple[Tensor, FlowAux]:
