@@ -101,18 +101,17 @@ def core_jacobians_from_pieces(pieces: StepPieces, scheme: str) -> tuple[Tensor,
     dv = dt3 * (rotate_jacobian(q_rot, a) @ drot)  # (..., 3, 7): ∂v'/∂(q, b_ω)
     dv_dq, dv_dbw = dv[..., :4], dv[..., 4:]
     dtC = dt3 * C
-    v_blocks = {"q": dv_dq, "b_a": -dtC * T_a.unsqueeze(-2), "b_w": dv_dbw, "T_a": dtC * acc_unbiased.unsqueeze(-2)}
-    v_noise = {"acc": dtC, "gyro": -dv_dbw}
+    # the velocity rows over the contiguous columns q, b_a, b_w, T_a (resp. noises acc, gyro)
+    v_row = torch.cat((dv_dq, -dtC * T_a.unsqueeze(-2), dv_dbw, dtC * acc_unbiased.unsqueeze(-2)), -1)
+    v_noise = torch.cat((dtC, -dv_dbw), -1)
     eye3 = torch.eye(3, dtype=q.dtype, device=q.device)
-    F_blocks = {("p", "v"): dt3 * eye3, ("q", "q"): dq_dq, ("q", "b_w"): dq_dbw}
-    F_blocks.update({("v", k): b for k, b in v_blocks.items()})
-    G_blocks = {("q", "gyro"): -dq_dbw}
-    G_blocks.update({("v", k): b for k, b in v_noise.items()})
+    F_blocks = {("p", "v"): dt3 * eye3, ("q", "q"): dq_dq, ("q", "b_w"): dq_dbw, ("v", _V_COLUMNS): v_row}
+    G_blocks = {("q", "gyro"): -dq_dbw, ("v", _V_NOISES): v_noise}
     if scheme == "midpoint":
         # p' = p + v Δt + (Δt/2)(v' - v): (Δt/2) x the velocity rows without their identity
         half = 0.5 * dt3
-        F_blocks.update({("p", k): half * b for k, b in v_blocks.items()})
-        G_blocks.update({("p", k): half * b for k, b in v_noise.items()})
+        F_blocks[("p", _V_COLUMNS)] = half * v_row
+        G_blocks[("p", _V_NOISES)] = half * v_noise
     # identity on the rows no block overwrites: p, v, b_a, b_w, T_a; random walks
     # drive the bias and scale states one to one
     F = place_blocks(F_blocks, CORE, CORE, batch, like=q) + _core_identity_base(q.dtype, q.device)
@@ -120,22 +119,39 @@ def core_jacobians_from_pieces(pieces: StepPieces, scheme: str) -> tuple[Tensor,
     return F, G
 
 
+#: the columns (resp. noises) the velocity rows depend on, contiguous in CORE (resp. NOISE)
+_V_COLUMNS = ("q", "b_a", "b_w", "T_a")
+_V_NOISES = ("acc", "gyro")
+
+
+def _span(layout: _Layout, names: str | tuple[str, ...]) -> slice:
+    """The slice of one field, or of consecutive fields given as a tuple of names."""
+    if isinstance(names, str):
+        return layout.slice(names)
+    parts = [layout.slice(n) for n in names]
+    if any(a.stop != b.start for a, b in zip(parts, parts[1:])):
+        raise ValueError(f"fields {names} are not consecutive in the layout {layout.names}")
+    return slice(parts[0].start, parts[-1].stop)
+
+
 @cache
-def _block_index(keys: tuple[tuple[str, str], ...], rows: _Layout, cols: _Layout, device: torch.device) -> Tensor:
-    """Flat positions in a ``(rows.dim, cols.dim)`` matrix of the named blocks, concatenated."""
+def _block_index(keys: tuple[tuple, ...], rows: _Layout, cols: _Layout, device: torch.device) -> Tensor:
+    """Flat positions in a ``(rows.dim, cols.dim)`` matrix of the named blocks, concatenated
+    (a block's row or column may span consecutive fields, given as a tuple of names)."""
     index = []
     for row_name, col_name in keys:
-        r, c = rows.slice(row_name), cols.slice(col_name)
+        r, c = _span(rows, row_name), _span(cols, col_name)
         index += [i * cols.dim + j for i in range(r.start, r.stop) for j in range(c.start, c.stop)]
     return torch.tensor(index, dtype=torch.long, device=device)
 
 
 def place_blocks(
-    blocks: dict[tuple[str, str], Tensor], rows: _Layout, cols: _Layout, batch: tuple[int, ...], *, like: Tensor
+    blocks: dict[tuple, Tensor], rows: _Layout, cols: _Layout, batch: tuple[int, ...], *, like: Tensor
 ) -> Tensor:
     """A ``(*batch, rows.dim, cols.dim)`` matrix that is zero except for the named blocks.
 
-    ``blocks`` maps ``(row field, column field)`` to a ``(..., r, c)`` tensor; all
+    ``blocks`` maps ``(row field, column field)`` to a ``(..., r, c)`` tensor (a field may
+    be a tuple of consecutive field names, for a block spanning them); all
     blocks are written in one scatter (fewer kernel launches than one slice
     assignment or concatenation per block). Differentiable.
     """

@@ -160,8 +160,8 @@ class ProcessNoise:
         dt = dt_s.unsqueeze(-1)
         squared = self._squared_densities(dt_s.dtype, dt_s.device)  # (15,)
         if self.discretization == "density":
-            # white input noise sampled over Δt has variance σ²/Δt
-            white_scale = torch.where(dt > 0, 1.0 / torch.where(dt > 0, dt, torch.ones_like(dt)), torch.zeros_like(dt))
+            # white input noise sampled over Δt has variance σ²/Δt (0 for Δt = 0, gradient included)
+            white_scale = (dt > 0) / dt.clamp_min(torch.finfo(dt.dtype).tiny)
         else:
             white_scale = dt
         return squared * torch.where(_WHITE_INPUTS.to(dt_s.device), white_scale, dt)
