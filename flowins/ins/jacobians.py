@@ -19,6 +19,7 @@ and for the noise ``ε = (ε^a, ε^ω, ε^{b_a}, ε^{b_ω}, ε^{T_a})``: ``∂v'
 """
 from __future__ import annotations
 
+import itertools
 from functools import cache
 from typing import NamedTuple
 
@@ -129,7 +130,7 @@ def _span(layout: _Layout, names: str | tuple[str, ...]) -> slice:
     if isinstance(names, str):
         return layout.slice(names)
     parts = [layout.slice(n) for n in names]
-    if any(a.stop != b.start for a, b in zip(parts, parts[1:])):
+    if any(a.stop != b.start for a, b in itertools.pairwise(parts)):
         raise ValueError(f"fields {names} are not consecutive in the layout {layout.names}")
     return slice(parts[0].start, parts[-1].stop)
 

@@ -35,7 +35,6 @@ perfect sensor.
 from __future__ import annotations
 
 import functools
-
 from dataclasses import dataclass
 
 import torch

@@ -3,7 +3,11 @@ import pytest
 import torch
 
 from flowins.geometry import quaternion as quat
-from flowins.geometry.triangulation import camera_matrix, project_homogeneous, triangulate
+from flowins.geometry.triangulation import (
+    camera_matrix,
+    project_homogeneous,
+    triangulate,
+)
 
 F64 = torch.float64
 
