@@ -176,9 +176,9 @@ def normalize_quaternions(x: Tensor) -> Tensor:
     return torch.cat(
         (
             x[..., : STATE.q.start],
-            q / q.norm(dim=-1, keepdim=True).clamp_min(tiny),
+            q / torch.linalg.vector_norm(q, dim=-1, keepdim=True).clamp_min(tiny),
             x[..., STATE.q.stop : STATE.q_prev.start],
-            q_prev / q_prev.norm(dim=-1, keepdim=True).clamp_min(tiny),
+            q_prev / torch.linalg.vector_norm(q_prev, dim=-1, keepdim=True).clamp_min(tiny),
         ),
         dim=-1,
     )

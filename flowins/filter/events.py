@@ -293,7 +293,7 @@ class FlowFrame:
                                      method=u.selection, cell_px=u.cell_px)
                 points = points.take(keep)
             sigma = points.sigma_px
-            min_parallax = u.min_parallax_sigma * sigma.norm(dim=-1) / 2**0.5
+            min_parallax = u.min_parallax_sigma * torch.linalg.vector_norm(sigma, dim=-1) / 2**0.5
             x_i, result = mean, None
             for _ in range(u.iterations):
                 m = flow_measurements(x_i, points.flow_px, points.uv1_px, self.camera, min_parallax_px=min_parallax,

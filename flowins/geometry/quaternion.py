@@ -94,7 +94,7 @@ def conjugate(q: Tensor) -> Tensor:
 def normalize(q: Tensor) -> Tensor:
     """``q / |q|`` (a zero quaternion stays zero instead of becoming NaN)."""
     _check(q)
-    return q / q.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(q.dtype).tiny ** 0.5)
+    return q / torch.linalg.vector_norm(q, dim=-1, keepdim=True).clamp_min(torch.finfo(q.dtype).tiny ** 0.5)
 
 
 def left_matrix(q: Tensor) -> Tensor:
@@ -319,7 +319,7 @@ def rotation_vector_jacobian(theta: Tensor) -> Tensor:
 
 def rotate_jacobian(q: Tensor, a: Tensor) -> Tensor:
     """``∂(C(q/|q|) a)/∂q`` ``(..., 3, 4)`` for a (not necessarily unit) quaternion ``q``."""
-    n = q.norm(dim=-1, keepdim=True)
+    n = torch.linalg.vector_norm(q, dim=-1, keepdim=True)
     u = q / n
     w, r = u[..., 0], u[..., 1:]
     ra = (r * a).sum(-1)

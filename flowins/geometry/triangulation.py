@@ -79,7 +79,7 @@ def solve_dlt(A: Tensor, P1: Tensor) -> DltSolution:
     sign chosen so that the point is in front of camera ``P1`` ``(..., 3, 4)`` (see the
     module doc for how it is computed)."""
     tiny = torch.finfo(A.dtype).tiny
-    norm = A.norm(dim=-1).clamp_min(tiny**0.5)
+    norm = torch.linalg.vector_norm(A, dim=-1).clamp_min(tiny**0.5)
     rows = A / norm.unsqueeze(-1)  # equilibrate the rows (the solution is invariant)
     lam, V = torch.linalg.eigh(rows.transpose(-1, -2) @ rows)  # ascending
     X, V3 = V[..., 0], V[..., 1:].flip(-1).transpose(-1, -2)  # V3: rows v₁, v₂, v₃
@@ -89,11 +89,11 @@ def solve_dlt(A: Tensor, P1: Tensor) -> DltSolution:
     gap = (lam3 - lam[..., :1]).clamp_min(torch.finfo(A.dtype).eps)
     r = (rows.transpose(-1, -2) @ (rows @ X.unsqueeze(-1))).squeeze(-1)
     X = X - (((V3 @ r.unsqueeze(-1)).squeeze(-1) / gap).unsqueeze(-2) @ V3).squeeze(-2)
-    point = X / X.norm(dim=-1, keepdim=True)
+    point = X / torch.linalg.vector_norm(X, dim=-1, keepdim=True)
     # the vector's sign is arbitrary: choose the one in front of camera 1
     z1 = (P1[..., 2, :] * point).sum(-1, keepdim=True)
     point = torch.where(z1 < 0, -point, point)
-    s4 = (rows @ point.unsqueeze(-1)).squeeze(-1).norm(dim=-1, keepdim=True)
+    s4 = torch.linalg.vector_norm((rows @ point.unsqueeze(-1)).squeeze(-1), dim=-1, keepdim=True)
     S = torch.cat((lam3.sqrt(), s4), -1)
     Vh = torch.cat((V3, point.unsqueeze(-2)), -2)
     conditioning = (S[..., -2] - S[..., -1]) / S[..., 0].clamp_min(tiny)

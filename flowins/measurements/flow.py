@@ -100,7 +100,7 @@ def camera_pose(q: Tensor, p: Tensor, camera: FlowCamera) -> tuple[Tensor, Tenso
 
 def ray_angle(ray1: Tensor, ray2: Tensor) -> Tensor:
     """Angle (rad) between two rays ``(..., 3)`` (not necessarily unit), stable near 0 and π."""
-    return torch.atan2(torch.linalg.cross(ray1, ray2).norm(dim=-1), (ray1 * ray2).sum(-1))
+    return torch.atan2(torch.linalg.vector_norm(torch.linalg.cross(ray1, ray2), dim=-1), (ray1 * ray2).sum(-1))
 
 
 def normalise_pixels(uv: Tensor, K: Tensor) -> Tensor:
