@@ -99,7 +99,7 @@ def select_points(
         raise ValueError(f"point selection method must be one of {METHODS}, got {method!r}")
     if n_points < 1:
         raise ValueError(f"n_points must be >= 1, got {n_points}")
-    sigma = points.sigma_px.to(x).norm(dim=-1) / 2**0.5
+    sigma = torch.linalg.vector_norm(points.sigma_px.to(x), dim=-1) / 2**0.5
     if method == "parallax":
         score = rotation_parallax_px(x, points, K, R_ci) / sigma
     elif method == "sigma":
