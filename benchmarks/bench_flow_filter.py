@@ -11,6 +11,7 @@ Reads the default simulated walk and its dense flow pairs (both cached by
   seconds of the walk (it is slow), with its real-time factor scaled from that window.
 
     python benchmarks/bench_flow_filter.py [--points 256] [--reference-s 20] [--repeats 3] [--breakdown-s 60]
+                                           [--count-ops-s 20]
 """
 from __future__ import annotations
 
@@ -92,6 +93,33 @@ def breakdown(imu, gnss, pairs, camera, config) -> None:
     print(f"  {'the rest':18s} {1e3 * (total - sum(spent.values())) / n:6.2f} ms per frame")
 
 
+#: aten operations that only make a view (counted apart by --count-ops)
+VIEW_OPS = frozenset({
+    "aten.slice.Tensor", "aten.select.int", "aten.view.default", "aten.unsqueeze.default", "aten.expand.default",
+    "aten._unsafe_view.default", "aten.transpose.int", "aten.t.default", "aten.squeeze.dim", "aten.squeeze.default",
+    "aten.permute.default", "aten.alias.default", "aten.as_strided.default", "aten.detach.default",
+    "aten.unbind.int", "aten.split.Tensor", "aten.lift_fresh.default",
+})
+
+
+def count_ops(imu, gnss, pairs, camera, config) -> None:
+    """PyTorch operations per flow frame (dispatcher calls, views apart): what the
+    per-operation overhead multiplies."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    counts = {"operations": 0, "views": 0}
+
+    class Count(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            counts["views" if str(func) in VIEW_OPS else "operations"] += 1
+            return func(*args, **(kwargs or {}))
+
+    with Count(), torch.inference_mode():
+        navigate(imu, gnss, config=config, flow=pairs, camera=camera)
+    n = len(pairs)
+    print(f"per frame over {n} frames: {counts['operations'] / n:.0f} operations and {counts['views'] / n:.0f} views")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--points", type=int, default=256)
@@ -99,6 +127,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--breakdown-s", type=float, default=60.0,
                         help="also time each stage over the first this many seconds (0: skip)")
+    parser.add_argument("--count-ops-s", type=float, default=20.0,
+                        help="also count PyTorch operations per frame over the first this many seconds (0: skip)")
     args = parser.parse_args()
     with initialize_config_dir(config_dir=CONFIGS, version_base=None):
         cfg = OmegaConf.to_container(compose("evaluate", overrides=[f"filter.flow.n_points={args.points}"]), resolve=False)
@@ -130,6 +160,8 @@ def main() -> None:
           f"(flowins on the same window: {fast_c:.2f} s, {slow / fast_c:.1f}x faster)")
     if args.breakdown_s > 0:
         breakdown(*crop(rec, pairs, args.breakdown_s), rec.camera, config)
+    if args.count_ops_s > 0:
+        count_ops(*crop(rec, pairs, args.count_ops_s), rec.camera, config)
 
 
 if __name__ == "__main__":
