@@ -71,7 +71,7 @@ def test_jacobians_match_central_finite_differences(frame_pair):
 
 
 def test_analytic_jacobians_equal_the_torch_func_reference(frame_pair):
-    """The closed-form batched linearisation against vmap(jacrev) through the SVD, on every
+    """The closed-form batched linearisation against vmap(jacrev) through the triangulation, on every
     point of a frame, at a state off the truth."""
     x, flow, uv1, camera = frame_pair
     x0 = x.clone()
