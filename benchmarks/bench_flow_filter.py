@@ -6,7 +6,7 @@ Reads the default simulated walk and its dense flow pairs (both cached by
 * flowins: closed-form batched IMU and flow Jacobians, one stacked update of the frame's
   points in 26x26 algebra;
 * the paper's straightforward way: ``torch.func.jacrev`` for the IMU Jacobians (per
-  sample) and the flow Jacobians (per point, through the SVD) and the point-by-point
+  sample) and the flow Jacobians (per point, through the triangulation) and the point-by-point
   sequential update, on the first ``--reference-s``
   seconds of the walk (it is slow), with its real-time factor scaled from that window.
 
