@@ -209,7 +209,7 @@ def navigate(
     needs a gradient the result carries the graph back to it.
     """
     # without a gradient to carry, inference mode skips autograd's bookkeeping on every
-    # one of the filter's many small operations (about 15 % of its time)
+    # one of the filter's many small operations
     with torch.inference_mode(not carries_gradient(imu, gnss, config, flow, camera)):
         return _navigate(imu, gnss, config=config, frame=frame, flow=flow, camera=camera, progress=progress)
 

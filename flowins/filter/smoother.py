@@ -145,7 +145,6 @@ def rts_smooth(track: FilterTrack, *, normalize: bool = True) -> SmoothedTrack:
     return SmoothedTrack(track.t_s, mean, symmetrize(cov))
 
 
-
 def rts_smooth_sequential(track: FilterTrack, *, normalize: bool = True) -> SmoothedTrack:
     """The plain node-by-node RTS recursion (reference for :func:`rts_smooth`)."""
     J = track.t_s.shape[0]

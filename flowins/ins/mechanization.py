@@ -157,21 +157,17 @@ class ProcessNoise:
         ``1/Δt`` (``density``; 0 for a ``Δt = 0`` padding step, whose Jacobian column is zero
         anyway) or ``Δt`` (``paper``) for the white inputs, times ``Δt`` for the walks."""
         dt = dt_s.unsqueeze(-1)
-        squared = self._squared_densities(dt_s.dtype, dt_s.device)  # (15,)
+        values = (self.acc_noise, self.gyro_noise, self.acc_bias_walk, self.gyro_bias_walk, self.acc_scale_walk)
+        if any(isinstance(v, Tensor) for v in values):
+            squared = _squared_densities(values, dt_s.dtype, dt_s.device)  # (15,)
+        else:  # plain numbers: built once
+            squared = _cached_squared_densities(tuple(float(v) for v in values), dt_s.dtype, dt_s.device)
         if self.discretization == "density":
             # white input noise sampled over Δt has variance σ²/Δt (0 for Δt = 0, gradient included)
             white_scale = (dt > 0) / dt.clamp_min(torch.finfo(dt.dtype).tiny)
         else:
             white_scale = dt
         return squared * torch.where(_WHITE_INPUTS.to(dt_s.device), white_scale, dt)
-
-    def _squared_densities(self, dtype: torch.dtype, device) -> Tensor:
-        """``σ²`` per noise axis ``(15,)`` in the NOISE layout (built once for plain numbers)."""
-        values = (self.acc_noise, self.gyro_noise, self.acc_bias_walk, self.gyro_bias_walk, self.acc_scale_walk)
-        if any(isinstance(v, Tensor) for v in values):
-            return _squared_densities(values, dtype, device)
-        return _cached_squared_densities(tuple(float(v) for v in values), dtype, device)
-
 
 
 #: which of the 15 noise axes are white inputs (accelerometer, gyroscope) rather than walks
@@ -181,6 +177,8 @@ _WHITE_INPUTS[NOISE.gyro] = True
 
 
 def _squared_densities(values, dtype: torch.dtype, device) -> Tensor:
+    """``σ²`` per noise axis ``(15,)`` in the NOISE layout from the five densities."""
+
     def per_axis(value: float | Tensor) -> Tensor:
         v = torch.as_tensor(value, dtype=dtype, device=device)
         return (v * v).expand(3) if v.ndim == 0 else v * v

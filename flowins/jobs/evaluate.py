@@ -220,7 +220,7 @@ def _export(out: Path, name: str, result: NavigationResult, rec: EvalInputs, plo
     # the filter's nodes before a heading alignment are re-expressed in the aligned frame
     # (FilterTrack.in_final_frame): one frame per track, as the smoother's
     for kind, track in (("filter", result.filter.in_final_frame()), ("smoother", result.smoother)):
-        pos, q = track.mean[:, STATE.p].double(), track.mean[:, STATE.q].double()  # metrics in float64 whatever filter.dtype
+        pos, q = track.mean[:, STATE.p], track.mean[:, STATE.q]
         write_tum(out / f"{name}_{kind}.tum", track.t, pos, q)
         if rec.truth is None:
             metrics[f"{kind}_rmse_m"] = None
