@@ -1,10 +1,11 @@
 """SpyNet + Monte Carlo dropout on CPU: cost of the run-once scheme, and accuracy.
 
-Prints, per image size, milliseconds per pair (median of ``--repeats`` runs after
-a warm-up) for
+Prints, per image size, milliseconds per pair (median of ``--repeats`` rounds after
+a warm-up round; each round runs the three once, interleaved) for
 
 * plain:     one deterministic SpyNet forward (the reference, ratio 1.0);
-* run-once:  :class:`SpyNetProvider` with N passes, upstream once, last conv N times;
+* run-once:  :class:`SpyNetProvider` with N passes, upstream once, last conv N times
+             (its whole call: input checks and the σ floor included);
 * naive:     N full forwards, each with its own dropout mask;
 
 their ratios to plain, the process's peak RSS after each size, the thread count,
@@ -31,14 +32,18 @@ from skimage import data
 from flowins.flow.spynet import SpyNetProvider
 
 
-def timed_ms(fn, repeats: int) -> float:
-    fn()  # warm-up
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
+def timed_ms(fns, repeats: int) -> list[float]:
+    """Median ms of each of ``fns``, run interleaved (one of each per round, after a
+    warm-up round): a shared CPU's speed drifts over minutes, the ratios should not."""
+    for fn in fns:
         fn()
-        times.append((time.perf_counter() - start) * 1e3)
-    return statistics.median(times)
+    times: list[list[float]] = [[] for _ in fns]
+    for _ in range(repeats):
+        for fn, ts in zip(fns, times):
+            start = time.perf_counter()
+            fn()
+            ts.append((time.perf_counter() - start) * 1e3)
+    return [statistics.median(ts) for ts in times]
 
 
 def peak_rss_mib() -> float:
@@ -119,12 +124,12 @@ def main() -> None:
     with torch.no_grad():
         for width, height in ((320, 240), (512, 384)):
             a, b = shifted_pair(width, height)
-            plain = timed_ms(lambda a=a, b=b: net(a, b), args.repeats)
-            once = timed_ms(lambda a=a, b=b: provider(a, b), args.repeats)
-            naive = timed_ms(
-                lambda a=a, b=b: provider.naive_samples(
-                    a, b, passes=args.passes, batched=False
-                ),
+            plain, once, naive = timed_ms(
+                [
+                    lambda a=a, b=b: net(a, b),
+                    lambda a=a, b=b: provider(a, b),
+                    lambda a=a, b=b: provider.naive_samples(a, b, passes=args.passes, batched=False),
+                ],
                 args.repeats,
             )
             print(

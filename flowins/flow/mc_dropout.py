@@ -28,6 +28,13 @@ def keep_probability(p: float, device: torch.device | str = "cpu") -> float:
     return 1.0 - p if torch.device(device).type != "cpu" else 1.0 - int(round(256 * p)) / 256.0
 
 
+def _cpu_bytes(n: int, generator: torch.Generator | None) -> Tensor:
+    """``(⌈n/7⌉, 7)`` uniform random bytes (uint8 view, not contiguous): each 64-bit draw,
+    uniform on ``[0, 2⁶³)``, gives seven full bytes (its top byte has only 7 random bits)."""
+    draws = torch.empty((n + 6) // 7, dtype=torch.int64).random_(generator=generator)
+    return draws.view(torch.uint8).view(-1, 8)[:, :7]
+
+
 def drop_mask(
     shape: Sequence[int], p: float, *, device: torch.device | str = "cpu", generator: torch.Generator | None = None
 ) -> Tensor:
@@ -36,12 +43,30 @@ def drop_mask(
     device = torch.device(device)
     if device.type != "cpu":
         return torch.rand(tuple(shape), device=device, generator=generator) < p
-    n = 1
-    for d in shape:
-        n *= int(d)
-    draws = torch.empty((n + 6) // 7, dtype=torch.int64).random_(generator=generator)
-    bytes_ = draws.view(torch.uint8).view(-1, 8)[:, :7].reshape(-1)[:n]  # the top byte is only 7-bit
-    return (bytes_ < int(round(256 * p))).view(tuple(shape))
+    n = math.prod(int(d) for d in shape)
+    return (_cpu_bytes(n, generator) < int(round(256 * p))).reshape(-1)[:n].view(tuple(shape))
+
+
+def _dense(x: Tensor) -> bool:
+    """Whether ``x``'s elements fill its memory without gaps or overlaps (any dim order)."""
+    order = sorted(range(x.ndim), key=lambda d: x.stride(d), reverse=True)
+    return x.permute(order).is_contiguous()
+
+
+def keep_like(x: Tensor, p: float, *, generator: torch.Generator | None = None) -> Tensor:
+    """A bool keep-mask with the shape *and the strides* of ``x``, drop rate ``≈ p``.
+
+    On the CPU, element ``k`` of ``x``'s *memory* takes byte ``k`` of the stream of
+    :func:`drop_mask`, so a contiguous ``x`` gets exactly ``~drop_mask(x.shape, p)``,
+    and a channels-last ``x`` a mask in its own memory order: ``x * keep_like(x, p)``
+    then reads both in one sweep (a mask in another order costs several times more).
+    An ``x`` that is not dense (a strided view) gets the contiguous mask.
+    """
+    if x.device.type != "cpu" or not _dense(x):
+        return ~drop_mask(x.shape, p, device=x.device, generator=generator)
+    n = x.numel()
+    flat = (_cpu_bytes(n, generator) >= int(round(256 * p))).reshape(-1)[:n]
+    return flat.as_strided(x.shape, x.stride())
 
 
 def keep_mask(shape: Sequence[int], p: float, *, device: torch.device | str = "cpu") -> tuple[Tensor, float]:
@@ -61,8 +86,9 @@ def keep_mask(shape: Sequence[int], p: float, *, device: torch.device | str = "c
 class MCDropout(nn.Module):
     """Element-wise dropout with rate ``p``, active in train *and* eval mode.
 
-    Kept elements are scaled by ``1 / keep``; the mask comes from :func:`keep_mask`
-    (on the CPU the rate is ``p`` rounded to a multiple of 1/256).
+    Kept elements are scaled by ``1 / keep``; the mask comes from :func:`keep_like`
+    (on the CPU the rate is ``p`` rounded to a multiple of 1/256), in the memory order
+    of the input: a channels-last input keeps its layout.
     """
 
     def __init__(self, p: float = 0.2, *, seed: int | None = None):
@@ -78,13 +104,19 @@ class MCDropout(nn.Module):
             return x
         return self.drop_prescaled(x * (1.0 / keep_probability(self.p, x.device)))
 
-    def drop_prescaled(self, x_scaled: Tensor) -> Tensor:
-        """Dropout of features already divided by the keep probability (one mask, one fill):
-        Monte Carlo passes over the same features scale them once, not once per pass."""
+    def drop_prescaled(self, x_scaled: Tensor, *, out: Tensor | None = None) -> Tensor:
+        """Dropout of features already divided by the keep probability (one mask, one product):
+        Monte Carlo passes over the same features scale them once, not once per pass.
+        ``out``: a tensor like ``x_scaled`` to write into (a buffer reused across passes
+        without autograd: a fresh tensor of tens of MB costs its page faults every pass)."""
         if self.p == 0:
             return x_scaled
-        mask = drop_mask(x_scaled.shape, self.p, device=x_scaled.device, generator=self.generator(x_scaled.device))
-        return x_scaled.masked_fill(mask, 0.0)
+        keep = self.keep(x_scaled)
+        return torch.mul(x_scaled, keep, out=out) if out is not None else x_scaled * keep
+
+    def keep(self, x: Tensor) -> Tensor:
+        """One pass's bool keep-mask for ``x`` (:func:`keep_like`, from this layer's generator)."""
+        return keep_like(x, self.p, generator=self.generator(x.device))
 
     def generator(self, device: torch.device | str) -> torch.Generator | None:
         """This layer's own generator on ``device``, seeded with ``seed`` (None: torch's global one)."""
@@ -145,12 +177,19 @@ def mc_samples(
     *,
     context: Sequence[Tensor] = (),
     chunk: int | None = None,
+    masked_head: Callable[..., Tensor] | None = None,
 ) -> Tensor:
     """``(N, B, ...)`` outputs of ``head(dropout(features), *context)`` over ``N`` passes.
 
     ``features`` ``(B, ...)`` and ``context`` (tensors that bypass the dropout, each
     ``(B, ...)``) are computed once by the caller; they are repeated along the
-    batch, ``chunk`` passes at a time (default: all at once).
+    batch, ``chunk`` passes at a time (default: all at once). ``head`` must return
+    new tensors, not views of its input: without autograd the dropped features of
+    every pass are written into one buffer.
+
+    ``masked_head(scaled, keep, *context)``, optional, computes ``head(scaled * keep,
+    *context)`` itself (e.g. strip by strip, applying the mask as it goes); it serves
+    :class:`MCDropout` passes run one at a time (``chunk=1``) and draws the same masks.
     """
     if passes < 1:
         raise ValueError(f"mc_samples: passes={passes}; expected >= 1")
@@ -159,13 +198,26 @@ def mc_samples(
     prescaled = isinstance(dropout, MCDropout) and dropout.p > 0
     if prescaled:  # scale once for all passes
         features = features * (1.0 / keep_probability(dropout.p, features.device))
-    outputs = []
+    outputs, buffer = [], None
     for start in range(0, passes, chunk):
         n = min(chunk, passes - start)
         # one pass at a time needs no copy of the (large) upstream features
         x = features if n == 1 else features.repeat(n, *([1] * (features.ndim - 1)))
         ctx = [c if n == 1 else c.repeat(n, *([1] * (c.ndim - 1))) for c in context]
-        out = head(dropout.drop_prescaled(x) if prescaled else dropout(x), *ctx)
+        if prescaled and masked_head is not None and n == 1:
+            out = masked_head(x, dropout.keep(x), *ctx)
+            outputs.append(out.reshape(n, B, *out.shape[1:]))
+            continue
+        if prescaled and not torch.is_grad_enabled():
+            # nothing keeps a pass's dropped features (``head`` returns new tensors): one buffer serves every pass
+            if buffer is None or buffer.shape != x.shape:
+                buffer = torch.empty_like(x)
+            dropped = dropout.drop_prescaled(x, out=buffer)
+        elif prescaled:
+            dropped = dropout.drop_prescaled(x)
+        else:
+            dropped = dropout(x)
+        out = head(dropped, *ctx)
         outputs.append(out.reshape(n, B, *out.shape[1:]))
     return torch.cat(outputs, dim=0)
 

@@ -22,7 +22,7 @@ from flowins.flow.flownet2 import (
     warp,
 )
 from flowins.flow.flownet2.networks import FlowNetFusion
-from flowins.flow.mc_dropout import ConcreteDropout
+from flowins.flow.mc_dropout import ConcreteDropout, MCDropout
 
 # Key names and shapes read off NVIDIA/flownet2-pytorch (networks/*.py, submodules.py):
 # conv = Sequential(Conv2d, LeakyReLU) -> ".0."; predict_flow = bare Conv2d;
@@ -201,16 +201,22 @@ def test_channel_norm_and_brightness_error():
 @pytest.mark.parametrize("option", [1, 2])
 def test_upstream_runs_once(model, pair, option, monkeypatch):
     monkeypatch.setattr(model, "dropout_option", option)
-    calls = {"flownetc": 0, "fusion.conv2_1": 0, "fusion.inter_conv0": 0}
+    fusion = model.flownetfusion
+    calls = {"flownetc": 0, "fusion.conv2_1": 0, "head passes": 0}
     hooks = [
         model.flownetc.register_forward_hook(lambda *a: calls.__setitem__("flownetc", calls["flownetc"] + 1)),
-        model.flownetfusion.conv2_1.register_forward_hook(
+        fusion.conv2_1.register_forward_hook(
             lambda *a: calls.__setitem__("fusion.conv2_1", calls["fusion.conv2_1"] + 1)
         ),
-        model.flownetfusion.inter_conv0.register_forward_hook(
-            lambda *a: calls.__setitem__("fusion.inter_conv0", calls["fusion.inter_conv0"] + 1)
-        ),
     ]
+    for name in ("head", "head_strips"):  # the head runs whole, or strip by strip (option #2, one pass at a time)
+        method = getattr(fusion, name)
+
+        def counted(*args, method=method, **kwargs):
+            calls["head passes"] += 1
+            return method(*args, **kwargs)
+
+        monkeypatch.setattr(fusion, name, counted)
     try:
         with torch.no_grad():
             samples = model.mc_samples(pair, 10)
@@ -220,7 +226,7 @@ def test_upstream_runs_once(model, pair, option, monkeypatch):
     assert samples.shape == (10, 1, 2, 64, 64)
     assert calls["flownetc"] == 1 and calls["fusion.conv2_1"] == 1  # upstream of both options: once
     chunk = model.chunk or 10
-    assert calls["fusion.inter_conv0"] == -(-10 // chunk)  # the head ran once per chunk of passes
+    assert calls["head passes"] == -(-10 // chunk)  # the head ran once per chunk of passes
     assert (samples.std(0) > 0).float().mean() > 0.99
 
 
@@ -251,6 +257,37 @@ def test_run_once_equals_full_forwards_with_same_masks_fusion(model, fusion_inpu
     H, W = fusion_input.shape[-2:]
     per_pass = 82 * H * W if option == 2 else 128 * (H // 2) * (W // 2) + 128 * (H // 4) * (W // 4)
     assert math.prod(naive_masks.seen_shapes[0][1:]) == per_pass
+
+
+@pytest.mark.parametrize("batch_norm", [False, True])
+@pytest.mark.parametrize("height, rows", [(13, 4), (8, 32), (9, 1), (12, 2)])
+def test_head_strips_equal_the_whole_head(batch_norm, height, rows):
+    """Strip by strip (halo of two rows, zero padding only at the image's edges) = the head
+    on the whole masked tensor, with and without BatchNorm (eval)."""
+    torch.manual_seed(9)
+    fusion = FlowNetFusion(batch_norm=batch_norm).double().eval()
+    if batch_norm:  # non-trivial running statistics
+        bn = fusion.inter_conv0[1]
+        bn.running_mean.uniform_(-1, 1), bn.running_var.uniform_(0.5, 2), bn.weight.data.uniform_(0.5, 2)
+        bn.bias.data.uniform_(-1, 1)
+    scaled = torch.randn(2, 82, height, 7, dtype=torch.float64)
+    keep = torch.rand(2, 82, height, 7) > 0.3
+    with torch.no_grad():
+        expected = fusion.head(scaled * keep)
+        got = fusion.head_strips(scaled, keep, rows)
+    torch.testing.assert_close(got, expected, rtol=1e-12, atol=1e-12)
+
+
+def test_strip_passes_equal_full_forwards_with_seeded_dropout(model, fusion_input):
+    """The default path (MCDropout, one pass at a time: strips, channels-last masks) draws
+    the masks a full forward of the fusion network draws, from the same seed."""
+    fusion = model.flownetfusion
+    with torch.no_grad():
+        once = fusion.mc_samples(fusion_input, dropout=MCDropout(0.3, seed=4), option=2, passes=4, chunk=1)
+        layer = MCDropout(0.3, seed=4)
+        naive = torch.stack([fusion(fusion_input, dropout=layer, option=2) for _ in range(4)])
+    torch.testing.assert_close(once, naive, rtol=1e-4, atol=1e-4 * float(naive.abs().max()))
+    assert (once[0] - once[1]).abs().max() > 1e-3 * float(naive.abs().max())
 
 
 def test_run_once_equals_full_forwards_flownet2(model, pair, monkeypatch):

@@ -4,7 +4,7 @@ import math
 import pytest
 import torch
 
-from flowins.flow.mc_dropout import ConcreteDropout, MCDropout, keep_mask, mc_flow, mc_samples
+from flowins.flow.mc_dropout import ConcreteDropout, MCDropout, drop_mask, keep_like, keep_mask, mc_flow, mc_samples
 
 
 @pytest.mark.parametrize("p", [0.05, 0.2, 0.5])
@@ -16,13 +16,58 @@ def test_keep_mask_has_the_stated_rate_and_no_pattern(p):
     n = mask.numel()
     rate = float(mask.double().mean())
     assert abs(rate - keep) < 5 * math.sqrt(keep * (1 - keep) / n)
-    # every byte position of the 64-bit draws is used alike (the top byte is not)
+    # every byte position of the 64-bit draws is used alike (the top byte, 7-bit, is not)
     per_position = mask.reshape(-1)[: (n // 7) * 7].view(-1, 7).double().mean(0)
     assert float((per_position - keep).abs().max()) < 6 * math.sqrt(keep * (1 - keep) / (n / 7))
     # neighbouring elements are independent
     flat = mask.reshape(-1).double()
     corr = float(torch.corrcoef(torch.stack((flat[:-1], flat[1:])))[0, 1])
     assert abs(corr) < 0.01
+
+
+def test_keep_like_follows_the_memory_order_of_its_input():
+    """Byte k of the mask stream goes to element k of the input's memory: a contiguous
+    input gets exactly ``~drop_mask``, a channels-last one the same stream in NHWC order."""
+    x = torch.zeros(2, 5, 6, 7)
+    g = torch.Generator().manual_seed(3)
+    state = g.get_state()
+    keep = keep_like(x, 0.3, generator=g)
+    g.set_state(state)
+    assert torch.equal(keep, ~drop_mask(x.shape, 0.3, generator=g))
+    cl = x.contiguous(memory_format=torch.channels_last)
+    g.set_state(state)
+    keep_cl = keep_like(cl, 0.3, generator=g)
+    assert keep_cl.stride() == cl.stride()
+    g.set_state(state)
+    assert torch.equal(keep_cl.permute(0, 2, 3, 1), ~drop_mask((2, 6, 7, 5), 0.3, generator=g))
+    strided = torch.zeros(5, 8)[:, ::2]  # not dense: the mask in logical order
+    g.set_state(state)
+    keep_s = keep_like(strided, 0.3, generator=g)
+    g.set_state(state)
+    assert torch.equal(keep_s, ~drop_mask((5, 4), 0.3, generator=g))
+
+
+def test_run_once_passes_equal_dropout_then_head_with_the_same_generator():
+    """One buffer for the dropped features of every pass (no autograd), or a ``masked_head``
+    that applies the mask itself: each pass still equals ``head(MCDropout(x))``."""
+    x = torch.randn(2, 3, 6, 5)
+    w = torch.randn(2, 3, 3, 3)
+
+    def head(f):
+        return torch.nn.functional.conv2d(f, w, padding=1)
+
+    def masked_head(scaled, keep):
+        return head(scaled * keep)
+
+    layer = MCDropout(0.3, seed=11)
+    naive = torch.stack([head(layer(x)) for _ in range(5)])
+    with torch.no_grad():
+        once = mc_samples(head, x, MCDropout(0.3, seed=11), 5, chunk=1)
+        masked = mc_samples(head, x, MCDropout(0.3, seed=11), 5, chunk=1, masked_head=masked_head)
+    tracked = mc_samples(head, x, MCDropout(0.3, seed=11), 5, chunk=1)  # autograd on: no buffer
+    for got in (once, masked, tracked):
+        torch.testing.assert_close(got, naive, rtol=0, atol=1e-6)
+    assert (naive[0] - naive[1]).abs().max() > 0.1  # the passes differ (no buffer aliasing)
 
 
 def test_mc_dropout_is_unbiased_and_active_in_eval_mode():
