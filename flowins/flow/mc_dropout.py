@@ -7,6 +7,11 @@ Everything upstream of that layer does not depend on the dropout mask, so
 ``N`` times along the batch, applies the dropout and runs only the downstream
 ``head`` (in chunks of passes, to bound memory).
 
+What is left per pass is memory traffic over full-resolution features, so on a
+CPU the mask is made of random bytes laid out in the features' own memory order
+(:func:`keep_like`), the dropped features of every pass share one buffer, and a
+network may apply the mask itself strip by strip (``masked_head``).
+
 :class:`MCDropout` is ordinary dropout that stays active in eval mode (``p = 0``
 disables it); :class:`ConcreteDropout` is the relaxed Bernoulli ("concrete")
 dropout of Gal, Hron & Kendall (2017) whose rate is a differentiable parameter

@@ -37,13 +37,13 @@ the last conv (16 → 2) runs ``N`` times (:func:`flowins.flow.mc_dropout.mc_sam
 The last conv is linear, so with inverted dropout the expected sample is the
 deterministic flow, and the MC mean estimates it without bias. In multiply-adds
 the head is ~0.5 % of a forward pass per sample (the input of the second-to-last
-conv, 32 channels, would make it ~10 %); in wall time on a CPU it is not that
-cheap: the ``N`` copies of the 16-channel full-resolution features are
-``N · 16 · H · W`` floats to repeat, draw a mask for, multiply and convolve, all
-memory-bound (``benchmarks/bench_spynet_mc.py``, 2 CPU threads, ``N = 10``:
-2.0× a plain forward at 320×240 and 2.3× at 512×384, against 10× for ``N``
-full forwards; running one pass per chunk, :data:`MC_CHUNK`, keeps the peak
-memory lower than one ``N``-fold batch and was not slower).
+conv, 32 channels, would make it ~10 %). In wall time on a CPU each pass draws a
+mask over ``16 · H · W`` features, multiplies and convolves; a 16 -> 2 conv keeps
+most of the CPU's vector lanes idle, so the last conv of every level runs by
+kernel rows (:func:`~flowins.flow.conv.conv2d_rows`, about 4× faster there).
+``benchmarks/bench_spynet_mc.py`` prints the cost against one plain forward
+(10 passes: 1.2–1.4× here, against about 9× for 10 full forwards); one pass per
+chunk, :data:`MC_CHUNK`, keeps the peak memory lower than one ``N``-fold batch.
 
 Sigma. The sample standard deviation measures how much the flow depends on
 individual late features; it is *not* larger where the images carry no

@@ -274,7 +274,7 @@ def test_head_strips_equal_the_whole_head(batch_norm, height, rows):
     keep = torch.rand(2, 82, height, 7) > 0.3
     with torch.no_grad():
         expected = fusion.head(scaled * keep)
-        got = fusion.head_strips(scaled, keep, rows)
+        got = fusion.head_strips(scaled, keep, rows=rows)
     torch.testing.assert_close(got, expected, rtol=1e-12, atol=1e-12)
 
 

@@ -26,12 +26,15 @@ and :meth:`FlowNetFusion.mc_samples`.
 """
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 from torch.nn import init
+from torch.nn.utils.fusion import fuse_conv_bn_weights
 
 from flowins.flow.conv import conv2d_rows, cpu_channels_last
 from flowins.flow.flownet2.correlation import Correlation
@@ -274,6 +277,51 @@ class FlowNetSD(nn.Module):
 DROPOUT_OPTIONS = (None, 1, 2)
 
 
+class HeadWeights(NamedTuple):
+    """The fusion network's linear head: ``inter_conv0`` (3×3, 82 -> 16), ``predict_flow0``
+    (3×3, 16 -> 2), and their composition (5×5, 82 -> 2)."""
+
+    conv0: Tensor
+    bias0: Tensor
+    conv1: Tensor
+    bias1: Tensor
+    composite: Tensor
+    composite_bias: Tensor
+
+
+def compose_convs(w1: Tensor, b1: Tensor, w2: Tensor, b2: Tensor) -> tuple[Tensor, Tensor]:
+    """The one convolution that two stride-1 convolutions without padding make.
+
+    ``y = w2 ⋆ (w1 ⋆ x + b1) + b2`` with ``w1`` ``(M, C, k1, k1)``, ``w2`` ``(O, M, k2, k2)``
+    is ``w ⋆ x + b`` with ``w[o, c, u + d] = Σ_m w2[o, m, u] w1[m, c, d]`` (kernel
+    ``k1 + k2 - 1``) and ``b = b2 + Σ_{m,u} w2[o, m, u] b1[m]``; formed in float64.
+    With zero padding the two agree except where ``w1 ⋆ x`` would be read outside the image.
+    """
+    k2 = w2.shape[-1]
+    a, c = w1.double(), w2.double()
+    w = a.new_zeros(c.shape[0], a.shape[1], a.shape[-2] + k2 - 1, a.shape[-1] + k2 - 1)
+    for i in range(c.shape[-2]):
+        for j in range(k2):
+            w[:, :, i : i + a.shape[-2], j : j + a.shape[-1]] += torch.einsum("om,mcuv->ocuv", c[:, :, i, j], a)
+    b = b2.double() + torch.einsum("omuv,m->o", c, b1.double())
+    return w.to(w1.dtype), b.to(b1.dtype)
+
+
+def two_conv_rows(
+    scaled: Tensor, keep: Tensor, r0: int, r1: int, w1: Tensor, b1: Tensor, w2: Tensor, b2: Tensor
+) -> Tensor:
+    """Rows ``[r0, r1)`` of ``conv(conv(scaled * keep, w1, b1), w2, b2)`` (3×3 kernels, zero
+    padding 1 each), from rows ``[r0 - 2, r1 + 2)`` of the input only: rows beyond the
+    image are the convs' own zero padding (of the input for the first, of its output
+    for the second). ``(B, O, r1 - r0, W)``."""
+    H = scaled.shape[-2]
+    i0, i1 = max(r0 - 1, 0), min(r1 + 1, H)  # rows of the first conv's output that they need
+    a, b = max(i0 - 1, 0), min(i1 + 1, H)  # rows of the input that those need
+    x = F.pad(scaled[:, :, a:b] * keep[:, :, a:b], (0, 0, int(i0 == 0), int(i1 == H)))
+    inter = F.pad(F.conv2d(x, w1, b1, padding=(0, 1)), (0, 0, int(r0 == 0), int(r1 == H)))
+    return conv2d_rows(inter, w2, b2, (0, 1))
+
+
 #: output rows per strip of :meth:`FlowNetFusion.head_strips` (at 512 px wide, 32 rows of the
 #: 82-channel features are 5 MiB: they stay in the cache between the mask and the convs)
 HEAD_STRIP_ROWS = 32
@@ -337,27 +385,50 @@ class FlowNetFusion(nn.Module):
         # of concat0 (option #2) draws its mask in the same memory order
         return cpu_channels_last(torch.cat((out_conv0, self.deconv0(concat1), flow1_up), 1))
 
-    def head_strips(self, scaled: Tensor, keep: Tensor, rows: int = HEAD_STRIP_ROWS) -> Tensor:
-        """``head(scaled * keep)``, ``rows`` output rows at a time (a dropout pass of option #2).
+    def linear_head(self) -> HeadWeights | None:
+        """The head ``inter_conv0 -> predict_flow0`` as weights: both convs (a BatchNorm in
+        eval mode folded into the first) and their composition, one 5×5 conv 82 -> 2
+        (:func:`compose_convs`); None while a BatchNorm trains (batch statistics)."""
+        conv0, flow = self.inter_conv0[0], self.predict_flow0
+        w1, b1 = conv0.weight, conv0.bias
+        if self.batchNorm:
+            bn = self.inter_conv0[1]
+            if bn.training:
+                return None
+            w1, b1 = fuse_conv_bn_weights(w1, b1, bn.running_mean, bn.running_var, bn.eps, bn.weight, bn.bias)
+        return HeadWeights(w1, b1, flow.weight, flow.bias, *compose_convs(w1, b1, flow.weight, flow.bias))
 
-        Output rows ``[r0, r1)`` of the two 3×3 convs depend on input rows ``[r0 - 2, r1 + 2)``
-        only, so each strip multiplies just those rows by the mask and convolves them at
-        once, while they are still in the cache; rows beyond the image are the convs' own
-        zero padding (of the input for ``inter_conv0``, of its output for ``predict_flow0``).
-        On the full-resolution 82-channel features this halves a pass's memory traffic.
+    def head_strips(
+        self, scaled: Tensor, keep: Tensor, weights: HeadWeights | None = None, rows: int = HEAD_STRIP_ROWS
+    ) -> Tensor:
+        """``head(scaled * keep)`` (a dropout pass of option #2), ``rows`` output rows at a time.
+
+        The head is two 3×3 convs without an activation between them, i.e. one 5×5
+        conv 82 -> 2 (a third of the multiply-adds, run by kernel rows) everywhere but on
+        the image's outermost ring of pixels, where the first conv's output is zero
+        padding for the second; the ring is computed by the two convs themselves
+        (:func:`two_conv_rows`). Output rows ``[r0, r1)`` depend on input rows
+        ``[r0 - 2, r1 + 2)`` only, so each strip multiplies just those rows by the mask
+        and convolves them at once, while they are still in the cache.
         """
-        H = scaled.shape[-2]
-        conv0, after0, flow = self.inter_conv0[0], self.inter_conv0[1:], self.predict_flow0
+        w = self.linear_head() if weights is None else weights
+        if w is None:
+            return self.head(scaled * keep)
+        H, W = scaled.shape[-2:]
         strips = []
         for r0 in range(0, H, rows):
             r1 = min(r0 + rows, H)
-            i0, i1 = max(r0 - 1, 0), min(r1 + 1, H)  # rows of inter_conv0's output that they need
-            a, b = max(i0 - 1, 0), min(i1 + 1, H)  # rows of concat0 that those need
-            x = F.pad(scaled[:, :, a:b] * keep[:, :, a:b], (0, 0, int(i0 == 0), int(i1 == H)))
-            inter = after0(F.conv2d(x, conv0.weight, conv0.bias, padding=(0, conv0.padding[1])))
-            inter = F.pad(inter, (0, 0, int(r0 == 0), int(r1 == H)))
-            strips.append(conv2d_rows(inter, flow.weight, flow.bias, (0, flow.padding[1])))
-        return torch.cat(strips, dim=2)
+            a, b = max(r0 - 2, 0), min(r1 + 2, H)
+            x = F.pad(scaled[:, :, a:b] * keep[:, :, a:b], (0, 0, a - (r0 - 2), (r1 + 2) - b))
+            strips.append(conv2d_rows(x, w.composite, w.composite_bias, (0, 2)))
+        out = torch.cat(strips, dim=2)
+        convs = (w.conv0, w.bias0, w.conv1, w.bias1)
+        out[:, :, :1] = two_conv_rows(scaled, keep, 0, 1, *convs)
+        out[:, :, H - 1 :] = two_conv_rows(scaled, keep, H - 1, H, *convs)
+        convs_t = (w.conv0.mT, w.bias0, w.conv1.mT, w.bias1)  # columns: the same on the transposed image
+        out[..., :1] = two_conv_rows(scaled.mT, keep.mT, 0, 1, *convs_t).mT
+        out[..., W - 1 :] = two_conv_rows(scaled.mT, keep.mT, W - 1, W, *convs_t).mT
+        return out
 
     def head(self, concat0: Tensor) -> Tensor:
         """``concat0`` ``(B, 82, H, W)`` -> ``flow0`` ``(B, 2, H, W)`` (``predict_flow0`` by
@@ -384,7 +455,9 @@ class FlowNetFusion(nn.Module):
         """``(passes, B, 2, H, W)`` flows of ``passes`` dropout passes, computing
         everything upstream of the dropout **once** (:func:`flowins.flow.mc_dropout.mc_samples`).
 
-        Option 2: the head ``inter_conv0 -> predict_flow0`` runs ``passes`` times.
+        Option 2: the head ``inter_conv0 -> predict_flow0`` runs ``passes`` times (on a CPU,
+        with :class:`~flowins.flow.mc_dropout.MCDropout` one pass at a time, strip by strip:
+        :meth:`head_strips`).
         Option 1: ``refine`` + ``head`` run ``passes`` times; ``out_conv1`` and
         ``out_conv2`` are dropped (packed into one tensor, element-wise dropout),
         ``out_conv0`` is passed as context (it bypasses the dropout).
@@ -395,7 +468,9 @@ class FlowNetFusion(nn.Module):
         out_conv0, out_conv1, out_conv2 = self.encode(x)
         if option == 2:
             concat0 = self.refine(out_conv0, out_conv1, out_conv2)
-            return _mc_samples(self.head, concat0, dropout, passes, chunk=chunk, masked_head=self.head_strips)
+            weights = self.linear_head() if concat0.device.type == "cpu" else None  # a CPU gain
+            strips = functools.partial(self.head_strips, weights=weights) if weights is not None else None
+            return _mc_samples(self.head, concat0, dropout, passes, chunk=chunk, masked_head=strips)
         packed, shapes = _pack(out_conv1, out_conv2)
 
         def downstream(dropped: Tensor, conv0: Tensor) -> Tensor:
