@@ -10,8 +10,8 @@ outputs, which vectorises well, and ``kh`` shifted additions::
     z[o, r]    = Σ_c  W[o, c, r, :] ⋆ x[c]   (one row of the kernel, padded by ``ph`` above and below)
 
 The same multiply-adds in another order: the result equals ``F.conv2d`` up to
-float rounding. On the 2-core CPU the SpyNet head went from about 5 ms to about
-1.2 ms at 320×256 (``benchmarks/bench_spynet_mc.py`` runs it in context).
+float rounding. ``benchmarks/bench_conv_rows.py`` times both on the flow networks'
+last layers.
 """
 from __future__ import annotations
 

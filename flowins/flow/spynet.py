@@ -40,9 +40,9 @@ the head is ~0.5 % of a forward pass per sample (the input of the second-to-last
 conv, 32 channels, would make it ~10 %). In wall time on a CPU each pass draws a
 mask over ``16 · H · W`` features, multiplies and convolves; a 16 -> 2 conv keeps
 most of the CPU's vector lanes idle, so the last conv of every level runs by
-kernel rows (:func:`~flowins.flow.conv.conv2d_rows`, about 4× faster there).
+kernel rows (:func:`~flowins.flow.conv.conv2d_rows`; ``benchmarks/bench_conv_rows.py``).
 ``benchmarks/bench_spynet_mc.py`` prints the cost against one plain forward
-(10 passes: 1.2–1.4× here, against about 9× for 10 full forwards); one pass per
+(10 passes: about 1.3× on a 2-core CPU, against about 10× for 10 full forwards); one pass per
 chunk, :data:`MC_CHUNK`, keeps the peak memory lower than one ``N``-fold batch.
 
 Sigma. The sample standard deviation measures how much the flow depends on
