@@ -15,11 +15,10 @@ float64 convolution relative to the output's largest value (float32 rounding).
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 
 import torch
 import torch.nn.functional as F
+from timing import interleaved_ms  # benchmarks/timing.py
 
 from flowins.flow.conv import conv2d_rows
 
@@ -28,19 +27,6 @@ LAYERS = (
     ("SpyNet, finest level, conv 4 (16->2, 7x7)", 16, 2, 7, 32),
     ("FlowNet2, predict_flow0 (16->2, 3x3)", 16, 2, 3, 64),
 )
-
-
-def timed_ms(fns, repeats: int) -> list[float]:
-    """Median ms of each of ``fns``, interleaved round by round after a warm-up round."""
-    for fn in fns:
-        fn()
-    times: list[list[float]] = [[] for _ in fns]
-    for _ in range(repeats):
-        for fn, ts in zip(fns, times):
-            start = time.perf_counter()
-            fn()
-            ts.append((time.perf_counter() - start) * 1e3)
-    return [statistics.median(ts) for ts in times]
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -61,7 +47,7 @@ def main(argv: list[str] | None = None) -> None:
             weight, bias = torch.randn(c_out, c_in, k, k, generator=gen), torch.randn(c_out, generator=gen)
             pad = (k // 2, k // 2)
             x_cl = x.contiguous(memory_format=torch.channels_last)
-            ref, rows, ref_cl, rows_cl = timed_ms(
+            ref, rows, ref_cl, rows_cl = interleaved_ms(
                 [lambda: F.conv2d(x, weight, bias, padding=pad),
                  lambda: conv2d_rows(x, weight, bias, pad),
                  lambda: F.conv2d(x_cl, weight, bias, padding=pad),

@@ -18,9 +18,9 @@ from __future__ import annotations
 import argparse
 import resource
 import sys
-import time
 
 import torch
+from timing import interleaved_ms  # benchmarks/timing.py
 
 from flowins.flow.base import pad_to_multiple
 from flowins.flow.flownet2 import FlowNet2
@@ -30,19 +30,6 @@ from flowins.flow.mc_dropout import MCDropout
 def _peak_rss_mib() -> float:
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return rss / 1024.0 if sys.platform != "darwin" else rss / 2**20  # KiB on Linux, bytes on macOS
-
-
-def _time_ms(fn, repeats: int, device: torch.device) -> float:
-    best = float("inf")
-    for _ in range(repeats):
-        if device.type == "cuda":
-            torch.cuda.synchronize()
-        t0 = time.perf_counter()
-        fn()
-        if device.type == "cuda":
-            torch.cuda.synchronize()
-        best = min(best, time.perf_counter() - t0)
-    return best * 1e3
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -90,14 +77,12 @@ def main(argv: list[str] | None = None) -> None:
         (f"option #1 run-once, N={args.passes}", once(1)),
         (f"naive {args.passes} full forwards", naive),
     ]
-    best = [float("inf")] * len(runs)
     with torch.no_grad():
         plain()  # warm-up (allocator, oneDNN primitives)
         once(2)()
         # interleaved (every row once per round): a shared CPU's speed drifts over minutes
-        for _ in range(args.repeats):
-            for i, (_, fn) in enumerate(runs):
-                best[i] = min(best[i], _time_ms(fn, 1, device))
+        best = interleaved_ms([fn for _, fn in runs], args.repeats, reduce=min, warmup=False,
+                              sync=torch.cuda.synchronize if device.type == "cuda" else None)
     rows = [(name, ms) for (name, _), ms in zip(runs, best)]
     ref = rows[0][1]
     print(f"{'':40s}{'ms':>10s}{'x plain':>10s}")

@@ -21,29 +21,14 @@ from __future__ import annotations
 
 import argparse
 import resource
-import statistics
-import time
 
 import cv2
 import numpy as np
 import torch
 from skimage import data
+from timing import interleaved_ms  # benchmarks/timing.py
 
 from flowins.flow.spynet import SpyNetProvider
-
-
-def timed_ms(fns, repeats: int) -> list[float]:
-    """Median ms of each of ``fns``, run interleaved (one of each per round, after a
-    warm-up round): a shared CPU's speed drifts over minutes, the ratios should not."""
-    for fn in fns:
-        fn()
-    times: list[list[float]] = [[] for _ in fns]
-    for _ in range(repeats):
-        for fn, ts in zip(fns, times):
-            start = time.perf_counter()
-            fn()
-            ts.append((time.perf_counter() - start) * 1e3)
-    return [statistics.median(ts) for ts in times]
 
 
 def peak_rss_mib() -> float:
@@ -124,7 +109,7 @@ def main() -> None:
     with torch.no_grad():
         for width, height in ((320, 240), (512, 384)):
             a, b = shifted_pair(width, height)
-            plain, once, naive = timed_ms(
+            plain, once, naive = interleaved_ms(
                 [
                     lambda a=a, b=b: net(a, b),
                     lambda a=a, b=b: provider(a, b),
