@@ -288,12 +288,14 @@ def _flow_stats(result: NavigationResult, pairs: FlowPairs) -> dict[str, Any]:
     }
 
 
-def gnss_floor_metrics(rec: EvalInputs) -> dict[str, Any]:
-    """:func:`~flowins.evaluation.gnss_floor.gnss_floor` of the sequence's fixes against its truth."""
+def gnss_floor_metrics(gnss: GnssStream, truth: PoseStream, *, correlation_s: float | None = None) -> dict[str, Any]:
+    """:func:`~flowins.evaluation.gnss_floor.gnss_floor` of a sequence's fixes against its truth
+    (``correlation_s``: the GNSS errors' τ; estimated from them when None)."""
     from flowins.geometry.geodesy import gnss_to_enu
 
-    enu, cov, _ = gnss_to_enu(rec.gnss)
-    floor = gnss_floor(rec.gnss.t_s, enu, cov.diagonal(dim1=-2, dim2=-1).sqrt(), rec.truth.t_s, rec.truth.pos_m)
+    enu, cov, _ = gnss_to_enu(gnss)
+    floor = gnss_floor(gnss.t_s, enu, cov.diagonal(dim1=-2, dim2=-1).sqrt(), truth.t_s, truth.pos_m,
+                       correlation_s=correlation_s)
     return {
         "rmse_m": floor.rmse_m,
         "horizontal_rmse_m": floor.horizontal_rmse_m,
@@ -387,7 +389,7 @@ def run(cfg: Mapping[str, Any]) -> list[Row]:
     uses_gnss = any(methods[name]["gnss"] for name in cfg["combinations"])
     if uses_gnss and rec.gnss is not None and rec.truth is not None and len(rec.gnss) >= 3:
         try:
-            metrics["gnss_floor"] = gnss_floor_metrics(rec)
+            metrics["gnss_floor"] = gnss_floor_metrics(rec.gnss, rec.truth)
             print("\n" + describe_gnss_floor(metrics["gnss_floor"]))
         except ValueError as error:  # e.g. too few fixes inside the truth's time span: reported, not fatal
             metrics["gnss_floor"] = {"status": "not computed", "reason": str(error)}
