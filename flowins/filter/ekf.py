@@ -309,4 +309,4 @@ def ekf_update(
             )
     if normalize:
         mean = normalize_quaternions(mean)
-    return UpdateResult(mean, symmetrize(cov), nis, weight)
+    return UpdateResult(mean, cov, nis, weight)  # each branch's covariance is already symmetrised

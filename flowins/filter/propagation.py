@@ -17,6 +17,7 @@ step Jacobians in between), which the RTS smoother needs.
 """
 from __future__ import annotations
 
+import itertools
 from typing import NamedTuple
 
 import torch
@@ -140,30 +141,34 @@ def _prefix_compose(F: Tensor, S: Tensor) -> tuple[Tensor, Tensor]:
     return F, S
 
 
-def _group_steps(F: Tensor, W: Tensor, node_steps: Tensor) -> tuple[Tensor, Tensor]:
+def _group_steps(F: Tensor, W: Tensor, node_steps: list[int]) -> tuple[Tensor, Tensor]:
     """The steps' transitions and noises ``(K, D, D)`` grouped into node intervals ``(m, L, D, D)``.
 
     Equal intervals are a free view; otherwise short intervals are padded with
-    identity transitions and zero noise (one gather of each).
+    identity transitions and zero noise (one gather of each, its index built from the
+    node steps as Python integers: fewer small tensor operations).
     """
     K = F.shape[0]
-    m = node_steps.shape[0]
-    starts = torch.cat((node_steps.new_zeros(1), node_steps[:-1] + 1))
-    lengths = node_steps - starts + 1
-    if K % m == 0 and bool((lengths == K // m).all()):
+    m = len(node_steps)
+    starts = [0] + [step + 1 for step in node_steps[:-1]]
+    lengths = [step - start + 1 for step, start in zip(node_steps, starts)]
+    if K % m == 0 and all(length == K // m for length in lengths):
         return F.reshape(m, K // m, *F.shape[1:]), W.reshape(m, K // m, *W.shape[1:])
-    L = int(lengths.max())
-    offsets = torch.arange(L, device=node_steps.device)
-    index = torch.where(offsets.unsqueeze(0) < lengths.unsqueeze(1), starts.unsqueeze(1) + offsets.unsqueeze(0), K)
+    L = max(lengths)
+    index = torch.tensor([[start + o if o < length else K for o in range(L)] for start, length in zip(starts, lengths)],
+                         device=F.device)
     eye = torch.eye(F.shape[-1], dtype=F.dtype, device=F.device).unsqueeze(0)
     return torch.cat((F, eye))[index], torch.cat((W, torch.zeros_like(eye)))[index]
 
 
-def _check_nodes(node_steps: Tensor, num_steps: int) -> None:
-    if node_steps.numel() == 0 or int(node_steps[-1]) != num_steps - 1:
+def _check_nodes(node_steps: Tensor, num_steps: int) -> list[int]:
+    """The node steps as Python integers, checked: strictly increasing, ending with the last step."""
+    steps = node_steps.tolist()
+    if not steps or steps[-1] != num_steps - 1:
         raise ValueError("node_steps must end with the last step index")
-    if (node_steps[1:] <= node_steps[:-1]).any() or int(node_steps[0]) < 0:
+    if steps[0] < 0 or any(b <= a for a, b in itertools.pairwise(steps)):
         raise ValueError("node_steps must be strictly increasing step indices")
+    return steps
 
 
 def propagate_batched(
@@ -186,11 +191,11 @@ def propagate_batched(
             the last must be ``K - 1``.
     """
     K = dt_s.shape[0]
-    _check_nodes(node_steps, K)
+    steps = _check_nodes(node_steps, K)
     means, pieces = _run_pieces(x0, acc_mps2, gyro_rps, dt_s, gravity_mps2, scheme)
     F, G = core_jacobians_from_pieces(pieces, scheme)  # (K, 19, 19), (K, 19, 15)
     W = (G * noise.variances(dt_s).unsqueeze(-2)) @ G.transpose(-1, -2)
-    Phi_core, S_core = _compose_pairs(*_group_steps(F, W, node_steps))  # over (m, L, 19, 19)
+    Phi_core, S_core = _compose_pairs(*_group_steps(F, W, steps))  # over (m, L, 19, 19)
     Phi, S = embed_core(Phi_core)[0], pad_core(S_core)
     # covariance at every node at once: P_j = Φ_{0→j} P0 Φ_{0→j}ᵀ + S_{0→j}
     Phi_pre, S_pre = _prefix_compose(Phi, S)

@@ -69,8 +69,8 @@ def _constants(dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor
 
 
 def _outer(a: Tensor, b: Tensor) -> Tensor:
-    a, b = torch.broadcast_tensors(a, b)
-    return (a.unsqueeze(-1) * b.unsqueeze(-2)).reshape(*a.shape[:-1], 16)
+    batch = torch.broadcast_shapes(a.shape[:-1], b.shape[:-1])  # shapes only: no tensor operation
+    return (a.unsqueeze(-1) * b.unsqueeze(-2)).reshape(*batch, 16)
 
 
 def multiply(a: Tensor, b: Tensor) -> Tensor:

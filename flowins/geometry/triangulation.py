@@ -54,14 +54,12 @@ def camera_matrix(R_wc: Tensor, p_wc: Tensor) -> Tensor:
 
 
 def dlt_matrix(P1: Tensor, P2: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
-    """The paper's ``4 x 4`` linear system for normalised coordinates ``x1``, ``x2`` ``(..., 2)``."""
-    rows = (
-        x1[..., 0:1] * P1[..., 2, :] - P1[..., 0, :],
-        x1[..., 1:2] * P1[..., 2, :] - P1[..., 1, :],
-        x2[..., 0:1] * P2[..., 2, :] - P2[..., 0, :],
-        x2[..., 1:2] * P2[..., 2, :] - P2[..., 1, :],
+    """The paper's ``4 x 4`` linear system for normalised coordinates ``x1``, ``x2`` ``(..., 2)``:
+    rows ``x_r P[2] - P[r]`` of camera 1, then of camera 2."""
+    return torch.cat(
+        (x1.unsqueeze(-1) * P1[..., 2:3, :] - P1[..., :2, :], x2.unsqueeze(-1) * P2[..., 2:3, :] - P2[..., :2, :]),
+        dim=-2,
     )
-    return torch.stack(rows, dim=-2)
 
 
 class DltSolution(NamedTuple):

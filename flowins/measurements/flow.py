@@ -185,18 +185,31 @@ def _relative_pose_and_derivatives(x: Tensor, camera: FlowCamera) -> tuple[Tenso
 def _relative_camera_derivative(R: Tensor) -> Tensor:
     """``∂P₂'/∂(ω, t)`` ``(6, 3, 4)`` of ``P₂' = [R | t]`` along ``dR = R [ω]×``, ``dt``:
     ``[R [e_i]× | 0]`` and ``[0 | e_i]``."""
-    eye = torch.eye(3, dtype=R.dtype, device=R.device)
-    dP2 = R.new_zeros(6, 3, 4)
-    dP2[:3, :, :3] = R @ _skew(eye)
-    dP2[3:, :, 3] = eye
-    return dP2
+    generators, zero_column, translation = _camera_derivative_constants(R.dtype, R.device)
+    return torch.cat((torch.cat((R @ generators, zero_column), -1), translation))
+
+
+@functools.cache
+def _camera_derivative_constants(dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
+    """``[e_i]×`` ``(3, 3, 3)``, a zero column ``(3, 3, 1)`` and ``[0 | e_i]`` ``(3, 3, 4)`` (built
+    once, outside inference mode, so runs with gradients can use them)."""
+    with torch.inference_mode(False):
+        eye = torch.eye(3, dtype=dtype, device=device)
+        translation = torch.zeros(3, 3, 4, dtype=dtype, device=device)
+        translation[:, :, 3] = eye
+        return _skew(eye), torch.zeros(3, 3, 1, dtype=dtype, device=device), translation
 
 
 def _vee(S: Tensor) -> Tensor:
-    """``ω`` ``(..., 3)`` of the skew part of ``S`` ``(..., 3, 3)`` (``S = [ω]×`` for skew ``S``)."""
-    return 0.5 * torch.stack(
-        (S[..., 2, 1] - S[..., 1, 2], S[..., 0, 2] - S[..., 2, 0], S[..., 1, 0] - S[..., 0, 1]), dim=-1
-    )
+    """``ω`` ``(..., 3)`` of the skew part of ``S`` ``(..., 3, 3)`` (``S = [ω]×`` for skew ``S``):
+    ``½ (S₂₁ - S₁₂, S₀₂ - S₂₀, S₁₀ - S₀₁)``, gathered from the flattened matrix."""
+    flat = S.flatten(-2)
+    plus, minus = _VEE_INDEX
+    return 0.5 * (flat[..., plus] - flat[..., minus])
+
+
+#: flat positions of (S₂₁, S₀₂, S₁₀) and (S₁₂, S₂₀, S₀₁) in a row-major 3 x 3 matrix
+_VEE_INDEX = (torch.tensor([7, 2, 3]), torch.tensor([5, 6, 1]))
 
 
 def _skew(v: Tensor) -> Tensor:
@@ -358,15 +371,15 @@ def flow_measurements(
             h0, aux = lin.residual, lin.aux
         else:
             h0, aux = flow_residual(x.detach(), flow_px.detach(), uv1_px.detach(), camera)
-        finite = torch.isfinite(h0).all(-1)
-        well_posed = aux.conditioning > min_conditioning
+        posed = torch.isfinite(h0).all(-1) & (aux.conditioning > min_conditioning)
         in_front = (aux.depth1 > min_depth) & (aux.depth2 > min_depth)
         parallax_px = focal * aux.parallax
         enough = parallax_px >= torch.as_tensor(min_parallax_px, dtype=x.dtype, device=x.device)
-        valid = finite & well_posed & in_front & enough
-    n_behind = int((finite & well_posed & ~in_front).sum())
-    n_low = int((finite & well_posed & in_front & ~enough).sum())
-    n_degenerate = int((~valid).sum()) - n_behind - n_low
+        posed_in_front = posed & in_front
+        valid = posed_in_front & enough
+        counts = torch.stack((posed & ~in_front, posed_in_front & ~enough, ~valid)).sum(-1)
+    n_behind, n_low, n_invalid = counts.tolist()
+    n_degenerate = n_invalid - n_behind - n_low
     if single_pass:
         keep = valid.unsqueeze(-1)
         return FlowMeasurements(
