@@ -17,11 +17,10 @@ relative ``P_pp / σ²_{p,0}`` per frame; :func:`copy_pose` is the exact
 """
 from __future__ import annotations
 
-import functools
-
 import torch
 from torch import Tensor
 
+from flowins.constants import cached_constant
 from flowins.filter.ekf import ekf_update, linear_predict
 from flowins.state import CORE_DIM, STATE, STATE_DIM, normalize_quaternions, symmetrize
 
@@ -108,10 +107,7 @@ def _copy_matrices(nugget_var: float | Tensor, dtype: torch.dtype, device) -> tu
     return T, Q
 
 
-@functools.cache
-def _cached_copy_matrices(nugget_var: float, dtype: torch.dtype, device) -> tuple[Tensor, Tensor]:
-    with torch.inference_mode(False):  # plain tensors, usable by a later run that needs gradients
-        return _copy_matrices(nugget_var, dtype, device)
+_cached_copy_matrices = cached_constant(_copy_matrices)
 
 
 def copy_pose(mean: Tensor, cov: Tensor, *, nugget_var: float | Tensor) -> tuple[Tensor, Tensor]:

@@ -10,10 +10,10 @@ A quaternion ``q`` of the state maps body (IMU) vectors to the world frame:
 """
 from __future__ import annotations
 
-from functools import cache
-
 import torch
 from torch import Tensor
+
+from flowins.constants import cached_constant
 
 # Below this squared angle the Taylor series (exact to ~theta^6) replaces the
 # trigonometric expressions; both are accurate there, the series has a finite
@@ -47,7 +47,7 @@ def _naive_multiply(a: Tensor, b: Tensor) -> Tensor:
     )
 
 
-@cache
+@cached_constant
 def _constants(dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
     """Structure constants: the product ``(16, 4)`` and the rotation matrix ``(16, 9)`` as
     linear maps of the outer product ``a_j b_k`` (resp. ``q_j q_k``)."""

@@ -20,12 +20,12 @@ and for the noise ``ε = (ε^a, ε^ω, ε^{b_a}, ε^{b_ω}, ε^{T_a})``: ``∂v'
 from __future__ import annotations
 
 import itertools
-from functools import cache
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
+from flowins.constants import cached_constant
 from flowins.geometry import quaternion as quat
 from flowins.geometry.quaternion import rotate_jacobian, rotation_vector_jacobian
 from flowins.ins.mechanization import check_scheme
@@ -135,7 +135,7 @@ def _span(layout: _Layout, names: str | tuple[str, ...]) -> slice:
     return slice(parts[0].start, parts[-1].stop)
 
 
-@cache
+@cached_constant
 def _block_index(keys: tuple[tuple, ...], rows: _Layout, cols: _Layout, device: torch.device) -> Tensor:
     """Flat positions in a ``(rows.dim, cols.dim)`` matrix of the named blocks, concatenated
     (a block's row or column may span consecutive fields, given as a tuple of names)."""
@@ -162,7 +162,7 @@ def place_blocks(
     return flat.view(*batch, rows.dim, cols.dim)
 
 
-@cache
+@cached_constant
 def _core_identity_base(dtype: torch.dtype, device: torch.device) -> Tensor:
     """Identity on the core rows except the ``q`` block (which the step Jacobian replaces)."""
     base = torch.eye(CORE_DIM, dtype=dtype, device=device)
@@ -170,7 +170,7 @@ def _core_identity_base(dtype: torch.dtype, device: torch.device) -> Tensor:
     return base
 
 
-@cache
+@cached_constant
 def _walk_base(dtype: torch.dtype, device: torch.device) -> Tensor:
     """``∂x'/∂ε`` of the random walks: identity from each walk noise to its state."""
     base = torch.zeros(CORE_DIM, NOISE_DIM, dtype=dtype, device=device)

@@ -34,12 +34,12 @@ perfect sensor.
 """
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
+from flowins.constants import cached_constant
 from flowins.geometry import quaternion as quat
 from flowins.state import NOISE, NOISE_DIM, State, join, split
 
@@ -188,7 +188,4 @@ def _squared_densities(values, dtype: torch.dtype, device) -> Tensor:
     return out
 
 
-@functools.cache
-def _cached_squared_densities(values: tuple[float, ...], dtype: torch.dtype, device) -> Tensor:
-    with torch.inference_mode(False):  # a plain tensor, usable by a later run with gradients
-        return _squared_densities(values, dtype, device)
+_cached_squared_densities = cached_constant(_squared_densities)

@@ -29,7 +29,6 @@ counted in :class:`FlowMeasurements`.
 """
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -37,6 +36,7 @@ import torch
 from torch import Tensor
 from torch.func import jacrev, vmap
 
+from flowins.constants import cached_constant
 from flowins.geometry import quaternion as quat
 from flowins.geometry.triangulation import (
     camera_matrix,
@@ -189,15 +189,13 @@ def _relative_camera_derivative(R: Tensor) -> Tensor:
     return torch.cat((torch.cat((R @ generators, zero_column), -1), translation))
 
 
-@functools.cache
+@cached_constant
 def _camera_derivative_constants(dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
-    """``[e_i]×`` ``(3, 3, 3)``, a zero column ``(3, 3, 1)`` and ``[0 | e_i]`` ``(3, 3, 4)`` (built
-    once, outside inference mode, so runs with gradients can use them)."""
-    with torch.inference_mode(False):
-        eye = torch.eye(3, dtype=dtype, device=device)
-        translation = torch.zeros(3, 3, 4, dtype=dtype, device=device)
-        translation[:, :, 3] = eye
-        return _skew(eye), torch.zeros(3, 3, 1, dtype=dtype, device=device), translation
+    """``[e_i]×`` ``(3, 3, 3)``, a zero column ``(3, 3, 1)`` and ``[0 | e_i]`` ``(3, 3, 4)``."""
+    eye = torch.eye(3, dtype=dtype, device=device)
+    translation = torch.zeros(3, 3, 4, dtype=dtype, device=device)
+    translation[:, :, 3] = eye
+    return _skew(eye), torch.zeros(3, 3, 1, dtype=dtype, device=device), translation
 
 
 def _vee(S: Tensor) -> Tensor:
@@ -302,7 +300,7 @@ def flow_linearisation(x: Tensor, flow_px: Tensor, uv1_px: Tensor, camera: FlowC
     return FlowLinearisation(h, H_x, H_r, aux)
 
 
-@functools.cache
+@cached_constant
 def _pose_index(device: torch.device) -> Tensor:
     return STATE.indices(*POSE_FIELDS).to(device)
 

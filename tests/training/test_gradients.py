@@ -439,3 +439,26 @@ def test_gradients_stay_finite_through_degenerate_flow_geometry(case):
     assert float(grads["gnss_noise_scale"].abs()) > 1e-8  # the loss does depend on the parameters
     if n_valid:  # the ordinary points still inform the filter
         assert float(grads["flow_sigma_scale"].abs()) > 1e-10
+
+
+def test_a_gradient_after_an_inference_run_in_the_same_process(frames):
+    """``navigate`` runs in inference mode when nothing needs a gradient. The constant tensors
+    a run builds once (:mod:`flowins.constants`) must still serve a later run with gradients:
+    the same gradient as when they were first built with gradients on."""
+    from flowins.constants import clear_constants
+
+    params = FilterParameters(gradcheck_start())
+    kw = dict(n_pairs=2, parallax_inflation=True)
+
+    def gradient():
+        raw = tuple(params.raw[n].detach().clone().requires_grad_(True) for n in GRADCHECK_NAMES)
+        out = filter_outputs(params, frames, dict(zip(GRADCHECK_NAMES, raw)), **kw)[0]
+        return torch.autograd.grad(out.sum(), raw)
+
+    clear_constants()
+    with torch.inference_mode():
+        filter_outputs(params, frames, {n: params.raw[n].detach() for n in GRADCHECK_NAMES}, **kw)
+    after_inference = gradient()
+    clear_constants()
+    for a, b in zip(after_inference, gradient(), strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)

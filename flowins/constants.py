@@ -1,0 +1,41 @@
+"""Constant tensors built once per dtype and device, for every run of the process.
+
+:func:`flowins.navigation.navigate` runs in ``torch.inference_mode`` when nothing needs a
+gradient. A constant first built there would be an inference tensor, and a later run
+*with* gradients in the same process could not save it for backward. Every cached
+builder of constant tensors therefore goes through :func:`cached_constant`, which builds
+outside inference mode.
+"""
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from typing import TypeVar
+
+import torch
+
+F = TypeVar("F", bound=Callable)
+
+#: every builder decorated so far (:func:`clear_constants` empties their caches)
+_BUILDERS: list = []
+
+
+def cached_constant(builder: F) -> F:
+    """``functools.cache`` for ``builder`` (hashable arguments: numbers, dtypes, devices,
+    layouts), with the build run outside inference mode; callers must not modify the
+    result in place."""
+
+    @functools.cache
+    @functools.wraps(builder)
+    def build(*args, **kwargs):
+        with torch.inference_mode(False):
+            return builder(*args, **kwargs)
+
+    _BUILDERS.append(build)
+    return build  # type: ignore[return-value]
+
+
+def clear_constants() -> None:
+    """Forget every cached constant (they are rebuilt on next use)."""
+    for build in _BUILDERS:
+        build.cache_clear()
