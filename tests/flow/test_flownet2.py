@@ -6,6 +6,7 @@ and most dropout checks run on the fusion network given the upstream features.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 
 import pytest
@@ -290,14 +291,31 @@ def test_strip_passes_equal_full_forwards_with_seeded_dropout(model, fusion_inpu
     assert (once[0] - once[1]).abs().max() > 1e-3 * float(naive.abs().max())
 
 
-def test_run_once_equals_full_forwards_flownet2(model, pair, monkeypatch):
+@contextlib.contextmanager
+def submodule_replaced(module: torch.nn.Module, name: str, replacement: torch.nn.Module):
+    """``module.<name>`` is ``replacement`` inside the block and the original after it.
+
+    Not ``monkeypatch.setattr``: a submodule lives in ``module._modules``, not in the
+    instance ``__dict__``, and pytest >= 9.2 undoes such a patch by deleting the
+    attribute, which removes the submodule itself."""
+    original = getattr(module, name)
+    setattr(module, name, replacement)
+    try:
+        yield
+    finally:
+        setattr(module, name, original)
+
+
+def test_run_once_equals_full_forwards_flownet2(model, pair):
     passes = 3
-    monkeypatch.setattr(model, "mc_dropout", FixedMasks(passes, seed=7))
+    original = model.mc_dropout
     with torch.no_grad():
-        once = model.mc_samples(pair, passes)
-        monkeypatch.setattr(model, "mc_dropout", FixedMasks(passes, seed=7))
-        naive = model.mc_samples_naive(pair, passes)
+        with submodule_replaced(model, "mc_dropout", FixedMasks(passes, seed=7)):
+            once = model.mc_samples(pair, passes)
+        with submodule_replaced(model, "mc_dropout", FixedMasks(passes, seed=7)):
+            naive = model.mc_samples_naive(pair, passes)
     torch.testing.assert_close(once, naive, rtol=1e-4, atol=1e-4 * float(naive.abs().max()))
+    assert model.mc_dropout is original  # the shared model is left as it was
 
 
 # ------------------------------------------------------------------ provider
