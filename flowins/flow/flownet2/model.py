@@ -51,6 +51,7 @@ from flowins.flow.flownet2.networks import (
     FlowNetSD,
 )
 from flowins.flow.mc_dropout import ConcreteDropout, MCDropout
+from flowins.serialization import load_tensors
 
 #: NVIDIA's defaults: images in [0, 255], flows predicted in units of 1/20 pixel
 RGB_MAX = 255.0
@@ -330,19 +331,10 @@ def guess_variant(keys) -> str | None:
     return None
 
 
-def _read_state_dict(path: str | os.PathLike, map_location, trust_pickle: bool) -> tuple[dict, dict]:
-    import pickle
-
+def _read_state_dict(path: str | os.PathLike, map_location) -> tuple[dict, dict]:
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise ValueError(f"FlowNet2 checkpoint {path!r} does not exist")
-    try:
-        ckpt = torch.load(path, map_location=map_location, weights_only=not trust_pickle)
-    except pickle.UnpicklingError as exc:
-        raise ValueError(
-            f"FlowNet2 checkpoint {path!r} holds Python objects besides tensors, which torch.load refuses "
-            f"with weights_only=True ({exc}); if you trust the file, pass trust_pickle=True"
-        ) from exc
+    ckpt = load_tensors(path, argument="flow.checkpoint (FlowNet2)", map_location=map_location,
+                        expected="NVIDIA's FlowNet 2.0 checkpoint (e.g. FlowNet2_checkpoint.pth.tar)")
     if isinstance(ckpt, dict) and "state_dict" in ckpt:
         sd, meta = ckpt["state_dict"], {k: v for k, v in ckpt.items() if k != "state_dict"}
     elif isinstance(ckpt, dict) and ckpt and all(isinstance(v, Tensor) for v in ckpt.values()):
@@ -358,9 +350,7 @@ def _read_state_dict(path: str | os.PathLike, map_location, trust_pickle: bool) 
     return dict(sd), meta
 
 
-def load_checkpoint(
-    model: nn.Module, path: str | os.PathLike, *, map_location: str | torch.device = "cpu", trust_pickle: bool = False
-) -> dict:
+def load_checkpoint(model: nn.Module, path: str | os.PathLike, *, map_location: str | torch.device = "cpu") -> dict:
     """Load NVIDIA's checkpoint file (e.g. ``FlowNet2_checkpoint.pth.tar``) into ``model``.
 
     Accepts ``{'state_dict': ..., 'epoch': ..., 'best_EPE': ...}`` or a bare state dict,
@@ -368,10 +358,11 @@ def load_checkpoint(
     shape is compared with ``model``'s (its flowins-only keys, :data:`EXTRA_PREFIXES`,
     excepted); any missing key, unexpected key or shape mismatch raises a
     ``ValueError`` naming the file, the expected architecture and the first 20 of each.
-    ``trust_pickle=True`` lets ``torch.load`` unpickle arbitrary objects (only for files you trust).
+    The file is read with ``weights_only=True`` (:func:`flowins.serialization.load_tensors`):
+    tensors and plain values only, so no checkpoint can run code.
     Returns the checkpoint's other entries (``epoch``, ``best_EPE``, ...).
     """
-    sd, meta = _read_state_dict(path, map_location, trust_pickle)
+    sd, meta = _read_state_dict(path, map_location)
     expected = {k: v.shape for k, v in model.state_dict().items() if not k.startswith(EXTRA_PREFIXES)}
     missing = [k for k in expected if k not in sd]
     unexpected = [k for k in sd if k not in expected]

@@ -79,7 +79,6 @@ class FlowNet2Provider(FlowProvider):
         allow_random: bool = False,
         chunk: int | None = 1,  # Monte Carlo passes per head batch: 1 is fastest on a CPU and needs no copies
         keep_samples: bool = False,
-        trust_pickle: bool = False,
     ):
         super().__init__()
         if checkpoint is None and not allow_random:
@@ -100,7 +99,7 @@ class FlowNet2Provider(FlowProvider):
             model = build_model(variant)
         self.checkpoint_meta: dict = {}
         if checkpoint is not None:
-            self.checkpoint_meta = load_checkpoint(model, os.path.expanduser(checkpoint), trust_pickle=trust_pickle)
+            self.checkpoint_meta = load_checkpoint(model, os.path.expanduser(checkpoint))
         self.model = model.eval().to(device)
         self.variant = variant
         self.dropout_option = dropout_option
