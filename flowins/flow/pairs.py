@@ -19,8 +19,6 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import functools
-import hashlib
-import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,6 +30,7 @@ import torch.nn.functional as F
 from torch import Tensor
 from tqdm.auto import tqdm
 
+from flowins.cache import content_key, library_versions, source_digest
 from flowins.flow.base import FlowResult, resize_flow
 from flowins.flow.points import FlowPoints, grid_candidates
 
@@ -135,10 +134,16 @@ def pair_indices(n_frames: int, step: int) -> list[tuple[int, int]]:
     return [(k, k + step) for k in range(0, n_frames - step, step)]
 
 
+#: the code that turns frames into flow pairs: part of every cache key
+FLOW_CODE = ("flowins.flow", "flowins.data.sequence")
+
+
 def cache_key(**parts: Any) -> str:
-    """A short content key of the settings that produce a :class:`FlowPairs`."""
-    text = json.dumps({"version": FORMAT_VERSION, **parts}, sort_keys=True, default=str)
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
+    """A short content key of what produces a :class:`FlowPairs`: ``parts`` (the
+    recording's content key, the provider's settings and its ``nn.Module`` for its
+    weights, ...), the file format, flowins' flow code and the numeric libraries' versions."""
+    return content_key({"format": FORMAT_VERSION, "code": source_digest(*FLOW_CODE), "libraries": library_versions(),
+                        **parts})
 
 
 def cached(path: Path | None, compute: Callable[[], FlowPairs]) -> FlowPairs:

@@ -19,6 +19,7 @@ from typing import Any
 import torch
 
 from flowins.cache import cache_root
+from flowins.data.fingerprint import camera_content_key
 from flowins.data.sequence import Sequence
 from flowins.data.streams import GnssStream, ImuStream, PoseStream
 from flowins.evaluation import plot_trajectory, trajectory_errors, write_tum
@@ -110,7 +111,8 @@ class EvalInputs:
     gnss: GnssStream | None
     truth: PoseStream | None
     sequence: Sequence | None = None
-    #: identifies the recording in flow cache keys
+    #: content key of the recording's frames, calibration and tracks (the flow cache's key
+    #: for the recording: :func:`flowins.data.fingerprint.camera_content_key`)
     source_id: str = ""
 
     @property
@@ -128,9 +130,7 @@ def load_sequence(cfg: Mapping[str, Any], *, quick: bool, progress: bool = False
         from flowins.data.read import read_sequence
 
         seq = read_sequence(cfg["path"])
-        n = 0 if seq.frames is None else len(seq.frames)
-        source = f"{Path(cfg['path']).resolve()}|{n}|{float(seq.imu.t_s[0])}|{float(seq.imu.t_s[-1])}"
-        return EvalInputs(seq.name, seq.imu, seq.gnss, seq.groundtruth, seq, source)
+        return EvalInputs(seq.name, seq.imu, seq.gnss, seq.groundtruth, seq, camera_content_key(seq))
     if cfg["kind"] != "simulated_walk":
         raise ValueError(
             f"sequence.kind={cfg['kind']!r} is not supported; use the built-in 'simulated_walk' "
@@ -146,7 +146,7 @@ def load_sequence(cfg: Mapping[str, Any], *, quick: bool, progress: bool = False
         flow_every=0,
     )
     seq = simulate(config=config, progress=progress)
-    return EvalInputs(seq.name, seq.imu, seq.gnss, seq.groundtruth, seq, f"simulated:{config.key()}")
+    return EvalInputs(seq.name, seq.imu, seq.gnss, seq.groundtruth, seq, camera_content_key(seq))
 
 
 def load_flow(kind: str, rec: EvalInputs, cfg: Mapping[str, Any], *, progress: bool) -> FlowPairs | str:
@@ -169,12 +169,13 @@ def load_flow(kind: str, rec: EvalInputs, cfg: Mapping[str, Any], *, progress: b
     target = settings if kind == "dense" else settings["tracker"]  # what instantiate builds
     extra = dict(stride_px=pairs_cfg["stride_px"], border_px=pairs_cfg["border_px"],
                  input_scale=pairs_cfg["input_scale"]) if kind == "dense" else {}
-    key = cache_key(kind=kind, source=rec.source_id, provider=settings, step=step, **extra)
+    provider = instantiate(target)
+    weights = provider if isinstance(provider, torch.nn.Module) else None  # keyed by its state dict
+    key = cache_key(kind=kind, source=rec.source_id, provider=settings, weights=weights, step=step, **extra)
     path = Path(cfg["cache_dir"] or cache_root()) / "flow" / f"{kind}-{key}.npz"
     label = str(target.get("_target_", "")).rsplit(".", 1)[-1]
 
     def compute() -> FlowPairs:
-        provider = instantiate(target)
         if kind == "dense":
             return dense_pairs(seq.frames, provider, step=step, batch_size=int(pairs_cfg["batch_size"]),
                                progress=progress, description=label, **extra)

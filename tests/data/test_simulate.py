@@ -163,6 +163,63 @@ def test_a_second_simulation_reads_the_cache(small_simulation):
         simulate(out, replace(config, seed=4), progress=False)
 
 
+def _tiny(seed: int = 2):
+    from flowins.data.simulate.scenario import CameraConfig
+
+    return SimulationConfig(duration_s=10.0, seed=seed, flow_every=0, camera=CameraConfig(rate_hz=2.0, width=80, height=60))
+
+
+def test_a_cached_simulation_whose_files_changed_is_simulated_again(tmp_path, monkeypatch, capsys):
+    from flowins.data.simulate.scenario import default_cache_dir, simulate
+
+    monkeypatch.setenv("FLOWINS_CACHE", str(tmp_path / "cache"))
+    config = _tiny()
+    first = simulate(config=config, progress=False)
+    imu = default_cache_dir(config) / "imu.csv"
+    original = imu.read_text()
+    lines = original.splitlines()
+    lines[5] = ",".join(["0.5" if i else value for i, value in enumerate(lines[5].split(","))])
+    imu.write_text("\n".join(lines) + "\n")
+    capsys.readouterr()
+    again = simulate(config=config, progress=False)
+    assert "files changed since it was written (imu.csv); simulating again" in capsys.readouterr().out
+    assert imu.read_text() == original  # the simulation as generated, not the edited file
+    assert torch.equal(again.imu.acc_mps2, first.imu.acc_mps2)
+    # unchanged: read back, not regenerated
+    before = imu.stat().st_mtime_ns
+    simulate(config=config, progress=False)
+    assert imu.stat().st_mtime_ns == before and "simulating again" not in capsys.readouterr().out
+
+
+def test_a_named_folder_whose_files_changed_is_refused(tmp_path):
+    from flowins.data.simulate.scenario import simulate
+
+    out = tmp_path / "walk"
+    simulate(out, _tiny(), progress=False)
+    (out / "frames" / "000001.png").write_bytes(b"not an image")
+    with pytest.raises(ValueError, match=r"files changed since it was written \(frames/000001\.png\); pass overwrite"):
+        simulate(out, _tiny(), progress=False)
+    simulate(out, _tiny(), progress=False, overwrite=True)
+    assert (out / "frames" / "000001.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_the_simulation_key_follows_the_simulator_code(tmp_path, monkeypatch):
+    import sys
+
+    from flowins.data.simulate import scenario
+
+    package = tmp_path / "simulator_part"
+    package.mkdir()
+    (package / "__init__.py").write_text("SPEED = 1.0\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(scenario, "SIMULATOR_CODE", (*scenario.SIMULATOR_CODE, "simulator_part"))
+    before = _tiny().key()
+    assert _tiny().key() == before and _tiny(seed=3).key() != before
+    (package / "__init__.py").write_text("SPEED = 1.5\n")
+    assert _tiny().key() != before
+    sys.modules.pop("simulator_part", None)
+
+
 def test_simulation_is_deterministic_in_the_seed():
     walk = Walk(WalkConfig(duration_s=12.0))
     config = SimulationConfig(duration_s=12.0)

@@ -5,7 +5,10 @@
 consecutive frame pair (``flow/NNNNNN.npz``), and returns it as a
 :class:`~flowins.data.sequence.Sequence`. A folder that already holds the same
 simulation (same configuration and simulator version) is read back instead of
-regenerated.
+regenerated: the folder's key (:meth:`SimulationConfig.key`) covers the configuration,
+the simulator's source code and the numeric libraries' versions, and its completion
+marker lists every file written with its size and modification time, so a folder whose
+files were changed afterwards is not served as the simulation.
 
 World frame: local ENU (x east, y north, z up) with its origin on the ground at
 the start of the walk; ``config.origin`` is the WGS84 point of that origin, and
@@ -14,7 +17,6 @@ truth is the IMU (body) pose in this frame: body x forward, y left, z up.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 from dataclasses import asdict, dataclass, field
@@ -26,7 +28,7 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from flowins.cache import cache_root
+from flowins.cache import cache_root, content_key, library_versions, source_digest
 from flowins.data.sequence import CameraFrames, PinholeCamera, Sequence
 from flowins.data.simulate.gnss import GnssErrors, simulate_fixes
 from flowins.data.streams import GnssStream, ImuStream, PoseStream
@@ -43,8 +45,10 @@ from flowins.geometry.camera import RigidTransform
 from flowins.geometry.geodesy import LocalTangentPlane
 from flowins.ins.mechanization import STANDARD_GRAVITY_MPS2
 
-#: Bumped whenever the generated data would change for the same configuration.
-SIMULATOR_VERSION = 1
+#: the code that generates a simulation: part of its key
+SIMULATOR_CODE = ("flowins.data", "flowins.geometry", "flowins.ins.mechanization")
+#: the completion marker: the key and every file written, with its size and modification time
+MARKER = ".simulation-complete"
 
 #: Camera axes in the body frame for a device held upright, looking forward:
 #: camera x (right) = -body y, camera y (down) = -body z, camera z (forward) = body x.
@@ -100,9 +104,10 @@ class SimulationConfig:
             raise ValueError(f"SimulationConfig.flow_every={self.flow_every}; expected >= 0")
 
     def key(self) -> str:
-        """Content key of the simulation (configuration + simulator version)."""
-        text = json.dumps({"version": SIMULATOR_VERSION, **asdict(self)}, sort_keys=True, default=str)
-        return hashlib.sha256(text.encode()).hexdigest()[:16]
+        """Content key of the simulation: the configuration, the simulator's source code
+        (:data:`SIMULATOR_CODE`) and the numeric libraries' versions."""
+        return content_key({"config": json.loads(json.dumps(asdict(self), default=str)),
+                            "code": source_digest(*SIMULATOR_CODE), "libraries": library_versions()})
 
 
 def default_cache_dir(config: SimulationConfig) -> Path:
@@ -125,9 +130,30 @@ class CameraTrajectory:
         return R_wb @ R_bc, p_wb + (R_wb @ T_bc.translation_m.unsqueeze(-1)).squeeze(-1)
 
 
-def _is_complete(path: Path, key: str) -> bool:
-    marker = path / ".simulation-complete"
-    return marker.is_file() and marker.read_text().strip() == key
+def _manifest(folder: Path) -> dict[str, list[int]]:
+    """Every file below ``folder`` but the marker: relative path -> ``[size, mtime_ns]``."""
+    files = (f for f in sorted(folder.rglob("*")) if f.is_file() and f.name != MARKER)
+    return {f.relative_to(folder).as_posix(): [(st := f.stat()).st_size, st.st_mtime_ns] for f in files}
+
+
+def _holds(folder: Path, key: str) -> str | None:
+    """``None`` when ``folder`` holds the simulation ``key`` exactly as written, else why not."""
+    marker = folder / MARKER
+    if not marker.is_file():
+        return "no completed simulation"
+    try:
+        written = json.loads(marker.read_text())
+        written_key, files = written["key"], written["files"]
+    except (ValueError, KeyError, TypeError):
+        return f"an unreadable marker {marker}"
+    if written_key != key:
+        return f"another simulation (key {written_key})"
+    now = _manifest(folder)
+    changed = sorted(set(files) ^ set(now) | {f for f in set(files) & set(now) if files[f] != now[f]})
+    if changed:
+        more = f" and {len(changed) - 3} more" if len(changed) > 3 else ""
+        return f"this simulation with files changed since it was written ({', '.join(changed[:3])}{more})"
+    return None
 
 
 def simulate(
@@ -145,16 +171,20 @@ def simulate(
     """
     from flowins.data.folder import read_folder, write_folder
 
+    in_cache = out is None
     out = Path(out) if out is not None else default_cache_dir(config)
     key = config.key()
-    if _is_complete(out, key):
+    why = _holds(out, key) if out.exists() else None
+    if out.exists() and why is None:
         return read_folder(out)
     if out.exists() and any(out.iterdir()):
-        if not overwrite:
+        if not (overwrite or in_cache):
             raise ValueError(
-                f"simulate: {out} is not empty and does not hold this simulation (key {key}); "
+                f"simulate: {out} is not empty and does not hold this simulation (key {key}): it holds {why}; "
                 "pass overwrite=True (--overwrite) or choose another folder"
             )
+        if in_cache:
+            print(f"simulate: the cache folder {out} holds {why}; simulating again")
         import shutil
 
         shutil.rmtree(out)
@@ -225,7 +255,7 @@ def simulate(
 
     metadata: dict[str, Any] = {
         "source": "flowins simulator",
-        "simulation": {"key": key, "version": SIMULATOR_VERSION, "config": json.loads(json.dumps(asdict(config), default=str))},
+        "simulation": {"key": key, "config": json.loads(json.dumps(asdict(config), default=str))},
         "world_frame": "local ENU (x east, y north, z up); origin on the ground at the start of the walk",
         "gnss_origin_lat_lon_alt": list(config.origin),
         "imu_truth": {
@@ -266,7 +296,7 @@ def simulate(
         torch.cat((t_imu.unsqueeze(-1), imu_truth["b_a"], imu_truth["b_w"]), -1).numpy(),
         delimiter=",", header="t,bax,bay,baz,bwx,bwy,bwz", comments="", fmt="%.17g",
     )
-    (out / ".simulation-complete").write_text(key + "\n")
+    (out / MARKER).write_text(json.dumps({"key": key, "files": _manifest(out)}))
     return read_folder(out)
 
 

@@ -1,0 +1,115 @@
+"""The flow cache follows the recording's contents: changed frames, images or calibration
+are recomputed, unchanged contents are read back, and what is read back equals what an
+empty cache computes."""
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+import yaml
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from flowins.jobs.evaluate import load_flow, load_sequence
+
+CONFIGS = str(Path(__file__).resolve().parents[2] / "configs")
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    """A 10 s simulated walk, 160 x 120 at 5 Hz (49 frame pairs)."""
+    from flowins.data.simulate import CameraConfig, SimulationConfig, simulate
+
+    folder = tmp_path_factory.mktemp("walk")
+    simulate(folder, SimulationConfig(duration_s=10.0, seed=1, flow_every=0,
+                                      camera=CameraConfig(rate_hz=5.0, width=160, height=120)), progress=False)
+    return folder
+
+
+def _copy(src: Path, dst: Path) -> Path:
+    shutil.copytree(src, dst, copy_function=shutil.copy2)  # copy2 keeps modification times
+    return dst
+
+
+def _dense_flow(folder: Path, cache: Path, capsys) -> tuple:
+    """``(pairs, read from the cache?)`` of ``evaluate.py``'s dense flow (DIS) on ``folder``."""
+    with initialize_config_dir(config_dir=CONFIGS, version_base=None):
+        cfg = compose("evaluate", overrides=[f"sequence.path={folder}", f"cache_dir={cache}", "output_dir=unused", "flow=dis",
+                                             "flow_pairs.input_scale=1.0", "progress=false"])
+    cfg = OmegaConf.to_container(cfg, resolve=True)
+    capsys.readouterr()
+    pairs = load_flow("dense", load_sequence(cfg["sequence"], quick=False), cfg, progress=False)
+    return pairs, "read from the cache" in capsys.readouterr().out
+
+
+def _same(a, b) -> bool:
+    if not (torch.equal(a.t1_s, b.t1_s) and torch.equal(a.t2_s, b.t2_s) and len(a.points) == len(b.points)):
+        return False
+    return all(torch.equal(x, y) for p, q in zip(a.points, b.points) for x, y in zip(p, q) if x is not None)
+
+
+def _reverse_frames(folder: Path) -> None:
+    lines = (folder / "frames.csv").read_text().splitlines()
+    rows = [line.split(",") for line in lines[1:] if line]
+    files = [f for _, f in rows][::-1]
+    (folder / "frames.csv").write_text("\n".join([lines[0], *(f"{t},{f}" for (t, _), f in zip(rows, files))]) + "\n")
+
+
+def _touch_up_one_image(folder: Path) -> None:
+    """Brighten a patch of frame 10, same size, same modification time."""
+    path = folder / "frames" / "000010.png"
+    stat = path.stat()
+    image = cv2.imread(str(path))
+    image[40:80, 60:100] = np.clip(image[40:80, 60:100].astype(int) + 60, 0, 255).astype(np.uint8)
+    cv2.imwrite(str(path), image)
+    os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+
+
+def _change_calibration(folder: Path) -> None:
+    path = folder / "calibration.yaml"
+    calibration = yaml.safe_load(path.read_text())
+    calibration["camera"]["fx"] *= 1.01
+    path.write_text(yaml.safe_dump(calibration))
+
+
+@pytest.mark.parametrize("change, flow_changes", [(_reverse_frames, True), (_touch_up_one_image, True),
+                                                  (_change_calibration, False)],
+                         ids=["frames reordered", "one image changed", "calibration changed"])
+def test_a_changed_recording_is_recomputed(recording, tmp_path, capsys, change, flow_changes):
+    cache = tmp_path / "cache"
+    original, cached = _dense_flow(_copy(recording, tmp_path / "rec"), cache, capsys)
+    assert not cached
+    change(tmp_path / "rec")
+    changed, cached = _dense_flow(tmp_path / "rec", cache, capsys)
+    assert not cached
+    assert len(list((cache / "flow").glob("dense-*.npz"))) == 2
+    fresh, _ = _dense_flow(tmp_path / "rec", tmp_path / "empty-cache", capsys)
+    assert _same(changed, fresh)  # what the filter gets is what an empty cache computes
+    assert _same(changed, original) != flow_changes
+
+
+def test_unchanged_contents_are_read_back_wherever_they_lie(recording, tmp_path, capsys):
+    cache = tmp_path / "cache"
+    first, cached = _dense_flow(_copy(recording, tmp_path / "rec"), cache, capsys)
+    assert not cached
+    again, cached = _dense_flow(tmp_path / "rec", cache, capsys)
+    assert cached and _same(first, again)
+    moved, cached = _dense_flow(_copy(tmp_path / "rec", tmp_path / "renamed copy"), cache, capsys)
+    assert cached and _same(first, moved)
+    assert len(list((cache / "flow").glob("dense-*.npz"))) == 1
+
+
+def test_a_corrupted_image_is_an_error_even_with_a_warm_cache(recording, tmp_path, capsys):
+    cache = tmp_path / "cache"
+    _dense_flow(_copy(recording, tmp_path / "rec"), cache, capsys)
+    path = tmp_path / "rec" / "frames" / "000020.png"
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2 :] = bytes(len(data) - len(data) // 2)  # the second half zeroed
+    path.write_bytes(bytes(data))
+    with pytest.raises(ValueError, match=r"000020\.png"):
+        _dense_flow(tmp_path / "rec", cache, capsys)
