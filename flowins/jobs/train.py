@@ -5,8 +5,11 @@ Lightning Trainer (fit, then the held-out test) -> checkpoint, TensorBoard, tabl
 """
 from __future__ import annotations
 
+import contextlib
 import json
-from collections.abc import Mapping
+import logging
+import warnings
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -75,12 +78,13 @@ def run(cfg: Mapping[str, Any]) -> dict[str, Any]:
     checkpoint = pl.callbacks.ModelCheckpoint(dirpath=out / "checkpoints", filename="best", monitor="val/rmse_mean_m",
                                               mode="min", save_last=True)
     logger = instantiate(cfg["logger"]) if cfg.get("logger") else False
-    trainer: pl.Trainer = instantiate(cfg["trainer"], logger=logger, callbacks=[checkpoint])
-    trainer.fit(module, datamodule=data)
-    best = checkpoint.best_model_path or None
-    if best:
-        module.params.load_state_dict(FilterParameters.from_checkpoint(best).state_dict())
-    trainer.test(module, datamodule=data, verbose=False)
+    with _without_lightning_noise():
+        trainer: pl.Trainer = instantiate(cfg["trainer"], logger=logger, callbacks=[checkpoint])
+        trainer.fit(module, datamodule=data)
+        best = checkpoint.best_model_path or None
+        if best:
+            module.params.load_state_dict(FilterParameters.from_checkpoint(best).state_dict())
+        trainer.test(module, datamodule=data, verbose=False)
     learned = module.params.values()
     (out / "learned_parameters.json").write_text(json.dumps(learned, indent=2))
     print(f"\nlearned parameters: {out / 'learned_parameters.json'}")
@@ -89,3 +93,31 @@ def run(cfg: Mapping[str, Any]) -> dict[str, Any]:
     print(f"skipped windows (non-finite loss or gradient): {module.skipped_windows}; trained: {module.trained_windows}")
     return {"learned": learned, "start": start, "hand-tuned": tuned, "checkpoint": best,
             "skipped_windows": module.skipped_windows}
+
+
+class _NotTheLitLoggerTip(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "litlogger" not in record.getMessage()
+
+
+@contextlib.contextmanager
+def _without_lightning_noise() -> Iterator[None]:
+    """Lightning, on every run, prints two messages that say nothing about the run; this
+    drops exactly those two and nothing else:
+
+    * torch deprecates ``LeafSpec`` (a ``FutureWarning`` in torch 2.13), which Lightning's own
+      ``CombinedLoader`` still builds (``pytorch_lightning/utilities/_pytree.py``, through
+      2.6.6): not flowins' code to change;
+    * the "Tip" that advertises the litlogger package, logged by every ``Trainer`` that has
+      no LitLogger.
+    """
+    tip = logging.getLogger("pytorch_lightning.utilities.rank_zero")
+    no_tip = _NotTheLitLoggerTip()
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r"`isinstance\(treespec, LeafSpec\)` is deprecated",
+                                category=FutureWarning, module=r"pytorch_lightning\.utilities\._pytree")
+        tip.addFilter(no_tip)
+        try:
+            yield
+        finally:
+            tip.removeFilter(no_tip)

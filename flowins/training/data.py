@@ -116,3 +116,7 @@ class SequenceDataModule(pl.LightningDataModule):
 
     def test_dataloader(self) -> DataLoader:
         return self._loader("val", False)
+
+    def transfer_batch_to_device(self, batch: TrainingSequence, device, dataloader_idx: int) -> TrainingSequence:
+        # the filter runs where its inputs are (float64, CPU by default); the sequence is not moved
+        return batch

@@ -80,10 +80,6 @@ class FilterLearner(pl.LightningModule):
                                    "lr": self.lr, "gradient_clip": self.gradient_clip, "reference": self.reference,
                                    "learned": params.learned})
 
-    def transfer_batch_to_device(self, batch: TrainingSequence, device, dataloader_idx: int) -> TrainingSequence:
-        # the filter runs where its inputs are (float64, CPU by default); the sequence is not moved
-        return batch
-
     def configure_optimizers(self):
         learned = [p for p in self.params.parameters() if p.requires_grad]
         if not learned:
