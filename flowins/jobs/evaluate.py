@@ -8,6 +8,7 @@ plus the Fig. 2 flow panel for a few frame pairs.
 """
 from __future__ import annotations
 
+import functools
 import json
 import math
 import time
@@ -111,9 +112,13 @@ class EvalInputs:
     gnss: GnssStream | None
     truth: PoseStream | None
     sequence: Sequence | None = None
-    #: content key of the recording's frames, calibration and tracks (the flow cache's key
-    #: for the recording: :func:`flowins.data.fingerprint.camera_content_key`)
-    source_id: str = ""
+
+    @functools.cached_property
+    def content_key(self) -> str:
+        """Content key of the recording's frames, calibration and tracks, the flow cache's
+        key for the recording (:func:`flowins.data.fingerprint.camera_content_key`; it
+        reads every frame file, so only once and only when flow is asked for)."""
+        return "" if self.sequence is None else camera_content_key(self.sequence)
 
     @property
     def camera(self) -> FlowCamera | None:
@@ -130,7 +135,7 @@ def load_sequence(cfg: Mapping[str, Any], *, quick: bool, progress: bool = False
         from flowins.data.read import read_sequence
 
         seq = read_sequence(cfg["path"])
-        return EvalInputs(seq.name, seq.imu, seq.gnss, seq.groundtruth, seq, camera_content_key(seq))
+        return EvalInputs(seq.name, seq.imu, seq.gnss, seq.groundtruth, seq)
     if cfg["kind"] != "simulated_walk":
         raise ValueError(
             f"sequence.kind={cfg['kind']!r} is not supported; use the built-in 'simulated_walk' "
@@ -146,7 +151,7 @@ def load_sequence(cfg: Mapping[str, Any], *, quick: bool, progress: bool = False
         flow_every=0,
     )
     seq = simulate(config=config, progress=progress)
-    return EvalInputs(seq.name, seq.imu, seq.gnss, seq.groundtruth, seq, camera_content_key(seq))
+    return EvalInputs(seq.name, seq.imu, seq.gnss, seq.groundtruth, seq)
 
 
 def load_flow(kind: str, rec: EvalInputs, cfg: Mapping[str, Any], *, progress: bool) -> FlowPairs | str:
@@ -171,7 +176,7 @@ def load_flow(kind: str, rec: EvalInputs, cfg: Mapping[str, Any], *, progress: b
                  input_scale=pairs_cfg["input_scale"]) if kind == "dense" else {}
     provider = instantiate(target)
     weights = provider if isinstance(provider, torch.nn.Module) else None  # keyed by its state dict
-    key = cache_key(kind=kind, source=rec.source_id, provider=settings, weights=weights, step=step, **extra)
+    key = cache_key(kind=kind, source=rec.content_key, provider=settings, weights=weights, step=step, **extra)
     path = Path(cfg["cache_dir"] or cache_root()) / "flow" / f"{kind}-{key}.npz"
     label = str(target.get("_target_", "")).rsplit(".", 1)[-1]
 
