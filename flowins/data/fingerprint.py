@@ -6,8 +6,8 @@ The key follows the contents, not the names: the frame times and each frame's im
 calibration (intrinsics, distortion, the image size, the IMU-to-camera transform) and
 the precomputed tracks. Reorder the frames, touch up one image, change the calibration
 or a track, and the key changes; copy or rename the recording and it stays the same.
-Hashing reads every image file once (about 0.3 s for the 300 s simulated walk's 3,000
-frames; see ``docs/caching.md``).
+Hashing reads every image file once: on the 300 s simulated walk a small fraction of
+decoding the frames once (``benchmarks/bench_cache_key.py``, ``docs/caching.md``).
 """
 from __future__ import annotations
 
