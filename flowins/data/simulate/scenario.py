@@ -4,11 +4,12 @@
 ``docs/sequence_format.md``) plus the exact optical flow and depth of every
 consecutive frame pair (``flow/NNNNNN.npz``), and returns it as a
 :class:`~flowins.data.sequence.Sequence`. A folder that already holds the same
-simulation (same configuration and simulator version) is read back instead of
-regenerated: the folder's key (:meth:`SimulationConfig.key`) covers the configuration,
-the simulator's source code and the numeric libraries' versions, and its completion
-marker lists every file written with its size and modification time, so a folder whose
-files were changed afterwards is not served as the simulation.
+simulation is read back instead of regenerated: the folder's key
+(:meth:`SimulationConfig.key`) covers the configuration, the simulator's source code and
+the numeric libraries' versions, and its completion marker lists every file written with
+its size and modification time, so a folder whose files were changed afterwards is not
+served as the simulation (in the cache it is simulated again; a folder the caller named
+is refused unless ``overwrite``).
 
 World frame: local ENU (x east, y north, z up) with its origin on the ground at
 the start of the walk; ``config.origin`` is the WGS84 point of that origin, and
