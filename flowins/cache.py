@@ -8,7 +8,6 @@ result is recomputed rather than served stale.
 """
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import importlib
 import json
@@ -69,9 +68,8 @@ def library_versions() -> dict[str, str]:
 
 
 def content_key(value: Any) -> str:
-    """A short key of ``value``: nested dicts, lists, numbers and strings as they are;
-    tensors and arrays by their values; ``nn.Module`` by its state dict; dataclasses by
-    their fields; paths as text."""
+    """A short key of ``value``: nested mappings, sequences, numbers and strings as they
+    are; tensors and arrays by their values; ``nn.Module`` by its state dict; paths as text."""
     text = json.dumps(value, sort_keys=True, default=_canonical)
     return hashlib.sha256(text.encode()).hexdigest()[:KEY_LENGTH]
 
@@ -83,9 +81,6 @@ def _canonical(value: Any) -> Any:
         return value.item()
     if isinstance(value, nn.Module):
         return {"module": type(value).__qualname__, "state": {k: array_digest(v) for k, v in value.state_dict().items()}}
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {"dataclass": type(value).__qualname__,
-                **{f.name: getattr(value, f.name) for f in dataclasses.fields(value) if not f.name.startswith("_")}}
     if isinstance(value, (Path, os.PathLike)):
         return os.fspath(value)
     if isinstance(value, (set, frozenset)):
