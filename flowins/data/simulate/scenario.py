@@ -104,10 +104,14 @@ class SimulationConfig:
         if self.flow_every < 0:
             raise ValueError(f"SimulationConfig.flow_every={self.flow_every}; expected >= 0")
 
+    def as_plain(self) -> dict[str, Any]:
+        """The configuration as JSON-ready dicts, lists, numbers and strings."""
+        return json.loads(json.dumps(asdict(self), default=str))
+
     def key(self) -> str:
         """Content key of the simulation: the configuration, the simulator's source code
         (:data:`SIMULATOR_CODE`) and the numeric libraries' versions."""
-        return content_key({"config": json.loads(json.dumps(asdict(self), default=str)),
+        return content_key({"config": self.as_plain(),
                             "code": source_digest(*SIMULATOR_CODE), "libraries": library_versions()})
 
 
@@ -256,7 +260,7 @@ def simulate(
 
     metadata: dict[str, Any] = {
         "source": "flowins simulator",
-        "simulation": {"key": key, "config": json.loads(json.dumps(asdict(config), default=str))},
+        "simulation": {"key": key, "config": config.as_plain()},
         "world_frame": "local ENU (x east, y north, z up); origin on the ground at the start of the walk",
         "gnss_origin_lat_lon_alt": list(config.origin),
         "imu_truth": {
