@@ -26,6 +26,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from flowins.data.streams import GnssStream, ImuStream
+from flowins.ins.imu_model import imu_model
 from flowins.jobs.evaluate import load_flow, load_sequence, navigation_config
 from flowins.navigation import navigate
 
@@ -134,7 +135,7 @@ def main() -> None:
         cfg = OmegaConf.to_container(compose("evaluate", overrides=[f"filter.flow.n_points={args.points}"]), resolve=False)
     rec = load_sequence(cfg["sequence"], quick=False, progress=True)
     pairs = load_flow("dense", rec, cfg, progress=True)
-    config = navigation_config(cfg["filter"])
+    config = navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=False))
     duration = float(rec.imu.t_s[-1] - rec.imu.t_s[0])
     print(f"{rec.name}: {duration:.0f} s, {len(pairs)} flow frames, up to {args.points} points each, "
           f"{len(rec.gnss)} GNSS fixes, float64, {torch.get_num_threads()} threads")

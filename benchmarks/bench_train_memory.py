@@ -29,6 +29,7 @@ def measure(mode: str, window_s: float, points: int, method: str) -> dict:
     import torch
     from omegaconf import OmegaConf
 
+    from flowins.ins.imu_model import imu_model
     from flowins.jobs.evaluate import navigation_config
     from flowins.jobs.train import flow_settings, parameter_sets
     from flowins.training.data import load_training_sequence
@@ -40,7 +41,7 @@ def measure(mode: str, window_s: float, points: int, method: str) -> dict:
     with hydra.initialize_config_dir(config_dir=str(configs), version_base="1.3"):
         cfg = OmegaConf.to_container(hydra.compose("train", overrides=["output_dir=/tmp"]), resolve=True)
     seq = load_training_sequence({"seed": 1, "duration_s": 60.0}, {**cfg, "flow": flow_settings(cfg)}, methods=[method])
-    base = navigation_config(cfg["filter"])
+    base = navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=False))
     base = dataclasses.replace(base, flow_update=dataclasses.replace(base.flow_update, n_points=points))
     _, start, learn = parameter_sets(cfg, base)
     params = FilterParameters(start, learn)

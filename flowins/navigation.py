@@ -10,16 +10,17 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from flowins.data.streams import GnssStream, ImuStream
+from flowins.data.streams import GnssStream, ImuStream, PoseStream
 from flowins.filter.ekf import Gate
-from flowins.filter.events import FlowFrame, FlowUpdate, ZeroVelocity, gnss_fixes
+from flowins.filter.events import FlowFrame, FlowUpdate, GnssRecovery, ZeroVelocity, gnss_fixes
 from flowins.filter.heading import HeadingAlignment
 from flowins.filter.runner import FilterTrack, run_filter
 from flowins.filter.smoother import SmoothedTrack, rts_smooth
 from flowins.geometry.geodesy import LocalTangentPlane, gnss_to_enu
-from flowins.ins.initialization import InitialUncertainty, stationary_initialization
+from flowins.ins.initialization import InitialUncertainty
 from flowins.ins.mechanization import STANDARD_GRAVITY_MPS2, ProcessNoise
 from flowins.measurements.gnss import correlation_inflation, gnss_noise
+from flowins.start import Start, StartSettings, choose_start
 
 
 @dataclass(frozen=True)
@@ -28,13 +29,11 @@ class NavigationConfig:
 
     noise: ProcessNoise = field(default_factory=ProcessNoise)
     initial: InitialUncertainty = field(default_factory=InitialUncertainty)
-    stationary_s: float = 5.0
-    #: zero-velocity updates over the stationary window (the initialisation assumes the
-    #: device is still there), at this rate; 0 switches them off
-    stationary_zupt_hz: float = 10.0
-    stationary_zupt_sigma_mps: float = 0.01
-    initial_yaw_rad: float = 0.0
+    #: how the filter starts (:mod:`flowins.start`): still, moving, from the ground truth, or auto
+    start: StartSettings = field(default_factory=StartSettings)
     gnss_gate: Gate = field(default_factory=Gate)
+    #: what follows a run of rejected fixes (:class:`~flowins.filter.events.GnssRecovery`)
+    gnss_recovery: GnssRecovery = field(default_factory=GnssRecovery)
     gnss_noise_scale: float = 1.0
     #: correlation time of the GNSS errors (s): each fix's R is inflated by
     #: :func:`~flowins.measurements.gnss.correlation_inflation`; 0: white, as in the paper
@@ -65,6 +64,9 @@ class NavigationResult:
     gnss_h_acc_m: Tensor | None
     #: flow pairs left out because they are not inside the IMU time span
     flow_pairs_outside: int = 0
+    start: Start | None = None
+    #: GNSS fixes before the filter's start (not used)
+    gnss_before_start: int = 0
 
     @property
     def gnss_accepted(self) -> Tensor | None:
@@ -129,6 +131,9 @@ class NavigationSetup:
     gnss_enu_m: Tensor | None
     #: flow pairs left out because they are not inside the IMU time span
     flow_pairs_outside: int = 0
+    start: Start | None = None
+    #: GNSS fixes before the filter's start (not used)
+    gnss_before_start: int = 0
 
 
 def prepare_navigation(
@@ -139,47 +144,39 @@ def prepare_navigation(
     frame: LocalTangentPlane | None = None,
     flow=None,
     camera=None,
+    truth: PoseStream | None = None,
+    forward_b: Tensor | None = None,
 ) -> NavigationSetup:
     """The prior and the measurement events of :func:`navigate` (see there).
 
     Every number of ``config`` may be a tensor with a gradient (the training wraps
     this same function), so the events carry the graph into the filter.
     """
-    initial = config.initial
     events = []
-    enu = None
+    enu = fixes = None
     if gnss is not None:
         enu, _, frame = gnss_to_enu(gnss, origin=frame)
         inflation = correlation_inflation(gnss.t_s, config.gnss_correlation_s).to(gnss.h_acc_m.dtype)
         cov = gnss_noise(gnss.h_acc_m, gnss.v_acc_m, config.gnss_noise_scale) * inflation.reshape(-1, 1, 1)
-        events = gnss_fixes(gnss.t_s, enu, cov, gate=config.gnss_gate, name=gnss.name, heading=config.gnss_heading)
-        initial = InitialUncertainty(
-            **{**initial.__dict__, "position_m": float(max(gnss.h_acc_m[0], gnss.v_acc_m[0]))}
-        )
-    if config.stationary_zupt_hz > 0:
-        t_start = float(imu.t_s[0])
-        times = torch.arange(t_start, t_start + config.stationary_s, 1.0 / config.stationary_zupt_hz, dtype=torch.float64)
-        events = events + [ZeroVelocity(float(t), config.stationary_zupt_sigma_mps, f"zero velocity at {float(t):.2f} s")
-                           for t in times[times <= float(imu.t_s[-1])]]
+        events = gnss_fixes(gnss.t_s, enu, cov, gate=config.gnss_gate, name=gnss.name, heading=config.gnss_heading,
+                            recovery=config.gnss_recovery)
+        sigma = torch.stack((gnss.h_acc_m, gnss.h_acc_m, gnss.v_acc_m), -1)
+        fixes = (gnss.t_s, enu, sigma)
+    start = choose_start(imu, settings=config.start, fixes=fixes, truth=truth, forward_b=forward_b,
+                         uncertainty=config.initial, gravity_mps2=float(config.gravity_mps2))
+    before = [e for e in events if e.time_s < start.t_s]
+    events = [e for e in events if e.time_s >= start.t_s]
+    events += [ZeroVelocity(t, config.start.still.zupt_sigma_mps, f"zero velocity at {t:.2f} s")
+               for t in start.zupt_times_s if t <= float(imu.t_s[-1])]
     outside = 0
     if flow is not None:
         if camera is None:
             raise ValueError("navigate: flow pairs need the camera (a FlowCamera with K and the IMU->camera transform)")
-        frames, outside = flow_frames(flow, camera, config.flow_update, t_min_s=float(imu.t_s[0]),
+        frames, outside = flow_frames(flow, camera, config.flow_update, t_min_s=start.t_s,
                                       t_max_s=float(imu.t_s[-1]), name=flow.kind, jacobians=config.jacobians)
         events = events + frames
-    mean0, cov0 = stationary_initialization(
-        t_s=imu.t_s,
-        acc_mps2=imu.acc_mps2,
-        gyro_rps=imu.gyro_rps,
-        duration_s=config.stationary_s,
-        yaw_rad=config.initial_yaw_rad,
-        position_m=None if enu is None else enu[0].to(config.dtype),
-        uncertainty=initial,
-        dtype=config.dtype,
-        name=imu.name,
-    )
-    return NavigationSetup(mean0, cov0, events, frame, enu, outside)
+    mean0, cov0 = start.mean.to(config.dtype), start.cov.to(config.dtype)
+    return NavigationSetup(mean0, cov0, events, frame, enu, outside, start, len(before))
 
 
 def navigate(
@@ -190,14 +187,17 @@ def navigate(
     frame: LocalTangentPlane | None = None,
     flow=None,
     camera=None,
+    truth: PoseStream | None = None,
+    forward_b: Tensor | None = None,
     progress: bool = False,
 ) -> NavigationResult:
     """Run the EKF and the RTS smoother on an IMU stream, with GNSS fixes if given.
 
-    The filter starts at the first IMU sample from a stationary initialisation
-    over ``config.stationary_s``; with GNSS the local ENU frame has its origin at
-    the first fix (or ``frame``) and the initial position is that fix's, with
-    its accuracy as uncertainty. GNSS fixes outside the IMU time span raise.
+    The filter starts as ``config.start`` says (:func:`~flowins.start.choose_start`:
+    still, moving, from ``truth``, or auto); measurements before its start are not
+    used (the GNSS fixes left out are counted in the result). With GNSS the local ENU
+    frame has its origin at the first fix (or ``frame``). ``forward_b`` is the body
+    axis along the motion of a moving start. GNSS fixes outside the IMU time span raise.
 
     ``flow`` (a :class:`~flowins.flow.pairs.FlowPairs`, dense or sparse) with
     ``camera`` (:class:`~flowins.measurements.flow.FlowCamera`) adds the paper's flow
@@ -211,7 +211,8 @@ def navigate(
     # without a gradient to carry, inference mode skips autograd's bookkeeping on every
     # one of the filter's many small operations
     with torch.inference_mode(not carries_gradient(imu, gnss, config, flow, camera)):
-        return _navigate(imu, gnss, config=config, frame=frame, flow=flow, camera=camera, progress=progress)
+        return _navigate(imu, gnss, config=config, frame=frame, flow=flow, camera=camera, truth=truth,
+                         forward_b=forward_b, progress=progress)
 
 
 def carries_gradient(*objects) -> bool:
@@ -240,12 +241,14 @@ def carries_gradient(*objects) -> bool:
     return False
 
 
-def _navigate(imu, gnss, *, config, frame, flow, camera, progress) -> NavigationResult:
-    setup = prepare_navigation(imu, gnss, config=config, frame=frame, flow=flow, camera=camera)
+def _navigate(imu, gnss, *, config, frame, flow, camera, truth, forward_b, progress) -> NavigationResult:
+    setup = prepare_navigation(imu, gnss, config=config, frame=frame, flow=flow, camera=camera, truth=truth,
+                               forward_b=forward_b)
+    first = setup.start.index
     track = run_filter(
-        t_s=imu.t_s,
-        acc_mps2=imu.acc_mps2,
-        gyro_rps=imu.gyro_rps,
+        t_s=imu.t_s[first:],
+        acc_mps2=imu.acc_mps2[first:],
+        gyro_rps=imu.gyro_rps[first:],
         mean0=setup.mean0,
         cov0=setup.cov0,
         events=setup.events,
@@ -260,4 +263,6 @@ def _navigate(imu, gnss, *, config, frame, flow, camera, progress) -> Navigation
         gnss_enu_m=setup.gnss_enu_m,
         gnss_h_acc_m=None if gnss is None else gnss.h_acc_m,
         flow_pairs_outside=setup.flow_pairs_outside,
+        start=setup.start,
+        gnss_before_start=setup.gnss_before_start,
     )

@@ -17,6 +17,7 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import get_object, instantiate
 from omegaconf import OmegaConf
 
+from flowins.ins.imu_model import imu_model
 from flowins.jobs.evaluate import navigation_config
 from flowins.jobs.train import flow_settings, parameter_sets
 from flowins.navigation import NavigationConfig
@@ -104,9 +105,16 @@ def check_composed(primary: str, cfg, tmp_path: Path) -> None:
         if path == "logger":
             assert Path(obj.save_dir) == tmp_path
     # the filter, as the jobs build it
-    nav = navigation_config(container["filter"])
+    if container["imu"]["name"] == "kalibr":  # needs the user's file
+        with pytest.raises(ValueError, match="imu.path"):
+            imu_model(container["imu"], recording=True)
+        imu = imu_model({**container["imu"], "name": "phone", "acc_noise": 1e-3, "gyro_noise": 1e-4}, recording=True)
+    else:
+        imu = imu_model(container["imu"], recording=False)
+    nav = navigation_config(container["filter"], imu)
     assert isinstance(nav, NavigationConfig)
-    assert nav.noise.acc_noise == container["filter"]["acc_noise"]
+    expected = container["filter"]["acc_noise"]
+    assert nav.noise.acc_noise == (imu.acc_noise * imu.inflation if expected is None else expected)
     assert nav.flow_update.n_points == container["filter"]["flow"]["n_points"]
     assert nav.flow_update.gate.mode == container["filter"]["flow"]["gate"]["mode"]
     if primary == "train":

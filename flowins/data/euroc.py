@@ -248,6 +248,7 @@ def read_euroc(
     offset_ns = int(t_imu_ns[0])
     metadata: dict[str, Any] = {
         "format": "euroc",
+        "imu": "adis16448",  # the IMU preset (configs/imu) of the EuRoC MAV's sensor
         "time_offset_ns": offset_ns,
         "camera": camera,
         "imu_noise": imu_meta.get("imu_noise", {}),

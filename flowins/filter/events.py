@@ -33,6 +33,56 @@ from flowins.state import STATE
 
 
 @dataclass(frozen=True)
+class GnssRecovery:
+    """What follows a run of GNSS fixes the gate rejected (config ``filter.gnss_recovery``).
+
+    A filter that has drifted further than its covariance admits rejects every later
+    fix, and never comes back. After ``after_rejections`` consecutive rejections the
+    filter's position is reset to the latest fix, with that fix's covariance; with
+    ``velocity`` its velocity too, to the mean velocity of the rejected run's fixes
+    (σ² = (R_first + R_last) / Δt² + (½ ``acceleration_sigma_mps2`` Δt)²). The
+    augmented previous-frame position moves with the position, so the flow's relative
+    pose is kept. The reset is a linear step ``x ↦ A x + b`` with noise ``Q`` in the
+    filter's chain, so the smoother sees it as a jump and does not smooth across it.
+    0 switches recovery off.
+    """
+
+    after_rejections: int = 3
+    velocity: bool = True
+    acceleration_sigma_mps2: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.after_rejections, int) or self.after_rejections < 0:
+            raise ValueError(f"filter.gnss_recovery.after_rejections must be an integer >= 0, got {self.after_rejections!r}")
+
+
+def reset_matrices(mean: Tensor, fixes: list[tuple[float, Tensor, Tensor]], recovery: GnssRecovery
+                   ) -> tuple[Tensor, Tensor, Tensor, bool]:
+    """``(A (26, 26), b (26,), Q (26, 26), velocity_reset)`` of the reset to the last of
+    ``fixes`` ``[(t_s, z (3,), R (3, 3)), ...]`` (:class:`GnssRecovery`)."""
+    dim = mean.shape[-1]
+    A = torch.eye(dim, dtype=mean.dtype)
+    b = mean.new_zeros(dim)
+    Q = mean.new_zeros(dim, dim)
+    t_last, z, R = fixes[-1]
+    A[STATE.p, STATE.p] = 0.0
+    A[STATE.p_prev, STATE.p] = -torch.eye(3, dtype=mean.dtype)
+    for rows in (STATE.p, STATE.p_prev):
+        b[rows] = z
+        for cols in (STATE.p, STATE.p_prev):
+            Q[rows, cols] = R
+    t_first, z_first, R_first = fixes[0]
+    span = t_last - t_first
+    with_velocity = recovery.velocity and span > 0
+    if with_velocity:
+        A[STATE.v, STATE.v] = 0.0
+        b[STATE.v] = (z - z_first) / span
+        Q[STATE.v, STATE.v] = (R + R_first) / span**2 + (0.5 * recovery.acceleration_sigma_mps2 * span) ** 2 * torch.eye(
+            3, dtype=mean.dtype)
+    return A, b, Q, with_velocity
+
+
+@dataclass(frozen=True)
 class GnssFix:
     """A GNSS position fix ``z`` (local ENU, m) with noise ``R`` ``(3, 3)``.
 
@@ -48,6 +98,7 @@ class GnssFix:
     lever_arm_m: Tensor | None = None
     name: str = "GNSS fix"
     heading: HeadingAlignment | None = None
+    recovery: GnssRecovery | None = None
 
     def apply(self, chain: ChainBuilder) -> None:
         if self.heading is not None and self.heading.enabled and self._held_for_heading(chain):
@@ -65,13 +116,27 @@ class GnssFix:
             noise_cov=self.noise_cov.to(mean).reshape(1, 3, 3),
             gate=self.gate,
         )
-        chain.update(
-            result,
-            kind="gnss",
-            name=self.name,
-            nis=float(result.nis[0].detach()),
-            accepted=float(result.weight[0].detach()),
-        )
+        accepted = float(result.weight[0].detach())
+        chain.update(result, kind="gnss", name=self.name, nis=float(result.nis[0].detach()), accepted=accepted)
+        self._recover(chain, rejected=accepted < 0.5)
+
+    def _recover(self, chain: ChainBuilder, *, rejected: bool) -> None:
+        """Count consecutive rejections; after ``recovery.after_rejections`` reset (:class:`GnssRecovery`)."""
+        r = self.recovery
+        if r is None or r.after_rejections == 0:
+            return
+        run = chain.memory.setdefault("gnss_rejected", [])
+        if not rejected:
+            run.clear()
+            return
+        run.append((self.time_s, self.position_m.to(chain.mean), self.noise_cov.to(chain.mean)))
+        if len(run) < r.after_rejections:
+            return
+        offset = float(torch.linalg.vector_norm(run[-1][1] - chain.mean[STATE.p]).detach())
+        A, b, Q, with_velocity = reset_matrices(chain.mean, run, r)
+        chain.linear_predict(A, Q, b, kind="gnss_reset", name=self.name, rejected=len(run), offset_m=offset,
+                             velocity=with_velocity)
+        run.clear()
 
     def _held_for_heading(self, chain: ChainBuilder) -> bool:
         """Hold this fix while the yaw is unknown; align when the held fixes allow (True: held).
@@ -142,11 +207,12 @@ def gnss_fixes(
     lever_arm_m: Tensor | None = None,
     name: str = "GNSS",
     heading: HeadingAlignment | None = None,
+    recovery: GnssRecovery | None = None,
 ) -> list[GnssFix]:
     """One :class:`GnssFix` per row of ``t_s (G,)``, ``position_m (G, 3)``, ``noise_cov (G, 3, 3)``."""
     gate = gate or Gate()
     return [
-        GnssFix(float(t_s[i]), position_m[i], noise_cov[i], gate, lever_arm_m, f"{name} row {i}", heading)
+        GnssFix(float(t_s[i]), position_m[i], noise_cov[i], gate, lever_arm_m, f"{name} row {i}", heading, recovery)
         for i in range(t_s.shape[0])
     ]
 

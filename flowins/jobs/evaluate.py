@@ -26,7 +26,7 @@ from flowins.data.streams import GnssStream, ImuStream, PoseStream
 from flowins.evaluation import plot_trajectory, trajectory_errors, write_tum
 from flowins.evaluation.gnss_floor import gnss_floor
 from flowins.filter.ekf import Gate
-from flowins.filter.events import FlowUpdate
+from flowins.filter.events import FlowUpdate, GnssRecovery
 from flowins.filter.heading import HeadingAlignment
 from flowins.flow.pairs import (
     FlowPairs,
@@ -38,10 +38,12 @@ from flowins.flow.pairs import (
     sparse_pairs,
     track_pairs,
 )
-from flowins.ins.initialization import InitialUncertainty
+from flowins.ins.imu_model import ImuModel, imu_model
+from flowins.ins.initialization import InitialUncertainty, StillSettings, forward_axis
 from flowins.ins.mechanization import ProcessNoise
 from flowins.measurements.flow import FlowCamera
 from flowins.navigation import NavigationConfig, NavigationResult, navigate
+from flowins.start import GroundtruthSettings, MovingSettings, StartSettings
 from flowins.state import STATE
 
 #: the filter's precision: float64 only. In float32 the pose copy's nugget (1e-9) is below
@@ -50,26 +52,35 @@ from flowins.state import STATE
 _DTYPES = {"float64": torch.float64}
 
 
-def navigation_config(cfg: Mapping[str, Any]) -> NavigationConfig:
-    """:class:`NavigationConfig` from the ``filter`` config group."""
+def start_settings(cfg: Mapping[str, Any]) -> StartSettings:
+    """:class:`~flowins.start.StartSettings` from ``filter.init``."""
+    cfg = dict(cfg)
+    moving = dict(cfg.pop("moving"))
+    if moving.get("velocity_mps") is not None:
+        moving["velocity_mps"] = tuple(float(v) for v in moving["velocity_mps"])
+        if len(moving["velocity_mps"]) != 3:
+            raise ValueError(f"filter.init.moving.velocity_mps={list(moving['velocity_mps'])}; expected [east, north, up]")
+    return StartSettings(still=StillSettings(**dict(cfg.pop("still"))), moving=MovingSettings(**moving),
+                         groundtruth=GroundtruthSettings(**dict(cfg.pop("groundtruth"))), **cfg)
+
+
+def navigation_config(cfg: Mapping[str, Any], imu: ImuModel | None = None) -> NavigationConfig:
+    """:class:`NavigationConfig` from the ``filter`` config group; its IMU noise keys that are
+    null come from ``imu`` (the ``imu`` config group, :func:`flowins.ins.imu_model.imu_model`)."""
     if cfg["dtype"] not in _DTYPES:
         raise ValueError(f"filter.dtype must be one of {list(_DTYPES)}, got {cfg['dtype']!r} (float32 is not "
                          "precise enough for the pose augmentation and the flow update)")
+    noise = {}
+    for key in ("acc_noise", "gyro_noise", "acc_bias_walk", "gyro_bias_walk"):
+        noise[key] = cfg[key] if cfg[key] is not None else (None if imu is None else imu.noise()[key])
+        if noise[key] is None:
+            raise ValueError(f"filter.{key} is null and no imu preset was given; set filter.{key} or choose imu=...")
     return NavigationConfig(
-        noise=ProcessNoise(
-            acc_noise=cfg["acc_noise"],
-            gyro_noise=cfg["gyro_noise"],
-            acc_bias_walk=cfg["acc_bias_walk"],
-            gyro_bias_walk=cfg["gyro_bias_walk"],
-            acc_scale_walk=cfg["acc_scale_walk"],
-            discretization=cfg["discretization"],
-        ),
+        noise=ProcessNoise(**noise, acc_scale_walk=cfg["acc_scale_walk"], discretization=cfg["discretization"]),
         initial=InitialUncertainty(**dict(cfg["initial"])),
-        stationary_s=cfg["stationary_s"],
-        stationary_zupt_hz=cfg["stationary_zupt_hz"],
-        stationary_zupt_sigma_mps=cfg["stationary_zupt_sigma_mps"],
-        initial_yaw_rad=cfg["initial_yaw_rad"],
+        start=start_settings(cfg["init"]),
         gnss_gate=Gate(mode=cfg["gnss_gate"]["mode"], probability=cfg["gnss_gate"]["probability"]),
+        gnss_recovery=GnssRecovery(**dict(cfg["gnss_recovery"])),
         gnss_noise_scale=cfg["gnss_noise_scale"],
         gnss_correlation_s=cfg["gnss_correlation_s"],
         gnss_heading=HeadingAlignment(**dict(cfg["gnss_heading"])),
@@ -238,6 +249,13 @@ def _export(out: Path, name: str, result: NavigationResult, rec: EvalInputs, plo
     if result.gnss_accepted is not None:
         metrics["gnss_accepted"] = int(result.gnss_accepted.sum())
         metrics["gnss_fixes"] = int(result.gnss_accepted.numel())
+    if result.start is not None:
+        metrics["start"] = result.start.as_dict()
+    resets = [{k: v for k, v in e.items() if k not in ("kind",)} for e in result.filter.log if e.get("kind") == "gnss_reset"]
+    if resets:
+        metrics["gnss_resets"] = resets
+    if result.gnss_before_start:
+        metrics["gnss_before_start"] = result.gnss_before_start
     heading = [{k: v for k, v in e.items() if k not in ("kind", "name")} for e in result.heading_status]
     if heading:
         metrics["heading_alignment"] = heading  # filter.gnss_heading: when and how the heading was set (or given up)
@@ -294,6 +312,33 @@ def _flow_stats(result: NavigationResult, pairs: FlowPairs) -> dict[str, Any]:
     }
 
 
+def run_warnings(result: NavigationResult) -> list[str]:
+    """What a reader of the table must know about a run: resets after rejected GNSS fixes,
+    most fixes rejected, a filter that ends rejecting the fixes (inconsistent)."""
+    warnings = []
+    log = result.filter.log
+    resets = [e for e in log if e.get("kind") == "gnss_reset"]
+    if resets:
+        worst = max(resets, key=lambda e: e["offset_m"])
+        warnings.append(f"GNSS: the filter drifted from the fixes and was reset {len(resets)} time(s) after "
+                        f"{resets[0]['rejected']} rejected fixes in a row (largest jump {worst['offset_m']:.1f} m at "
+                        f"{worst['t_s']:.1f} s; filter.gnss_recovery)")
+    fixes = [e for e in log if e.get("kind") == "gnss" and "nis" in e]
+    if fixes:
+        rejected = sum(e["accepted"] < 0.5 for e in fixes)
+        if rejected > len(fixes) / 2:
+            warnings.append(f"GNSS: {rejected} of {len(fixes)} fixes failed the gate: the filter disagrees with them "
+                            "(filter.gnss_gate, imu noise)")
+        tail = fixes[-10:]
+        if len(tail) >= 3 and sum(e["accepted"] < 0.5 for e in tail) > len(tail) / 2:
+            warnings.append(f"GNSS: the run ends inconsistent: {sum(e['accepted'] < 0.5 for e in tail)} of the last "
+                            f"{len(tail)} fixes failed the gate")
+    if result.gnss_before_start:
+        warnings.append(f"GNSS: {result.gnss_before_start} fixes before the filter's start "
+                        f"({result.start.t_s:.2f} s) are not used")
+    return warnings
+
+
 def gnss_floor_metrics(gnss: GnssStream, truth: PoseStream, *, correlation_s: float | None = None) -> dict[str, Any]:
     """:func:`~flowins.evaluation.gnss_floor.gnss_floor` of a sequence's fixes against its truth
     (``correlation_s``: the GNSS errors' τ; estimated from them when None)."""
@@ -327,10 +372,6 @@ def run(cfg: Mapping[str, Any]) -> list[Row]:
     """Run the job; returns the table rows (also printed and written to ``metrics.json``)."""
     out = Path(cfg["output_dir"])
     out.mkdir(parents=True, exist_ok=True)
-    nav_cfg = navigation_config(cfg["filter"])
-    checkpoint = (cfg.get("model") or {}).get("checkpoint")
-    if checkpoint:
-        nav_cfg, cfg = learned_settings(checkpoint, nav_cfg, cfg)
     quick = bool(cfg.get("quick", False))
     progress = bool(cfg.get("progress"))
     plots = bool(cfg.get("plots", True))
@@ -346,6 +387,19 @@ def run(cfg: Mapping[str, Any]) -> list[Row]:
     print(f"sequence: {rec.name}, {rec.imu.duration_s:.0f} s, {len(rec.imu)} IMU samples, {n_frames} camera frames, "
           f"{n_gnss} GNSS fixes, ground truth: {'yes' if rec.truth is not None else 'no'} "
           f"({time.perf_counter() - t0:.1f} s to load)")
+    sensor = None if seq is None else seq.metadata.get("imu")
+    imu = imu_model(cfg["imu"], recording=bool(cfg["sequence"].get("path")), sensor=sensor)
+    nav_cfg = navigation_config(cfg["filter"], imu)
+    checkpoint = (cfg.get("model") or {}).get("checkpoint")
+    if checkpoint:
+        nav_cfg, cfg = learned_settings(checkpoint, nav_cfg, cfg)
+    noise = nav_cfg.noise
+    print(f"imu: {imu.name} ({imu.source or 'config'}): filter densities acc {float(noise.acc_noise):.3g} m/s²/√Hz, "
+          f"gyro {float(noise.gyro_noise):.3g} rad/s/√Hz, walks {float(noise.acc_bias_walk):.3g} m/s³/√Hz, "
+          f"{float(noise.gyro_bias_walk):.3g} rad/s²/√Hz")
+    calibration = None if seq is None or seq.imu_to_camera is None else seq.imu_to_camera
+    forward_b = forward_axis(nav_cfg.start.moving.forward_axis,
+                             None if calibration is None else calibration.rotation_matrix)
 
     flows: dict[str, FlowPairs | str] = {}
     for kind in ("sparse", "dense"):
@@ -374,16 +428,18 @@ def run(cfg: Mapping[str, Any]) -> list[Row]:
             continue
         t1 = time.perf_counter()
         result = navigate(rec.imu, rec.gnss if sources[0] else None, config=nav_cfg, flow=flow,
-                          camera=rec.camera if flow is not None else None, progress=progress)
+                          camera=rec.camera if flow is not None else None, truth=rec.truth, forward_b=forward_b,
+                          progress=progress)
         m = _export(out, name, result, rec, plots)
         if flow is not None:
             m.update(_flow_stats(result, flow))
         m["seconds"] = time.perf_counter() - t1
+        m["warnings"] = run_warnings(result)
         metrics[name] = m
         note = "" if rec.truth is not None else "no ground truth: TUM tracks only"
         rows.append(Row(name, sources, m["filter_rmse_m"], m["smoother_rmse_m"], note, seconds=m["seconds"]))
         fr = "n/a" if m["filter_rmse_m"] is None else f"{m['filter_rmse_m']:.2f} m"
-        print(f"  {name:<16} filter RMSE {fr} ({m['seconds']:.1f} s)")
+        print(f"  {name:<16} filter RMSE {fr} ({m['seconds']:.1f} s); {result.start.describe()}")
         for entry in m.get("heading_alignment", []):
             if entry["status"] == "never set":
                 print(f"  {'':<16} GNSS: {entry['fixes']} fixes held for the heading to the end: {entry['reason']}")
@@ -392,6 +448,14 @@ def run(cfg: Mapping[str, Any]) -> list[Row]:
     table = format_table(rows)
     print("\nRMSE after Procrustes alignment (rotation + translation) to the ground truth\n")
     print(table)
+    starts = {m["start"]["mode"] for m in metrics.values() if isinstance(m, dict) and "start" in m}
+    if starts:
+        print(f"\nstart: {', '.join(sorted(starts))} (filter.init.mode={nav_cfg.start.mode}; per row in metrics.json)")
+    warned = [(n, w) for n, m in metrics.items() if isinstance(m, dict) for w in m.get("warnings", [])]
+    if warned:
+        print("\nwarnings:")
+        for n, w in warned:
+            print(f"  {n}: {w}")
     uses_gnss = any(methods[name]["gnss"] for name in cfg["combinations"])
     if uses_gnss and rec.gnss is not None and rec.truth is not None and len(rec.gnss) >= 3:
         try:

@@ -50,6 +50,7 @@ def run(cfg: Mapping[str, Any]) -> dict[str, Any]:
     """Fit, test on the held-out sequences, and return the held-out results."""
     from hydra.utils import instantiate
 
+    from flowins.ins.imu_model import imu_model
     from flowins.jobs.evaluate import navigation_config
     from flowins.training.data import SequenceDataModule
     from flowins.training.module import FilterLearner
@@ -62,7 +63,8 @@ def run(cfg: Mapping[str, Any]) -> dict[str, Any]:
     for m in methods:
         if m not in METHODS:
             raise ValueError(f"methods: unknown {m!r}; expected names from {list(METHODS)}")
-    base = navigation_config(cfg["filter"])
+    recording = any(item.get("path") for part in ("train", "val") for item in cfg["data"][part])
+    base = navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=recording))
     tuned, start, learn = parameter_sets(cfg, base)
     params = FilterParameters(start, learn)
     print(f"learning {len(params.learned)} parameters: {', '.join(params.learned)}")

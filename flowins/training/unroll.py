@@ -121,6 +121,9 @@ def run_window(
         if dropout_p is not None:
             flow = flow.at_dropout_rate(dropout_p)
     setup = prepare_navigation(imu, gnss, config=config, flow=flow, camera=seq.camera if flow is not None else None)
+    if setup.start.index != 0:
+        raise ValueError(f"training starts the filter at the first IMU sample; filter.init.mode={setup.start.mode} "
+                         f"starts it at row {setup.start.index}: use filter.init.mode=still or moving")
     first = start is None
     events = [e for e in setup.events if (t_a < e.time_s or (first and e.time_s == t_a)) and e.time_s <= t_b]
     mean0, cov0 = (setup.mean0, setup.cov0) if first else start

@@ -92,12 +92,13 @@ def test_a_float32_filter_is_refused_with_the_reason():
     walk: the config says so instead of producing them."""
     from omegaconf import OmegaConf
 
+    from flowins.ins.imu_model import imu_model
     from flowins.jobs.evaluate import navigation_config
 
     with initialize_config_dir(config_dir=CONFIGS, version_base=None):
         cfg = OmegaConf.to_container(compose("evaluate", overrides=["filter.dtype=float32"]), resolve=False)
     with pytest.raises(ValueError, match="filter.dtype.*float32 is not precise enough"):
-        navigation_config(cfg["filter"])
+        navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=False))
     with initialize_config_dir(config_dir=CONFIGS, version_base=None):
         cfg = OmegaConf.to_container(compose("evaluate"), resolve=False)
-    assert navigation_config(cfg["filter"]).dtype == torch.float64
+    assert navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=False)).dtype == torch.float64

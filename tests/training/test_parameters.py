@@ -107,7 +107,7 @@ def test_apply_while_training_writes_tensors_with_a_gradient_into_every_field():
     assert config.flow_update.n_points == base.flow_update.n_points
     assert config.flow_update.augmentation_mode == base.flow_update.augmentation_mode
     assert config.noise.discretization == base.noise.discretization
-    assert config.stationary_s == base.stationary_s and config.output_every == base.output_every
+    assert config.start == base.start and config.output_every == base.output_every
 
 
 def test_apply_for_inference_writes_floats_and_hard_gates_at_the_learned_threshold():

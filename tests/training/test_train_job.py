@@ -12,6 +12,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
+from flowins.ins.imu_model import imu_model
 from flowins.jobs.evaluate import navigation_config
 from flowins.jobs.train import flow_settings, parameter_sets, run
 from flowins.training.data import load_training_sequence
@@ -84,7 +85,7 @@ def test_a_few_steps_from_a_mistuned_start_reduce_the_loss(workdir):
     cfg = _cfg(workdir, "experiment=mistuned", *TINY)
     seq = load_training_sequence({"seed": 1, "duration_s": 20.0}, {**cfg, "flow": flow_settings(cfg)},
                                  methods=["ins_dense"])
-    base = navigation_config(cfg["filter"])
+    base = navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=False))
     _, start, learn = parameter_sets(cfg, base)
     params = FilterParameters(start, learn)
     opt = torch.optim.Adam([p for p in params.parameters() if p.requires_grad], lr=0.1)

@@ -260,6 +260,7 @@ def simulate(
 
     metadata: dict[str, Any] = {
         "source": "flowins simulator",
+        "imu": "simulated_walk",  # the IMU preset (configs/imu) the filter uses on it by default
         "simulation": {"key": key, "config": config.as_plain()},
         "world_frame": "local ENU (x east, y north, z up); origin on the ground at the start of the walk",
         "gnss_origin_lat_lon_alt": list(config.origin),
