@@ -1,4 +1,4 @@
-"""Convert any supported sequence (flowins, EuRoC, ADVIO) to the flowins folder format.
+"""Convert any supported sequence (flowins, EuRoC, ADVIO, KITTI raw) to the flowins folder format.
 
 ::
 
@@ -21,7 +21,7 @@ from flowins.data.read import read_sequence
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m flowins.data.convert",
-        description="Convert a sequence (flowins folder, EuRoC or ADVIO) to the flowins folder format.",
+        description="Convert a sequence (flowins folder, EuRoC, ADVIO or KITTI raw) to the flowins folder format.",
     )
     parser.add_argument("src", metavar="SRC", help="sequence folder to read")
     parser.add_argument("out", metavar="OUT", help="folder to write (flowins format)")

@@ -7,7 +7,9 @@
     tracks.csv       t,track_id,u,v                 [s, -, px, px]
     gnss.csv         t,lat,lon,alt,h_acc,v_acc      [s, deg, deg, m, m, m]
     groundtruth.csv  t,px,py,pz,qw,qx,qy,qz         [s, m, -] (q empty in every row = positions only)
-    calibration.yaml camera: {width, height, fx, fy, cx, cy, distortion}, imu_to_camera: {rotation, translation}
+    calibration.yaml camera: {width, height, fx, fy, cx, cy, distortion},
+                     imu_to_camera: {rotation, translation} (or its inverse, camera_to_imu)
+    camchain-imucam.yaml  Kalibr's calibration (cam0), read in place of calibration.yaml
     metadata.yaml    free-form mapping -> Sequence.metadata
 
 Every CSV has a header row. Floats are written with ``repr`` (the shortest text
@@ -37,8 +39,10 @@ import torch
 import yaml
 from torch import Tensor
 
+from flowins.data.kalibr import CAMCHAIN, read_kalibr_camchain, read_kalibr_timeshift
 from flowins.data.sequence import CameraFrames, PinholeCamera, Sequence, Tracks
 from flowins.data.streams import GnssStream, ImuStream, PoseStream
+from flowins.geometry import quaternion as quat
 from flowins.geometry.camera import RigidTransform
 
 __all__ = ["FILES", "read_folder", "write_folder", "write_frame_images"]
@@ -51,6 +55,12 @@ GNSS_COLUMNS = ("t", "lat", "lon", "alt", "h_acc", "v_acc")
 GROUNDTRUTH_COLUMNS = ("t", "px", "py", "pz", "qw", "qx", "qy", "qz")
 CAMERA_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "distortion")
 EXTRINSIC_KEYS = ("rotation", "translation")
+EXTRINSIC_NAMES = ("imu_to_camera", "camera_to_imu")
+#: Largest disagreement allowed between ``imu_to_camera`` and the inverse of ``camera_to_imu``
+#: when a calibration.yaml gives both: far below any calibration's accuracy (about 1e-3 rad and
+#: 1e-3 m), above the rounding of numbers printed with six decimals.
+EXTRINSIC_AGREEMENT_RAD = 1e-5
+EXTRINSIC_AGREEMENT_M = 1e-5
 
 #: Every name the format owns inside a sequence folder.
 FILES = (
@@ -62,6 +72,7 @@ FILES = (
     "gnss.csv",
     "groundtruth.csv",
     "calibration.yaml",
+    CAMCHAIN,
     "metadata.yaml",
 )
 
@@ -272,40 +283,98 @@ def _mapping(value: Any, allowed: Seq[str], *, file: Path, root: yaml.Node | Non
     return value
 
 
+def _read_camera(cam_value: Any, *, file: Path, root: yaml.Node | None) -> PinholeCamera:
+    cam = _mapping(cam_value, CAMERA_KEYS, file=file, root=root, keys=("camera",))
+    for key in CAMERA_KEYS[:-1]:
+        if key not in cam:
+            raise ValueError(f"{_at(file, root, 'camera')}camera has no '{key}'; expected {', '.join(CAMERA_KEYS[:-1])} (and optional distortion)")
+        if not _is_number(cam[key]):
+            raise ValueError(f"{_at(file, root, 'camera', key)}camera.{key} is {cam[key]!r}; expected a number (pixels)")
+    distortion = _number_list(
+        cam.get("distortion"), (0, 4, 5), file=file, root=root, keys=("camera", "distortion"), what="k1, k2, p1, p2[, k3]"
+    )
+    try:
+        return PinholeCamera(cam["width"], cam["height"], cam["fx"], cam["fy"], cam["cx"], cam["cy"], tuple(distortion))
+    except ValueError as exc:
+        raise ValueError(f"{_at(file, root, 'camera')}{exc}") from None
+
+
+def _read_extrinsic(value: Any, key: str, *, file: Path, root: yaml.Node | None) -> RigidTransform:
+    """``{rotation: [qw, qx, qy, qz], translation: [x, y, z]}`` at ``key`` as a transform."""
+    ext = _mapping(value, EXTRINSIC_KEYS, file=file, root=root, keys=(key,))
+    for part in EXTRINSIC_KEYS:
+        if part not in ext:
+            raise ValueError(f"{_at(file, root, key)}{key} has no '{part}'; expected rotation [qw, qx, qy, qz] and translation [x, y, z]")
+    q = _number_list(ext["rotation"], (4,), file=file, root=root, keys=(key, "rotation"), what="qw, qx, qy, qz")
+    t = _number_list(ext["translation"], (3,), file=file, root=root, keys=(key, "translation"), what="x, y, z in metres")
+    q_file = torch.tensor(q, dtype=torch.float64)
+    try:
+        transform = RigidTransform(q_file, torch.tensor(t, dtype=torch.float64))
+    except ValueError as exc:
+        raise ValueError(f"{_at(file, root, key, 'rotation')}{exc}") from None
+    object.__setattr__(transform, "rotation_wxyz", _keep_unit_rows(q_file, transform.rotation_wxyz))
+    return transform
+
+
+def _check_inverse(imu_to_camera: RigidTransform, camera_to_imu: RigidTransform, *, file: Path, root: yaml.Node | None) -> None:
+    """Both extrinsics given: ``camera_to_imu`` must be the inverse of ``imu_to_camera``."""
+    inverse = camera_to_imu.inverse()
+    angle_rad = float(quat.angle_between(imu_to_camera.rotation_wxyz, inverse.rotation_wxyz))
+    offset_m = float(torch.linalg.vector_norm(imu_to_camera.translation_m - inverse.translation_m))
+    if angle_rad > EXTRINSIC_AGREEMENT_RAD or offset_m > EXTRINSIC_AGREEMENT_M:
+        raise ValueError(
+            f"{_at(file, root, 'camera_to_imu')}imu_to_camera and camera_to_imu disagree: the inverse of "
+            f"camera_to_imu differs from imu_to_camera by {angle_rad:.3g} rad ({np.degrees(angle_rad):.3g} deg) "
+            f"in rotation and {offset_m:.3g} m in translation; expected inverses of each other (within "
+            f"{EXTRINSIC_AGREEMENT_RAD:g} rad and {EXTRINSIC_AGREEMENT_M:g} m), or give only one of them"
+        )
+
+
 def read_calibration(file: str | Path) -> tuple[PinholeCamera | None, RigidTransform | None]:
-    """A flowins ``calibration.yaml``: ``(camera, imu_to_camera)``; a part the file lacks is ``None``."""
+    """A flowins ``calibration.yaml``: ``(camera, imu_to_camera)``; a part the file lacks is ``None``.
+
+    The extrinsics may be given as ``imu_to_camera`` (``x_cam = R x_imu + t``), as
+    ``camera_to_imu`` (its inverse: the camera's pose in the IMU frame, EuRoC's
+    ``T_BS``, Kalibr's ``T_imu_cam``), or both; both must then agree to within
+    :data:`EXTRINSIC_AGREEMENT_RAD` and :data:`EXTRINSIC_AGREEMENT_M`, and
+    ``imu_to_camera`` is returned as written.
+    """
     file = Path(file)
     data, root = _load_yaml(file)
-    data = _mapping(data, ("camera", "imu_to_camera"), file=file, root=root, keys=())
-    camera = transform = None
-    if "camera" in data:
-        cam = _mapping(data["camera"], CAMERA_KEYS, file=file, root=root, keys=("camera",))
-        for key in CAMERA_KEYS[:-1]:
-            if key not in cam:
-                raise ValueError(f"{_at(file, root, 'camera')}camera has no '{key}'; expected {', '.join(CAMERA_KEYS[:-1])} (and optional distortion)")
-            if not _is_number(cam[key]):
-                raise ValueError(f"{_at(file, root, 'camera', key)}camera.{key} is {cam[key]!r}; expected a number (pixels)")
-        distortion = _number_list(
-            cam.get("distortion"), (0, 4, 5), file=file, root=root, keys=("camera", "distortion"), what="k1, k2, p1, p2[, k3]"
-        )
-        try:
-            camera = PinholeCamera(cam["width"], cam["height"], cam["fx"], cam["fy"], cam["cx"], cam["cy"], tuple(distortion))
-        except ValueError as exc:
-            raise ValueError(f"{_at(file, root, 'camera')}{exc}") from None
+    data = _mapping(data, ("camera", *EXTRINSIC_NAMES), file=file, root=root, keys=())
+    camera = _read_camera(data["camera"], file=file, root=root) if "camera" in data else None
+    transform = None
     if "imu_to_camera" in data:
-        ext = _mapping(data["imu_to_camera"], EXTRINSIC_KEYS, file=file, root=root, keys=("imu_to_camera",))
-        for key in EXTRINSIC_KEYS:
-            if key not in ext:
-                raise ValueError(f"{_at(file, root, 'imu_to_camera')}imu_to_camera has no '{key}'; expected rotation [qw, qx, qy, qz] and translation [x, y, z]")
-        q = _number_list(ext["rotation"], (4,), file=file, root=root, keys=("imu_to_camera", "rotation"), what="qw, qx, qy, qz")
-        t = _number_list(ext["translation"], (3,), file=file, root=root, keys=("imu_to_camera", "translation"), what="x, y, z in metres")
-        q_file = torch.tensor(q, dtype=torch.float64)
-        try:
-            transform = RigidTransform(q_file, torch.tensor(t, dtype=torch.float64))
-        except ValueError as exc:
-            raise ValueError(f"{_at(file, root, 'imu_to_camera', 'rotation')}{exc}") from None
-        object.__setattr__(transform, "rotation_wxyz", _keep_unit_rows(q_file, transform.rotation_wxyz))
+        transform = _read_extrinsic(data["imu_to_camera"], "imu_to_camera", file=file, root=root)
+    if "camera_to_imu" in data:
+        camera_to_imu = _read_extrinsic(data["camera_to_imu"], "camera_to_imu", file=file, root=root)
+        if transform is None:
+            transform = camera_to_imu.inverse()
+        else:
+            _check_inverse(transform, camera_to_imu, file=file, root=root)
     return camera, transform
+
+
+def _read_any_calibration(folder: Path) -> tuple[PinholeCamera | None, RigidTransform | None, Path | None]:
+    """``calibration.yaml`` or, in its place, Kalibr's ``camchain-imucam.yaml`` (cam0); the file read."""
+    calibration, camchain = folder / "calibration.yaml", folder / CAMCHAIN
+    if calibration.is_file() and camchain.is_file():
+        raise ValueError(
+            f"{folder}: holds both calibration.yaml and {CAMCHAIN}; expected one of them (keep one: "
+            "two calibrations could disagree)"
+        )
+    if calibration.is_file():
+        return *read_calibration(calibration), calibration
+    if not camchain.is_file():
+        return None, None, None
+    shift_s = read_kalibr_timeshift(camchain, "cam0")
+    if shift_s != 0.0:
+        raise ValueError(
+            f"{camchain}: cam0.timeshift_cam_imu = {shift_s!r} s; the folder format needs frames.csv and tracks.csv "
+            "on the IMU clock and does not shift them: add the shift to their t (t_imu = t_cam + shift) and set "
+            "timeshift_cam_imu to 0.0"
+        )
+    return *read_kalibr_camchain(camchain, "cam0"), camchain
 
 
 # ---------------------------------------------------------------------------
@@ -468,14 +537,11 @@ def read_folder(
         raise ValueError(f"{imu_file}: missing; expected imu.csv (t,ax,ay,az,wx,wy,wz) in every flowins sequence folder")
     imu = _read_imu(imu_file, max_gap_s=max_imu_gap_s, check_units=check_units)
 
-    calibration = folder / "calibration.yaml"
-    camera = transform = None
-    if calibration.is_file():
-        camera, transform = read_calibration(calibration)
+    camera, transform, calibration = _read_any_calibration(folder)
     for part in ("frames.csv", "tracks.csv"):
         if (folder / part).is_file() and (camera is None or transform is None):
-            missing = "calibration.yaml is missing" if not calibration.is_file() else (
-                f"{calibration} has no '{'camera' if camera is None else 'imu_to_camera'}'"
+            missing = f"calibration.yaml is missing (and so is {CAMCHAIN})" if calibration is None else (
+                f"{calibration} has no '{'camera' if camera is None else 'imu_to_camera'}' (nor 'camera_to_imu')"
             )
             raise ValueError(
                 f"{folder / part}: needs the camera calibration, but {missing}; expected calibration.yaml with "
@@ -651,7 +717,9 @@ def write_folder(
 
     Args:
         overwrite: allow a non-empty ``path``; the format's files in it are
-            replaced (images that are the sequence's own frames stay).
+            replaced (images that are the sequence's own frames stay; a
+            ``camchain-imucam.yaml`` is removed: the calibration is written as
+            ``calibration.yaml``).
 
     Raises:
         ValueError: ``path`` is a non-empty folder and ``overwrite`` is False, or

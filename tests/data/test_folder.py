@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+import yaml
 
 from flowins.data.folder import read_folder, write_folder, write_frame_images
 from flowins.data.read import detect_format, read_sequence
@@ -479,3 +480,68 @@ def test_read_sequence_unknown_layout(tmp_path):
         read_sequence(tmp_path)
     with pytest.raises(ValueError, match="not a folder"):
         read_sequence(tmp_path / "nothing")
+
+
+# ---------------------------------------------------------------------------
+# camera_to_imu: the inverse of imu_to_camera (independent truth: Rodrigues' formula)
+# ---------------------------------------------------------------------------
+
+_AXIS = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+_ANGLE = 1.9
+_Q_CAM_IN_IMU = [np.cos(_ANGLE / 2), *(np.sin(_ANGLE / 2) * _AXIS)]  # camera's orientation in the IMU frame
+_T_CAM_IN_IMU = np.array([0.05, -0.02, 0.11])  # camera's position in the IMU frame [m]
+
+
+def _rodrigues(axis, angle):
+    Kx = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * Kx + (1 - np.cos(angle)) * Kx @ Kx
+
+
+def _extrinsic_yaml(key, q, t, digits=None):
+    fmt = (lambda v: repr(float(v))) if digits is None else (lambda v: f"{float(v):.{digits}f}")
+    return f"{key}:\n  rotation: [{', '.join(map(fmt, q))}]\n  translation: [{', '.join(map(fmt, t))}]\n"
+
+
+def _camera_yaml():
+    return CALIBRATION.split("imu_to_camera:")[0]
+
+
+def test_camera_to_imu_alone_is_inverted(tmp_path):
+    folder = _frames_folder(tmp_path)
+    (folder / "calibration.yaml").write_text(_camera_yaml() + _extrinsic_yaml("camera_to_imu", _Q_CAM_IN_IMU, _T_CAM_IN_IMU))
+    seq = read_folder(folder)
+    points_cam = np.random.default_rng(0).normal(size=(20, 3))
+    points_imu = points_cam @ _rodrigues(_AXIS, _ANGLE).T + _T_CAM_IN_IMU  # x_imu = R x_cam + t
+    mapped = seq.imu_to_camera.apply(torch.from_numpy(points_imu))
+    assert torch.allclose(mapped, torch.from_numpy(points_cam), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("digits", [None, 6])  # exact, and printed with six decimals
+def test_camera_to_imu_and_imu_to_camera_that_agree(tmp_path, digits):
+    R = _rodrigues(_AXIS, _ANGLE)
+    q_inverse = [_Q_CAM_IN_IMU[0], *(-np.asarray(_Q_CAM_IN_IMU[1:]))]
+    text = (_camera_yaml() + _extrinsic_yaml("imu_to_camera", q_inverse, -R.T @ _T_CAM_IN_IMU, digits)
+            + _extrinsic_yaml("camera_to_imu", _Q_CAM_IN_IMU, _T_CAM_IN_IMU, digits))
+    folder = _frames_folder(tmp_path)
+    (folder / "calibration.yaml").write_text(text)
+    written = yaml.safe_load(text)["imu_to_camera"]
+    transform = read_folder(folder).imu_to_camera  # imu_to_camera, as written
+    assert torch.equal(transform.translation_m, torch.tensor(written["translation"], dtype=torch.float64))
+    assert torch.allclose(transform.rotation_wxyz, torch.tensor(written["rotation"], dtype=torch.float64), rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("rotation_error, translation_error, message", [
+    (0.0, 1e-3, r"by 0 rad \(0 deg\) in rotation and 0\.001 m in translation"),
+    (1e-3, 0.0, r"by 0\.001 rad \(0\.0573 deg\) in rotation and 4\.44e-05 m in translation"),  # 1e-3 x |t ⊥ axis|
+])
+def test_camera_to_imu_and_imu_to_camera_that_disagree(tmp_path, rotation_error, translation_error, message):
+    R = _rodrigues(_AXIS, _ANGLE)
+    q_inverse = [_Q_CAM_IN_IMU[0], *(-np.asarray(_Q_CAM_IN_IMU[1:]))]
+    q_off = [np.cos(_ANGLE / 2 + rotation_error / 2), *(np.sin(_ANGLE / 2 + rotation_error / 2) * _AXIS)]
+    text = (_camera_yaml() + _extrinsic_yaml("imu_to_camera", q_inverse, -R.T @ _T_CAM_IN_IMU)
+            + _extrinsic_yaml("camera_to_imu", q_off, _T_CAM_IN_IMU + [0.0, translation_error, 0.0]))
+    folder = _frames_folder(tmp_path)
+    (folder / "calibration.yaml").write_text(text)
+    with pytest.raises(ValueError, match=r"calibration\.yaml: line 11: imu_to_camera and camera_to_imu disagree: .*" + message
+                       + r".*within 1e-05 rad and 1e-05 m"):
+        read_folder(folder)
