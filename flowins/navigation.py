@@ -146,6 +146,7 @@ def prepare_navigation(
     camera=None,
     truth: PoseStream | None = None,
     forward_b: Tensor | None = None,
+    start_gnss: GnssStream | None = None,
 ) -> NavigationSetup:
     """The prior and the measurement events of :func:`navigate` (see there).
 
@@ -160,10 +161,13 @@ def prepare_navigation(
         cov = gnss_noise(gnss.h_acc_m, gnss.v_acc_m, config.gnss_noise_scale) * inflation.reshape(-1, 1, 1)
         events = gnss_fixes(gnss.t_s, enu, cov, gate=config.gnss_gate, name=gnss.name, heading=config.gnss_heading,
                             recovery=config.gnss_recovery)
-        sigma = torch.stack((gnss.h_acc_m, gnss.h_acc_m, gnss.v_acc_m), -1)
-        fixes = (gnss.t_s, enu, sigma)
+    start_gnss = gnss if gnss is not None else start_gnss
+    if start_gnss is not None:
+        start_enu, _, frame = gnss_to_enu(start_gnss, origin=frame)
+        sigma = torch.stack((start_gnss.h_acc_m, start_gnss.h_acc_m, start_gnss.v_acc_m), -1)
+        fixes = (start_gnss.t_s, start_enu, sigma)
     start = choose_start(imu, settings=config.start, fixes=fixes, truth=truth, forward_b=forward_b,
-                         uncertainty=config.initial, gravity_mps2=float(config.gravity_mps2))
+                         uncertainty=config.initial, gravity_mps2=float(config.gravity_mps2), fused=gnss is not None)
     before = [e for e in events if e.time_s < start.t_s]
     events = [e for e in events if e.time_s >= start.t_s]
     events += [ZeroVelocity(t, config.start.still.zupt_sigma_mps, f"zero velocity at {t:.2f} s")
@@ -189,6 +193,7 @@ def navigate(
     camera=None,
     truth: PoseStream | None = None,
     forward_b: Tensor | None = None,
+    start_gnss: GnssStream | None = None,
     progress: bool = False,
 ) -> NavigationResult:
     """Run the EKF and the RTS smoother on an IMU stream, with GNSS fixes if given.
@@ -198,6 +203,9 @@ def navigate(
     used (the GNSS fixes left out are counted in the result). With GNSS the local ENU
     frame has its origin at the first fix (or ``frame``). ``forward_b`` is the body
     axis along the motion of a moving start. GNSS fixes outside the IMU time span raise.
+    Without ``gnss``, the fixes of ``start_gnss`` may set the start (a moving start's
+    velocity and heading) and are used for nothing else, so that a run without GNSS
+    starts as the run with GNSS does.
 
     ``flow`` (a :class:`~flowins.flow.pairs.FlowPairs`, dense or sparse) with
     ``camera`` (:class:`~flowins.measurements.flow.FlowCamera`) adds the paper's flow
@@ -212,7 +220,7 @@ def navigate(
     # one of the filter's many small operations
     with torch.inference_mode(not carries_gradient(imu, gnss, config, flow, camera)):
         return _navigate(imu, gnss, config=config, frame=frame, flow=flow, camera=camera, truth=truth,
-                         forward_b=forward_b, progress=progress)
+                         forward_b=forward_b, start_gnss=start_gnss, progress=progress)
 
 
 def carries_gradient(*objects) -> bool:
@@ -241,9 +249,9 @@ def carries_gradient(*objects) -> bool:
     return False
 
 
-def _navigate(imu, gnss, *, config, frame, flow, camera, truth, forward_b, progress) -> NavigationResult:
+def _navigate(imu, gnss, *, config, frame, flow, camera, truth, forward_b, start_gnss, progress) -> NavigationResult:
     setup = prepare_navigation(imu, gnss, config=config, frame=frame, flow=flow, camera=camera, truth=truth,
-                               forward_b=forward_b)
+                               forward_b=forward_b, start_gnss=start_gnss)
     first = setup.start.index
     track = run_filter(
         t_s=imu.t_s[first:],

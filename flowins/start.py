@@ -223,11 +223,14 @@ def choose_start(
     forward_b: Tensor | None = None,
     uncertainty: InitialUncertainty = InitialUncertainty(),
     gravity_mps2: float = 9.80665,
+    fused: bool = True,
 ) -> Start:
     """The filter's start on ``imu`` (module docstring).
 
     Args:
-        fixes: GNSS ``(t_s (G,), enu_m (G, 3), sigma_m (G, 3))`` in the filter's frame, if fused.
+        fixes: GNSS ``(t_s (G,), enu_m (G, 3), sigma_m (G, 3))`` in the filter's frame.
+        fused: whether the filter fuses ``fixes``; if not, they serve the start only
+            (a still start then keeps the prior position, and the reason says so).
         truth: the recording's ground truth (``groundtruth`` mode only).
         forward_b: the body axis along the motion (:func:`~flowins.ins.initialization.forward_axis`).
 
@@ -266,8 +269,8 @@ def choose_start(
                     "filter.init.mode=moving (GNSS or filter.init.moving.velocity_mps) or groundtruth, or lower "
                     "min_s / raise the still thresholds (filter.init.still)")
             rows = slice(0, still.end)
-            position = None if fixes is None else fixes[1][0]
-            u = uncertainty if fixes is None else InitialUncertainty(
+            position = None if fixes is None or not fused else fixes[1][0]
+            u = uncertainty if position is None else InitialUncertainty(
                 **{**uncertainty.__dict__, "position_m": float(fixes[2][0].max())})
             mean, cov = still_prior(imu.acc_mps2[rows], imu.gyro_rps[rows], yaw_rad=settings.yaw_rad,
                                     position_m=position, uncertainty=u)
@@ -288,8 +291,11 @@ def choose_start(
                 "filter.init.mode=moving with filter.init.moving.velocity_mps=[e,n,u] and heading_rad, or "
                 "filter.init.mode=groundtruth")
         return _moving(imu, fit, settings.moving, forward_b, uncertainty, gravity_mps2,
-                       reason=f"auto: not still ({why_not_still})",
-                       source=f"{fit.fixes} GNSS fixes over {fit.span_s:.1f} s")
+                       reason=f"auto: not still ({why_not_still})", source=_fit_source(fit, fused))
     # mode == "moving"
     return _moving(imu, fit, settings.moving, forward_b, uncertainty, gravity_mps2, reason="filter.init.mode=moving",
-                   source="" if fit is None else f"{fit.fixes} GNSS fixes over {fit.span_s:.1f} s")
+                   source="" if fit is None else _fit_source(fit, fused))
+
+
+def _fit_source(fit, fused: bool) -> str:
+    return f"{fit.fixes} GNSS fixes over {fit.span_s:.1f} s" + ("" if fused else " (for the start only)")

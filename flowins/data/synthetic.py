@@ -114,15 +114,24 @@ class Walk:
 
     def imu(self, t: Tensor, gravity_mps2: float = STANDARD_GRAVITY_MPS2) -> tuple[Tensor, Tensor]:
         """Exact specific force ``(N, 3)`` (m/s²) and body angular rate ``(N, 3)`` (rad/s)."""
-        t = t.reshape(-1)
-        acc_world = vmap(jacfwd(jacfwd(self.position)))(t)
-        R = self.rotation(t)
-        R_dot = vmap(jacfwd(self.rotation))(t)
-        g = torch.tensor([0.0, 0.0, gravity_mps2], dtype=t.dtype)
-        f_body = (R.transpose(-1, -2) @ (acc_world + g).unsqueeze(-1)).squeeze(-1)
-        W = R.transpose(-1, -2) @ R_dot  # skew(ω_body)
-        omega = torch.stack((W[:, 2, 1], W[:, 0, 2], W[:, 1, 0]), -1)
-        return f_body, omega
+        return body_readings(self.rotation, jacfwd(self.position), t, gravity_mps2)
+
+
+def body_readings(rotation, velocity, t_s: Tensor, gravity_mps2: float = STANDARD_GRAVITY_MPS2) -> tuple[Tensor, Tensor]:
+    """Exact specific force ``(N, 3)`` (m/s²) and body rate ``(N, 3)`` (rad/s) of a trajectory.
+
+    ``rotation(t)`` (body -> world, ``(3, 3)``) and ``velocity(t)`` (``(3,)`` m/s) are
+    differentiable functions of a scalar time: ``f = Rᵀ (v̇ + g e_z)``, ``[ω]ₓ = Rᵀ Ṙ``.
+    """
+    t = t_s.reshape(-1)
+    acc_world = vmap(jacfwd(velocity))(t)
+    R = vmap(rotation)(t)
+    R_dot = vmap(jacfwd(rotation))(t)
+    g = torch.tensor([0.0, 0.0, gravity_mps2], dtype=t.dtype)
+    f_body = (R.transpose(-1, -2) @ (acc_world + g).unsqueeze(-1)).squeeze(-1)
+    W = R.transpose(-1, -2) @ R_dot  # skew(ω_body)
+    omega = torch.stack((W[:, 2, 1], W[:, 0, 2], W[:, 1, 0]), -1)
+    return f_body, omega
 
 
 def increment_imu(walk: Walk, t_s: Tensor, gravity_mps2: float = STANDARD_GRAVITY_MPS2) -> tuple[Tensor, Tensor]:
@@ -163,6 +172,51 @@ class ImuErrors:
     acc_bias_walk: float = 1e-4  # m/s³/√Hz
     gyro_bias_walk: float = 1e-5  # rad/s²/√Hz
     acc_scale_std: float = 0.01  # relative, turn-on
+
+
+@dataclass(frozen=True)
+class Vibration:
+    """Rotor- or engine-like vibration of the IMU: a few sinusoids per axis at random
+    frequencies in ``band_hz`` with random phases, from the first sample to ``until_s``
+    (``None``: the whole recording). Each reading is the vibration's mean over the
+    interval the sample ends, as for the rest of the simulated IMU (an integrating
+    sensor: tones above half the rate are attenuated, not aliased to low frequencies);
+    ``acc_mps2`` and ``gyro_rps`` are the RMS per axis of what the readings show."""
+
+    acc_mps2: float = 0.0
+    gyro_rps: float = 0.0
+    band_hz: tuple[float, float] = (50.0, 200.0)
+    until_s: float | None = None
+    tones: int = 4
+
+    def __post_init__(self) -> None:
+        if self.acc_mps2 < 0 or self.gyro_rps < 0 or self.tones < 1 or not 0 < self.band_hz[0] <= self.band_hz[1]:
+            raise ValueError(f"Vibration: need acc_mps2, gyro_rps >= 0, tones >= 1 and 0 < band_hz[0] <= band_hz[1]; got {self}")
+
+
+def vibrate(t_s: Tensor, acc_mps2: Tensor, gyro_rps: Tensor, vibration: Vibration,
+            generator: torch.Generator) -> tuple[Tensor, Tensor]:
+    """``(acc, gyro)`` ``(N, 3)`` with ``vibration`` added (unchanged when both amplitudes are 0).
+
+    Tone ``sin(2πf t + φ)`` read over ``(t_{k-1}, t_k]`` is
+    ``(cos(2πf t_{k-1} + φ) - cos(2πf t_k + φ)) / (2πf Δt_k)``; sample 0 reads it at ``t_0``.
+    """
+    if vibration.acc_mps2 == 0 and vibration.gyro_rps == 0:
+        return acc_mps2, gyro_rps
+    lo, hi = vibration.band_hz
+    on = t_s <= vibration.until_s if vibration.until_s is not None else torch.ones_like(t_s, dtype=torch.bool)
+
+    def shake(rms: float) -> Tensor:  # (N, 3) read vibration with RMS `rms` per axis over the rows `on`
+        f = lo + (hi - lo) * torch.rand(3, vibration.tones, generator=generator, dtype=torch.float64)
+        phase = 2 * math.pi * torch.rand(3, vibration.tones, generator=generator, dtype=torch.float64)
+        angle = 2 * math.pi * f * t_s[:, None, None] + phase  # (N, 3, tones)
+        dt = torch.diff(t_s)[:, None, None]
+        mean = (torch.cos(angle[:-1]) - torch.cos(angle[1:])) / (2 * math.pi * f * dt)
+        wave = torch.cat((torch.sin(angle[:1]), mean)).sum(-1)
+        scale = rms / wave[on].pow(2).mean(0).sqrt().clamp_min(1e-12)
+        return wave * scale * on.to(t_s.dtype).unsqueeze(-1)
+
+    return acc_mps2 + shake(vibration.acc_mps2), gyro_rps + shake(vibration.gyro_rps)
 
 
 def sample_times(duration_s: float, rate_hz: float, jitter: float, generator: torch.Generator) -> Tensor:
@@ -232,6 +286,7 @@ def synthetic_walk_recording(
     gnss_rate_hz: float = 1.0,
     truth_rate_hz: float = 10.0,
     imu_errors: ImuErrors = ImuErrors(),
+    vibration: Vibration = Vibration(),
     walk: WalkConfig | None = None,
     origin: tuple[float, float, float] = (60.1699, 24.9384, 20.0),
     gravity_mps2: float = STANDARD_GRAVITY_MPS2,
@@ -240,7 +295,8 @@ def synthetic_walk_recording(
 
     Each IMU sample is the true specific force and rate at the middle of the
     interval it ends (the sample represents its interval, as an integrating
-    sensor's does), corrupted by :func:`corrupt_imu`. Deterministic in ``seed``.
+    sensor's does), corrupted by :func:`corrupt_imu` and shaken by ``vibration``
+    (:func:`vibrate`). Deterministic in ``seed``.
     """
     from flowins.data.streams import GnssStream, ImuStream, PoseStream
     from flowins.geometry.geodesy import LocalTangentPlane
@@ -251,6 +307,7 @@ def synthetic_walk_recording(
     t_mid = torch.cat((t[:1], 0.5 * (t[1:] + t[:-1])))
     f_true, w_true = w.imu(t_mid, gravity_mps2)
     acc, gyro, errors = corrupt_imu(t, f_true, w_true, imu_errors, gen)
+    acc, gyro = vibrate(t, acc, gyro, vibration, gen)
     t_gnss = torch.arange(1.0 / gnss_rate_hz, float(t[-1]), 1.0 / gnss_rate_hz, dtype=torch.float64)
     _, enu, h_acc, v_acc = gnss_track(w, t_gnss, gen)
     plane = LocalTangentPlane(*origin)

@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from flowins.filter.augmentation import augment_pose, copy_matrices, forgetting_matrices
-from flowins.filter.ekf import Gate, ekf_update
+from flowins.filter.ekf import Gate, chi2_quantile, ekf_update
 from flowins.filter.heading import (
     HeadingAlignment,
     fit_heading,
@@ -45,15 +45,33 @@ class GnssRecovery:
     pose is kept. The reset is a linear step ``x ↦ A x + b`` with noise ``Q`` in the
     filter's chain, so the smoother sees it as a jump and does not smooth across it.
     0 switches recovery off.
+
+    The innovations also tell an inconsistent filter that still passes the gate: when
+    the NIS of the last ``nis_window`` accepted fixes sums above the χ²(3 ``nis_window``)
+    quantile ``nis_probability``, the filter is reset the same way (0: off). A reset
+    adds ``acc_bias_sigma_mps2`` and ``gyro_bias_sigma_rps`` to the biases' σ, so a
+    filter that drifted off on biases it trusted too much can learn them again.
     """
 
     after_rejections: int = 3
     velocity: bool = True
     acceleration_sigma_mps2: float = 1.0
+    #: added to the IMU biases' σ at a reset: a filter that drifted off has biases it trusts too much
+    acc_bias_sigma_mps2: float = 0.1
+    gyro_bias_sigma_rps: float = 2e-3
+    nis_window: int = 10
+    nis_probability: float = 1 - 1e-6
 
     def __post_init__(self) -> None:
-        if not isinstance(self.after_rejections, int) or self.after_rejections < 0:
-            raise ValueError(f"filter.gnss_recovery.after_rejections must be an integer >= 0, got {self.after_rejections!r}")
+        for key in ("after_rejections", "nis_window"):
+            value = getattr(self, key)
+            if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+                raise ValueError(f"filter.gnss_recovery.{key} must be an integer >= 0, got {value!r}")
+        if not 0.0 < self.nis_probability < 1.0:
+            raise ValueError(f"filter.gnss_recovery.nis_probability must be in (0, 1), got {self.nis_probability!r}")
+        for key in ("acceleration_sigma_mps2", "acc_bias_sigma_mps2", "gyro_bias_sigma_rps"):
+            if not getattr(self, key) >= 0.0:
+                raise ValueError(f"filter.gnss_recovery.{key} must be >= 0, got {getattr(self, key)!r}")
 
 
 def reset_matrices(mean: Tensor, fixes: list[tuple[float, Tensor, Tensor]], recovery: GnssRecovery
@@ -79,6 +97,8 @@ def reset_matrices(mean: Tensor, fixes: list[tuple[float, Tensor, Tensor]], reco
         b[STATE.v] = (z - z_first) / span
         Q[STATE.v, STATE.v] = (R + R_first) / span**2 + (0.5 * recovery.acceleration_sigma_mps2 * span) ** 2 * torch.eye(
             3, dtype=mean.dtype)
+    Q[STATE.b_a, STATE.b_a] = recovery.acc_bias_sigma_mps2**2 * torch.eye(3, dtype=mean.dtype)
+    Q[STATE.b_w, STATE.b_w] = recovery.gyro_bias_sigma_rps**2 * torch.eye(3, dtype=mean.dtype)
     return A, b, Q, with_velocity
 
 
@@ -117,26 +137,38 @@ class GnssFix:
             gate=self.gate,
         )
         accepted = float(result.weight[0].detach())
-        chain.update(result, kind="gnss", name=self.name, nis=float(result.nis[0].detach()), accepted=accepted)
-        self._recover(chain, rejected=accepted < 0.5)
+        nis = float(result.nis[0].detach())
+        chain.update(result, kind="gnss", name=self.name, nis=nis, accepted=accepted)
+        self._recover(chain, rejected=accepted < 0.5, nis=nis)
 
-    def _recover(self, chain: ChainBuilder, *, rejected: bool) -> None:
-        """Count consecutive rejections; after ``recovery.after_rejections`` reset (:class:`GnssRecovery`)."""
+    def _recover(self, chain: ChainBuilder, *, rejected: bool, nis: float) -> None:
+        """Reset after ``after_rejections`` consecutive rejections, or when the last
+        ``nis_window`` fixes' NIS say the filter is inconsistent (:class:`GnssRecovery`)."""
         r = self.recovery
-        if r is None or r.after_rejections == 0:
+        if r is None:
             return
+        fix = (self.time_s, self.position_m.to(chain.mean), self.noise_cov.to(chain.mean))
         run = chain.memory.setdefault("gnss_rejected", [])
+        recent = chain.memory.setdefault("gnss_recent", [])
+        run[:] = run + [fix] if rejected else []
         if not rejected:
-            run.clear()
+            recent[:] = (recent + [(fix, nis)])[-r.nis_window:] if r.nis_window else []
+        if r.after_rejections and len(run) >= r.after_rejections:
+            self._reset(chain, run, why="rejected", rejected=len(run))
+        elif r.nis_window and len(recent) == r.nis_window and sum(n for _, n in recent) > chi2_quantile(
+                r.nis_probability, 3 * r.nis_window):
+            self._reset(chain, [f for f, _ in recent], why="inconsistent",
+                        mean_nis=sum(n for _, n in recent) / r.nis_window)
+        else:
             return
-        run.append((self.time_s, self.position_m.to(chain.mean), self.noise_cov.to(chain.mean)))
-        if len(run) < r.after_rejections:
-            return
-        offset = float(torch.linalg.vector_norm(run[-1][1] - chain.mean[STATE.p]).detach())
-        A, b, Q, with_velocity = reset_matrices(chain.mean, run, r)
-        chain.linear_predict(A, Q, b, kind="gnss_reset", name=self.name, rejected=len(run), offset_m=offset,
-                             velocity=with_velocity)
         run.clear()
+        recent.clear()
+
+    def _reset(self, chain: ChainBuilder, fixes: list, *, why: str, **facts) -> None:
+        offset = float(torch.linalg.vector_norm(fixes[-1][1] - chain.mean[STATE.p]).detach())
+        A, b, Q, with_velocity = reset_matrices(chain.mean, fixes, self.recovery)
+        chain.linear_predict(A, Q, b, kind="gnss_reset", name=self.name, why=why, offset_m=offset,
+                             velocity=with_velocity, **facts)
 
     def _held_for_heading(self, chain: ChainBuilder) -> bool:
         """Hold this fix while the yaw is unknown; align when the held fixes allow (True: held).
@@ -268,6 +300,48 @@ class PoseAugmentation:
 
 
 @dataclass(frozen=True)
+class FlowRecovery:
+    """What follows frames whose flow the filter rejects (config ``filter.flow.recovery``).
+
+    A filter whose velocity or attitude has gone wrong finds most flow points
+    outside its gate, and the gate keeps out the very measurements that would correct
+    it. After ``after_frames`` consecutive frames with at least ``min_valid`` valid
+    points of which at most ``max_accepted`` (a fraction) pass the gate, the velocity's
+    σ is raised by ``velocity_sigma_mps`` and the gyroscope bias's by
+    ``gyro_bias_sigma_rps`` (a logged ``flow_inflate`` step), so that the next frames can
+    pull the filter back. 0 frames switches it off.
+    """
+
+    after_frames: int = 5
+    max_accepted: float = 0.5
+    min_valid: int = 8
+    velocity_sigma_mps: float = 0.5
+    gyro_bias_sigma_rps: float = 2e-3
+
+    def __post_init__(self) -> None:
+        for key in ("after_frames", "min_valid"):
+            value = getattr(self, key)
+            if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+                raise ValueError(f"filter.flow.recovery.{key} must be an integer >= 0, got {value!r}")
+        if not 0.0 <= self.max_accepted < 1.0:
+            raise ValueError(f"filter.flow.recovery.max_accepted must be in [0, 1), got {self.max_accepted!r}")
+        for key in ("velocity_sigma_mps", "gyro_bias_sigma_rps"):
+            if not getattr(self, key) >= 0.0:
+                raise ValueError(f"filter.flow.recovery.{key} must be >= 0, got {getattr(self, key)!r}")
+
+    def gated(self, valid: int, accepted: float) -> bool:
+        """Whether a frame with ``valid`` points of which ``accepted`` passed counts as gated."""
+        return valid >= max(self.min_valid, 1) and accepted <= self.max_accepted * valid
+
+    def inflation(self, mean: Tensor) -> Tensor:
+        """``Q (D, D)``: the covariance added to the state ``mean`` ``(D,)``."""
+        Q = mean.new_zeros(mean.shape[-1], mean.shape[-1])
+        Q[STATE.v, STATE.v] = self.velocity_sigma_mps**2 * torch.eye(3, dtype=mean.dtype)
+        Q[STATE.b_w, STATE.b_w] = self.gyro_bias_sigma_rps**2 * torch.eye(3, dtype=mean.dtype)
+        return Q
+
+
+@dataclass(frozen=True)
 class FlowUpdate:
     """How a frame's flow points update the filter (every field has a config entry).
 
@@ -287,6 +361,7 @@ class FlowUpdate:
         sequential: the paper's point-by-point update instead of one stacked update.
         iterations: relinearisations of the measurement (1: EKF, > 1: iterated EKF).
         augmentation: the pose forgetting + augmentation after the update.
+        recovery: what follows frames whose flow is nearly all gated (:class:`FlowRecovery`).
     """
 
     n_points: int | None = 256
@@ -302,6 +377,7 @@ class FlowUpdate:
     augmentation_mode: str = "limit"
     sigma_p0: float | Tensor = 1e3
     sigma_q0: float | Tensor = 1e2
+    recovery: FlowRecovery = field(default_factory=FlowRecovery)
 
     def __post_init__(self) -> None:
         if self.n_points is not None and self.n_points < 1:
@@ -374,8 +450,22 @@ class FlowFrame:
                 x_i = result.mean
             info = dict(kind="flow", name=self.name, candidates=M, points=len(points), valid=int(m.valid.sum()),
                         degenerate=m.n_degenerate, behind=m.n_behind, low_parallax=m.n_low_parallax)
+            accepted = 0.0 if result is None else float(result.weight.detach().sum())
             if result is not None:
-                chain.update(result, accepted=float(result.weight.detach().sum()), **info)
+                chain.update(result, accepted=accepted, **info)
             else:
                 chain.log.append({"t_s": chain.time_s, "accepted": 0.0, **info})
+            self._recover(chain, valid=info["valid"], accepted=accepted)
         PoseAugmentation(self.time_s, u.sigma_p0, u.sigma_q0, mode=u.augmentation_mode).apply(chain)
+
+    def _recover(self, chain: ChainBuilder, *, valid: int, accepted: float) -> None:
+        """Count consecutive gated frames; after ``recovery.after_frames`` inflate (:class:`FlowRecovery`)."""
+        r = self.update.recovery
+        if r.after_frames == 0:
+            return
+        gated = chain.memory.get("flow_gated", 0) + 1 if r.gated(valid, accepted) else 0
+        chain.memory["flow_gated"] = gated
+        if gated >= r.after_frames:
+            eye = torch.eye(chain.mean.shape[-1], dtype=chain.mean.dtype)
+            chain.linear_predict(eye, r.inflation(chain.mean), kind="flow_inflate", name=self.name, frames=gated)
+            chain.memory["flow_gated"] = 0

@@ -200,13 +200,13 @@ class StillInterval:
 
 
 def moving_average(x: Tensor, half_width: int) -> Tensor:
-    """Centred moving average of ``x`` ``(N, C)`` over ``2 half_width + 1`` rows (fewer at the ends)."""
+    """Moving average of ``x`` ``(N, C)`` over ``w = 2 half_width + 1`` rows: centred, and
+    at the ends the first (last) full window, so every row averages ``min(w, N)`` rows."""
     n = x.shape[0]
+    w = min(2 * half_width + 1, n)
     c = torch.cat((x.new_zeros(1, x.shape[1]), torch.cumsum(x, dim=0)))
-    idx = torch.arange(n)
-    lo = (idx - half_width).clamp_min(0)
-    hi = (idx + half_width + 1).clamp_max(n)
-    return (c[hi] - c[lo]) / (hi - lo).to(x.dtype).unsqueeze(-1)
+    lo = (torch.arange(n) - half_width).clamp(0, n - w)
+    return (c[lo + w] - c[lo]) / w
 
 
 def still_interval(t_s: Tensor, acc_mps2: Tensor, gyro_rps: Tensor, settings: StillSettings = StillSettings(), *,

@@ -26,7 +26,7 @@ from flowins.data.streams import GnssStream, ImuStream, PoseStream
 from flowins.evaluation import plot_trajectory, trajectory_errors, write_tum
 from flowins.evaluation.gnss_floor import gnss_floor
 from flowins.filter.ekf import Gate
-from flowins.filter.events import FlowUpdate, GnssRecovery
+from flowins.filter.events import FlowRecovery, FlowUpdate, GnssRecovery
 from flowins.filter.heading import HeadingAlignment
 from flowins.flow.pairs import (
     FlowPairs,
@@ -97,7 +97,8 @@ def flow_update_config(cfg: Mapping[str, Any]) -> FlowUpdate:
     """:class:`FlowUpdate` from ``filter.flow``."""
     cfg = dict(cfg)
     gate = cfg.pop("gate")
-    return FlowUpdate(gate=Gate(mode=gate["mode"], probability=gate["probability"]), **cfg)
+    recovery = FlowRecovery(**dict(cfg.pop("recovery", {})))
+    return FlowUpdate(gate=Gate(mode=gate["mode"], probability=gate["probability"]), recovery=recovery, **cfg)
 
 
 def learned_settings(checkpoint: str, nav_cfg: NavigationConfig, cfg: Mapping[str, Any]) -> tuple[NavigationConfig, dict]:
@@ -313,16 +314,31 @@ def _flow_stats(result: NavigationResult, pairs: FlowPairs) -> dict[str, Any]:
 
 
 def run_warnings(result: NavigationResult) -> list[str]:
-    """What a reader of the table must know about a run: resets after rejected GNSS fixes,
-    most fixes rejected, a filter that ends rejecting the fixes (inconsistent)."""
+    """What a reader of the table must know about a run: GNSS resets, flow inflations, an
+    unbounded position σ (inertial drift), most fixes rejected, a filter that ends rejecting
+    the fixes (inconsistent), fixes before the start."""
     warnings = []
     log = result.filter.log
     resets = [e for e in log if e.get("kind") == "gnss_reset"]
     if resets:
         worst = max(resets, key=lambda e: e["offset_m"])
-        warnings.append(f"GNSS: the filter drifted from the fixes and was reset {len(resets)} time(s) after "
-                        f"{resets[0]['rejected']} rejected fixes in a row (largest jump {worst['offset_m']:.1f} m at "
-                        f"{worst['t_s']:.1f} s; filter.gnss_recovery)")
+        rejected = sum(e["why"] == "rejected" for e in resets)
+        why = ", ".join(part for part in (f"{rejected} after rejected fixes" if rejected else "",
+                                          f"{len(resets) - rejected} after inconsistent innovations"
+                                          if len(resets) > rejected else "") if part)
+        warnings.append(f"GNSS: the filter drifted from the fixes and was reset {len(resets)} time(s) ({why}; largest "
+                        f"jump {worst['offset_m']:.1f} m at {worst['t_s']:.1f} s; filter.gnss_recovery)")
+    inflated = [e for e in log if e.get("kind") == "flow_inflate"]
+    if inflated:
+        warnings.append(f"flow: {len(inflated)} time(s) most points of {inflated[0]['frames']} frames in a row failed "
+                        f"the gate (first at {inflated[0]['t_s']:.1f} s); the velocity and gyroscope bias σ were "
+                        "inflated to let the flow back in (filter.flow.recovery)")
+    sigma = result.filter.node_cov[:, STATE.p, STATE.p].diagonal(dim1=-2, dim2=-1)[:, :2].sum(-1).sqrt()
+    if float(sigma.max()) > 100.0:
+        k = int(sigma.argmax())
+        warnings.append(f"the filter's own horizontal position σ reaches {float(sigma[k]):.0f} m (at "
+                        f"{float(result.filter.t_s[k]):.0f} s): nothing bounds the position there, the error is "
+                        "inertial drift")
     fixes = [e for e in log if e.get("kind") == "gnss" and "nis" in e]
     if fixes:
         rejected = sum(e["accepted"] < 0.5 for e in fixes)
@@ -429,7 +445,7 @@ def run(cfg: Mapping[str, Any]) -> list[Row]:
         t1 = time.perf_counter()
         result = navigate(rec.imu, rec.gnss if sources[0] else None, config=nav_cfg, flow=flow,
                           camera=rec.camera if flow is not None else None, truth=rec.truth, forward_b=forward_b,
-                          progress=progress)
+                          start_gnss=rec.gnss, progress=progress)
         m = _export(out, name, result, rec, plots)
         if flow is not None:
             m.update(_flow_stats(result, flow))

@@ -102,3 +102,28 @@ def test_a_float32_filter_is_refused_with_the_reason():
     with initialize_config_dir(config_dir=CONFIGS, version_base=None):
         cfg = OmegaConf.to_container(compose("evaluate"), resolve=False)
     assert navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=False)).dtype == torch.float64
+
+
+def test_a_car_recording_that_starts_moving_runs_with_no_overrides_and_says_why_ins_alone_drifts(tmp_path):
+    """The drive: moving from the first sample; the INS row starts as the GNSS row does (from
+    the first fixes, used for nothing else) and its kilometres come with the filter's own σ."""
+    from flowins.data.simulate.drive import Drive, DriveConfig, simulate_drive
+
+    config = DriveConfig(duration_s=90.0, outage_s=0.0)
+    folder = tmp_path / "drive"
+    simulate_drive(folder, config)
+    out = tmp_path / "out"
+    cfg = _compose([f"sequence.path={folder}", f"output_dir={out}", "plots=false", "progress=false"])
+    rows = {r.name: r for r in run(cfg)}
+    metrics = json.loads((out / "metrics.json").read_text())
+    for name in ("ins", "ins_gnss"):
+        assert metrics[name]["start"]["mode"] == "moving"
+    assert "for the start only" in metrics["ins"]["start"]["source"]
+    assert rows["ins_gnss"].filter_rmse_m < 3.0
+    assert rows["ins_sparse"].filter_rmse_m is None and "no camera" in rows["ins_sparse"].note
+    drift = [w for w in metrics["ins"]["warnings"] if "inertial drift" in w]
+    assert drift and not [w for w in metrics["ins_gnss"]["warnings"] if "inertial drift" in w]
+    # the σ the warning quotes is the filter's: the INS row's error is of that order, not hidden in it
+    sigma_m = float(drift[0].split("σ reaches ")[1].split(" m")[0])
+    assert 100.0 < sigma_m and rows["ins"].filter_rmse_m < 3 * sigma_m
+    assert Drive(config).velocity(torch.zeros(1, dtype=torch.float64)).norm() > 8.0

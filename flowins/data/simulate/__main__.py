@@ -1,4 +1,6 @@
-"""``python -m flowins.data.simulate OUT --seed 0 --duration 300``: write a simulated walk."""
+"""``python -m flowins.data.simulate OUT --seed 0 --duration 300``: write a simulated walk
+(``--vibration 0.5``: shaken on the ground before it sets off) or, with ``--scenario drive``,
+a car drive that moves from the first sample with a GNSS outage in the middle."""
 from __future__ import annotations
 
 import argparse
@@ -6,18 +8,28 @@ import sys
 import time
 from dataclasses import replace
 
+from flowins.data.simulate.drive import DriveConfig, simulate_drive
 from flowins.data.simulate.scenario import SimulationConfig, simulate
+from flowins.data.synthetic import Vibration, WalkConfig
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m flowins.data.simulate",
         description="Simulate the snowy city-block walk (IMU, camera frames, GNSS, ground truth, exact flow) "
-        "into a folder in the flowins sequence format.",
+        "or a car drive (IMU, GNSS with an outage, ground truth) into a folder in the flowins sequence format.",
     )
+    parser.add_argument("--scenario", choices=("walk", "drive"), default="walk",
+                        help="walk (default) or drive: a car at 8-15 m/s from the first sample, automotive IMU, "
+                        "1 Hz GNSS with a 60 s outage in the middle, no camera")
     parser.add_argument("out", help="output folder (created; reused if it already holds the same simulation)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--duration", type=float, default=300.0, help="seconds (default 300; the first 5 s are stationary)")
+    parser.add_argument("--duration", type=float, default=300.0,
+                        help="seconds (default 300; the walk's first 5 s are stationary)")
+    parser.add_argument("--vibration", type=float, default=0.0, metavar="ACC_MPS2",
+                        help="walk: rotor-like vibration (50-200 Hz) on the ground before it sets off, this RMS per "
+                        "accelerometer axis in the readings (and 0.08 rad/s per m/s^2 on the gyroscope)")
+    parser.add_argument("--outage", type=float, default=60.0, help="drive: seconds without GNSS in the middle")
     parser.add_argument("--frame-rate", type=float, default=10.0, help="camera frames per second (default 10)")
     parser.add_argument("--width", type=int, default=320)
     parser.add_argument("--height", type=int, default=240)
@@ -27,9 +39,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--overwrite", action="store_true", help="replace a folder holding something else")
     args = parser.parse_args(argv)
     try:
-        config = _config(args)
         start = time.perf_counter()
-        sequence = simulate(args.out, config, overwrite=args.overwrite)
+        if args.scenario == "drive":
+            config = DriveConfig(duration_s=args.duration, seed=args.seed, outage_s=args.outage)
+            sequence = simulate_drive(args.out, config, overwrite=args.overwrite)
+        else:
+            config = _config(args)
+            sequence = simulate(args.out, config, overwrite=args.overwrite)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -44,6 +60,8 @@ def _config(args: argparse.Namespace) -> SimulationConfig:
         seed=args.seed,
         duration_s=args.duration,
         flow_every=args.flow_every,
+        vibration=Vibration(args.vibration, 0.08 * args.vibration, until_s=WalkConfig().stationary_s)
+        if args.vibration else Vibration(),
         camera=replace(
             base.camera,
             rate_hz=args.frame_rate,

@@ -35,11 +35,13 @@ from flowins.data.simulate.gnss import GnssErrors, simulate_fixes
 from flowins.data.streams import GnssStream, ImuStream, PoseStream
 from flowins.data.synthetic import (
     ImuErrors,
+    Vibration,
     Walk,
     WalkConfig,
     corrupt_imu,
     increment_imu,
     sample_times,
+    vibrate,
 )
 from flowins.geometry import quaternion as quat
 from flowins.geometry.camera import RigidTransform
@@ -90,6 +92,8 @@ class SimulationConfig:
     imu_rate_hz: float = 100.0
     imu_jitter: float = 0.1
     imu_errors: ImuErrors = field(default_factory=lambda: ImuErrors(acc_scale_std=0.015))
+    #: shaking of the IMU (rotor-like vibration on the ground: ``Vibration(0.5, 0.04, until_s=5.0)``)
+    vibration: Vibration = field(default_factory=Vibration)
     camera: CameraConfig = field(default_factory=CameraConfig)
     gnss: GnssErrors = field(default_factory=GnssErrors)
     groundtruth_rate_hz: float = 60.0
@@ -161,24 +165,12 @@ def _holds(folder: Path, key: str) -> str | None:
     return None
 
 
-def simulate(
-    out: str | Path | None = None,
-    config: SimulationConfig = SimulationConfig(),
-    *,
-    overwrite: bool = False,
-    progress: bool = True,
-) -> Sequence:
-    """Generate (or read back from the cache) the simulated walk; see the module docstring.
+def open_simulation(out: Path, key: str, *, overwrite: bool, in_cache: bool) -> Sequence | None:
+    """The sequence in ``out`` when it holds simulation ``key`` as written; else ``None``,
+    with ``out`` created empty (a folder holding something else is cleared when it is in
+    the cache or ``overwrite`` is set, else refused)."""
+    from flowins.data.folder import read_folder
 
-    Args:
-        out: folder to write; default :func:`default_cache_dir`.
-        overwrite: replace a folder holding a different simulation (or other files).
-    """
-    from flowins.data.folder import read_folder, write_folder
-
-    in_cache = out is None
-    out = Path(out) if out is not None else default_cache_dir(config)
-    key = config.key()
     why = _holds(out, key) if out.exists() else None
     if out.exists() and why is None:
         return read_folder(out)
@@ -194,6 +186,38 @@ def simulate(
 
         shutil.rmtree(out)
     out.mkdir(parents=True, exist_ok=True)
+    return None
+
+
+def seal_simulation(out: Path, key: str) -> Sequence:
+    """Write the completion marker of simulation ``key`` in ``out`` and read the folder back."""
+    from flowins.data.folder import read_folder
+
+    (out / MARKER).write_text(json.dumps({"key": key, "files": _manifest(out)}))
+    return read_folder(out)
+
+
+def simulate(
+    out: str | Path | None = None,
+    config: SimulationConfig = SimulationConfig(),
+    *,
+    overwrite: bool = False,
+    progress: bool = True,
+) -> Sequence:
+    """Generate (or read back from the cache) the simulated walk; see the module docstring.
+
+    Args:
+        out: folder to write; default :func:`default_cache_dir`.
+        overwrite: replace a folder holding a different simulation (or other files).
+    """
+    from flowins.data.folder import write_folder
+
+    in_cache = out is None
+    out = Path(out) if out is not None else default_cache_dir(config)
+    key = config.key()
+    held = open_simulation(out, key, overwrite=overwrite, in_cache=in_cache)
+    if held is not None:
+        return held
 
     gen = torch.Generator().manual_seed(config.seed)
     walk = Walk(WalkConfig(duration_s=config.duration_s))
@@ -302,8 +326,7 @@ def simulate(
         torch.cat((t_imu.unsqueeze(-1), imu_truth["b_a"], imu_truth["b_w"]), -1).numpy(),
         delimiter=",", header="t,bax,bay,baz,bwx,bwy,bwz", comments="", fmt="%.17g",
     )
-    (out / MARKER).write_text(json.dumps({"key": key, "files": _manifest(out)}))
-    return read_folder(out)
+    return seal_simulation(out, key)
 
 
 def exposure_gain(camera: CameraConfig, t_s: float) -> float:
@@ -322,12 +345,14 @@ def simulate_imu(
     the ideal reading of an integrating IMU over the interval it ends
     (:func:`flowins.data.synthetic.increment_imu`: the constant rate and specific
     force that reproduce the true attitude and velocity increments), corrupted by
-    ``config.imu_errors`` (:func:`flowins.data.synthetic.corrupt_imu`); ``truth``
+    ``config.imu_errors`` (:func:`flowins.data.synthetic.corrupt_imu`) and shaken by
+    ``config.vibration`` (:func:`flowins.data.synthetic.vibrate`); ``truth``
     holds the true bias trajectories and scale.
     """
     t = sample_times(config.duration_s, config.imu_rate_hz, config.imu_jitter, generator)
     f_true, w_true = increment_imu(walk, t, config.gravity_mps2)
     acc, gyro, truth = corrupt_imu(t, f_true, w_true, config.imu_errors, generator)
+    acc, gyro = vibrate(t, acc, gyro, config.vibration, generator)
     return t, acc, gyro, truth
 
 

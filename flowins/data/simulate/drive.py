@@ -1,0 +1,207 @@
+"""A simulated car drive: moving from the first sample, open-sky GNSS with an outage.
+
+The scenario a car recording poses: the IMU's first sample is taken at speed (8–15 m/s),
+so no still start exists; GNSS fixes come at ``gnss_rate_hz`` with ``gnss_sigma_m``
+open-sky accuracy, except for ``outage_s`` in the middle of the drive (a tunnel); the
+IMU has automotive-grade MEMS errors. There is no camera. The ground truth is exact.
+
+Trajectory (closed form in the velocity): speed ``v(t)``, heading ``ψ(t)`` and road
+grade ``θ(t)`` are sums of sinusoids, so the velocity
+``v [cos θ cos ψ, cos θ sin ψ, sin θ]`` and its derivatives are exact; the position is
+its integral by 8-point Gauss–Legendre quadrature over 0.25 s pieces (exact to
+rounding for these smooth inputs). The body axes: x along the velocity, z up from the
+road, rolled by ``roll_per_lateral_rad`` per m/s² of lateral acceleration.
+World frame: local ENU with its origin at the start of the drive.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from flowins.cache import cache_root, content_key, library_versions, source_digest
+from flowins.data.sequence import Sequence
+from flowins.data.simulate.gnss import GnssErrors, simulate_fixes
+from flowins.data.simulate.scenario import SIMULATOR_CODE, open_simulation, seal_simulation
+from flowins.data.streams import GnssStream, ImuStream, PoseStream
+from flowins.data.synthetic import ImuErrors, body_readings, corrupt_imu, increment_imu, sample_times
+from flowins.geometry import quaternion as quat
+from flowins.geometry.geodesy import LocalTangentPlane
+from flowins.ins.mechanization import STANDARD_GRAVITY_MPS2
+
+#: automotive-grade MEMS (the filter's ``configs/imu/simulated_drive.yaml`` holds the same densities)
+AUTOMOTIVE_IMU = ImuErrors(
+    acc_noise=1.5e-3, gyro_noise=1.5e-4, acc_bias_std=0.03, gyro_bias_std=1e-3,
+    acc_bias_walk=5e-5, gyro_bias_walk=5e-6, acc_scale_std=0.005,
+)
+
+# (amplitude, period s, phase rad) of the sinusoids: speed m/s, yaw rate rad/s, grade rad
+_SPEED = ((2.0, 97.0, 0.4), (1.0, 41.0, 2.1), (0.5, 17.0, 0.9))
+_YAW_RATE = ((0.08, 71.0, 0.0), (0.05, 29.0, 1.3), (0.03, 13.0, 2.6))
+_GRADE = ((0.02, 83.0, 0.7), (0.01, 37.0, 1.9))
+
+
+@dataclass(frozen=True)
+class DriveConfig:
+    duration_s: float = 300.0
+    seed: int = 0
+    mean_speed_mps: float = 11.5
+    heading_rad: float = 0.5
+    roll_per_lateral_rad: float = 0.01
+    imu_rate_hz: float = 100.0
+    imu_jitter: float = 0.05
+    imu_errors: ImuErrors = AUTOMOTIVE_IMU
+    gnss_rate_hz: float = 1.0
+    gnss_sigma_m: float = 1.0
+    gnss_correlation_s: float = 10.0
+    #: no fixes for this long around the middle of the drive (0: none)
+    outage_s: float = 60.0
+    groundtruth_rate_hz: float = 10.0
+    origin: tuple[float, float, float] = (49.0110, 8.4164, 115.0)  # Karlsruhe, ellipsoidal height
+    gravity_mps2: float = STANDARD_GRAVITY_MPS2
+
+    def __post_init__(self) -> None:
+        if self.duration_s < 20.0:
+            raise ValueError(f"DriveConfig.duration_s={self.duration_s}; expected >= 20 s")
+        if not 0.0 <= self.outage_s < self.duration_s - 10.0:
+            raise ValueError(f"DriveConfig.outage_s={self.outage_s}; expected in [0, duration_s - 10)")
+
+    def outage(self) -> tuple[float, float]:
+        """``(t0, t1)`` s of the GNSS outage."""
+        middle = 0.5 * self.duration_s
+        return middle - 0.5 * self.outage_s, middle + 0.5 * self.outage_s
+
+    def key(self) -> str:
+        plain = json.loads(json.dumps(asdict(self), default=str))
+        return content_key({"scenario": "drive", "config": plain,
+                            "code": source_digest(*SIMULATOR_CODE), "libraries": library_versions()})
+
+
+def _waves(t: Tensor, terms: tuple[tuple[float, float, float], ...]) -> Tensor:
+    return sum(a * torch.sin(2 * math.pi * t / T + p) for a, T, p in terms)
+
+
+def _wave_integral(t: Tensor, terms: tuple[tuple[float, float, float], ...]) -> Tensor:
+    """``∫₀ᵗ`` of :func:`_waves`."""
+    return sum(a * T / (2 * math.pi) * (math.cos(p) - torch.cos(2 * math.pi * t / T + p)) for a, T, p in terms)
+
+
+class Drive:
+    """Closed-form velocity and attitude of the drive, its position by quadrature; batched over times."""
+
+    def __init__(self, config: DriveConfig = DriveConfig()):
+        self.config = config
+
+    def speed(self, t: Tensor) -> Tensor:
+        return self.config.mean_speed_mps + _waves(t, _SPEED)
+
+    def _angles(self, t: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        yaw = self.config.heading_rad + _wave_integral(t, _YAW_RATE)
+        grade = _waves(t, _GRADE)
+        lateral = self.speed(t) * _waves(t, _YAW_RATE)  # centripetal acceleration, m/s²
+        roll = self.config.roll_per_lateral_rad * lateral
+        return roll, -grade, yaw  # body pitch is minus the grade (nose up climbing)
+
+    def quaternion(self, t: Tensor) -> Tensor:
+        """``(..., 4)`` body->world orientation."""
+        return quat.from_euler(*self._angles(t))
+
+    def rotation(self, t: Tensor) -> Tensor:
+        return quat.to_matrix(self.quaternion(t))
+
+    def velocity(self, t: Tensor) -> Tensor:
+        """``(..., 3)`` ENU velocity, m/s."""
+        _, minus_grade, yaw = self._angles(t)
+        grade = -minus_grade
+        direction = torch.stack((torch.cos(grade) * torch.cos(yaw), torch.cos(grade) * torch.sin(yaw), torch.sin(grade)), -1)
+        return self.speed(t).unsqueeze(-1) * direction
+
+    def position(self, t: Tensor) -> Tensor:
+        """``(..., 3)`` ENU position (origin at ``t = 0``): the velocity's integral."""
+        nodes, weights = np.polynomial.legendre.leggauss(8)
+        nodes, weights = torch.tensor(nodes, dtype=t.dtype), torch.tensor(weights, dtype=t.dtype)
+        flat = t.reshape(-1)
+        top = float(flat.max()) if flat.numel() else 0.0
+        breaks = torch.unique(torch.cat((torch.arange(0.0, top, 0.25, dtype=t.dtype), flat, flat.new_zeros(1))))
+        a, b = breaks[:-1], breaks[1:]
+        mid, half = 0.5 * (a + b), 0.5 * (b - a)
+        samples = self.velocity(mid[:, None] + half[:, None] * nodes)  # (pieces, 8, 3)
+        pieces = half[:, None] * (weights[None, :, None] * samples).sum(1)
+        at_breaks = torch.cat((breaks.new_zeros(1, 3), torch.cumsum(pieces, 0)))
+        return at_breaks[torch.searchsorted(breaks, flat)].reshape(*t.shape, 3)
+
+    def imu(self, t: Tensor, gravity_mps2: float = STANDARD_GRAVITY_MPS2) -> tuple[Tensor, Tensor]:
+        """Exact specific force ``(N, 3)`` and body rate ``(N, 3)``."""
+        return body_readings(self.rotation, self.velocity, t, gravity_mps2)
+
+
+def default_drive_dir(config: DriveConfig) -> Path:
+    """``$FLOWINS_CACHE/simulated/drive-<key>``."""
+    return cache_root() / "simulated" / f"drive-{config.key()}"
+
+
+def drive_sequence(config: DriveConfig = DriveConfig()) -> tuple[Sequence, dict[str, Tensor]]:
+    """The drive as a :class:`Sequence` (IMU, GNSS, ground truth) and its true IMU errors."""
+    gen = torch.Generator().manual_seed(config.seed)
+    drive = Drive(config)
+    t = sample_times(config.duration_s, config.imu_rate_hz, config.imu_jitter, gen)
+    f_true, w_true = increment_imu(drive, t, config.gravity_mps2)
+    acc, gyro, imu_truth = corrupt_imu(t, f_true, w_true, config.imu_errors, gen)
+    t_end = float(t[-1])
+    t_gnss = torch.arange(0.5 / config.gnss_rate_hz, t_end, 1.0 / config.gnss_rate_hz, dtype=torch.float64)
+    errors = GnssErrors(rate_hz=config.gnss_rate_hz, min_acc_m=config.gnss_sigma_m, max_acc_m=config.gnss_sigma_m,
+                        correlation_s=config.gnss_correlation_s, smoothing_s=0.0, multipath_probability=0.0)
+    enu, h_acc, v_acc, _ = simulate_fixes(drive.position(t_gnss), torch.zeros_like(t_gnss), errors, gen)
+    t0, t1 = config.outage()
+    keep = (t_gnss < t0) | (t_gnss >= t1) if config.outage_s > 0 else torch.ones_like(t_gnss, dtype=torch.bool)
+    lat, lon, alt = LocalTangentPlane(*config.origin).to_geodetic(enu[keep])
+    t_gt = torch.arange(0.0, t_end, 1.0 / config.groundtruth_rate_hz, dtype=torch.float64)
+    metadata: dict[str, Any] = {
+        "source": "flowins simulator (drive)",
+        "imu": "simulated_drive",
+        "simulation": {"key": config.key(), "scenario": "drive",
+                       "config": json.loads(json.dumps(asdict(config), default=str))},
+        "world_frame": "local ENU (x east, y north, z up); origin at the start of the drive",
+        "gnss_origin_lat_lon_alt": list(config.origin),
+        "gnss_outage_s": [t0, t1] if config.outage_s > 0 else None,
+    }
+    sequence = Sequence(
+        ImuStream(t, acc, gyro, name="simulated car IMU"),
+        name=f"simulated drive (seed {config.seed})",
+        gnss=GnssStream(t_gnss[keep], lat, lon, alt, h_acc[keep], v_acc[keep], name="simulated GNSS"),
+        groundtruth=PoseStream(t_gt, drive.position(t_gt), drive.quaternion(t_gt), name="simulated ground truth"),
+        metadata=metadata,
+    )
+    return sequence, imu_truth
+
+
+def simulate_drive(out: str | Path | None = None, config: DriveConfig = DriveConfig(), *,
+                   overwrite: bool = False) -> Sequence:
+    """Write the drive to ``out`` (default :func:`default_drive_dir`) in the flowins folder
+    format, or read it back when the folder holds it already (the walk's caching rules)."""
+    from flowins.data.folder import write_folder
+
+    in_cache = out is None
+    out = Path(out) if out is not None else default_drive_dir(config)
+    key = config.key()
+    held = open_simulation(out, key, overwrite=overwrite, in_cache=in_cache)
+    if held is not None:
+        return held
+    sequence, imu_truth = drive_sequence(config)
+    write_folder(sequence, out, overwrite=True)
+    (out / "truth").mkdir(exist_ok=True)
+    np.savetxt(
+        out / "truth" / "imu_errors.csv",
+        torch.cat((sequence.imu.t_s.unsqueeze(-1), imu_truth["b_a"], imu_truth["b_w"]), -1).numpy(),
+        delimiter=",", header="t,bax,bay,baz,bwx,bwy,bwz", comments="", fmt="%.17g",
+    )
+    return seal_simulation(out, key)
+
+
+__all__ = ["AUTOMOTIVE_IMU", "Drive", "DriveConfig", "default_drive_dir", "drive_sequence", "simulate_drive"]
