@@ -90,7 +90,7 @@ def test_inconsistent_innovations_reset_a_filter_whose_gate_is_off():
     base = dict(noise=noise(0.1), initial=InitialUncertainty(acc_bias_mps2=3e-4, gyro_bias_rps=1e-5),
                 gnss_gate=Gate(mode="off"))
     quiet = navigate(drive().imu, drive().gnss, config=NavigationConfig(**base, gnss_recovery=GnssRecovery(nis_window=0)))
-    reset = navigate(drive().imu, drive().gnss, config=NavigationConfig(**base, gnss_recovery=GnssRecovery()))
+    reset = navigate(drive().imu, drive().gnss, config=NavigationConfig(**base, gnss_recovery=GnssRecovery(nis_window=10)))
     resets = [e for e in reset.filter.log if e.get("kind") == "gnss_reset"]
     t1 = DRIVE.outage()[1]
     assert resets and all(e["why"] == "inconsistent" for e in resets)
