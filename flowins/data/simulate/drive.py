@@ -77,9 +77,12 @@ class DriveConfig:
         middle = 0.5 * self.duration_s
         return middle - 0.5 * self.outage_s, middle + 0.5 * self.outage_s
 
+    def as_plain(self) -> dict[str, Any]:
+        """The configuration as JSON-ready dicts, lists, numbers and strings."""
+        return json.loads(json.dumps(asdict(self), default=str))
+
     def key(self) -> str:
-        plain = json.loads(json.dumps(asdict(self), default=str))
-        return content_key({"scenario": "drive", "config": plain,
+        return content_key({"scenario": "drive", "config": self.as_plain(),
                             "code": source_digest(*SIMULATOR_CODE), "libraries": library_versions()})
 
 
@@ -166,7 +169,7 @@ def drive_sequence(config: DriveConfig = DriveConfig()) -> tuple[Sequence, dict[
         "source": "flowins simulator (drive)",
         "imu": "simulated_drive",
         "simulation": {"key": config.key(), "scenario": "drive",
-                       "config": json.loads(json.dumps(asdict(config), default=str))},
+                       "config": config.as_plain()},
         "world_frame": "local ENU (x east, y north, z up); origin at the start of the drive",
         "gnss_origin_lat_lon_alt": list(config.origin),
         "gnss_outage_s": [t0, t1] if config.outage_s > 0 else None,
