@@ -7,10 +7,12 @@
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
+from flowins.jobs.cli import user_errors
 from flowins.jobs.train import run
 
 
 @hydra.main(version_base="1.3", config_path="configs", config_name="train")
+@user_errors  # a user's mistake: `error: ...`, exit status 2 (HYDRA_FULL_ERROR=1: the traceback)
 def main(cfg: DictConfig) -> None:
     run(OmegaConf.to_container(cfg, resolve=True))
 

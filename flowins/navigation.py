@@ -18,7 +18,7 @@ from flowins.filter.runner import FilterTrack, run_filter
 from flowins.filter.smoother import SmoothedTrack, rts_smooth
 from flowins.geometry.geodesy import LocalTangentPlane, gnss_to_enu
 from flowins.ins.initialization import InitialUncertainty
-from flowins.ins.mechanization import STANDARD_GRAVITY_MPS2, ProcessNoise
+from flowins.ins.mechanization import SCHEMES, STANDARD_GRAVITY_MPS2, ProcessNoise
 from flowins.measurements.gnss import correlation_inflation, gnss_noise
 from flowins.start import Start, StartSettings, choose_start
 
@@ -47,6 +47,19 @@ class NavigationConfig:
     jacobians: str = "analytic"
     dtype: torch.dtype = torch.float64
     flow_update: FlowUpdate = field(default_factory=FlowUpdate)
+
+    def __post_init__(self) -> None:
+        if self.scheme not in SCHEMES:
+            raise ValueError(f"NavigationConfig.scheme={self.scheme!r}: expected one of {', '.join(SCHEMES)}")
+        if self.jacobians not in ("analytic", "autodiff"):
+            raise ValueError(f"NavigationConfig.jacobians={self.jacobians!r}: expected analytic or autodiff")
+        if not (isinstance(self.output_every, int) and self.output_every >= 1):
+            raise ValueError(f"NavigationConfig.output_every={self.output_every!r}: expected an integer >= 1")
+        for key in ("gravity_mps2", "gnss_noise_scale"):
+            if not getattr(self, key) > 0.0:
+                raise ValueError(f"NavigationConfig.{key}={getattr(self, key)!r}: expected a number > 0")
+        if not self.gnss_correlation_s >= 0.0:
+            raise ValueError(f"NavigationConfig.gnss_correlation_s={self.gnss_correlation_s!r}: expected a number >= 0")
 
     def filter_settings(self) -> dict:
         """The keyword arguments of :func:`~flowins.filter.runner.run_filter` this config sets."""

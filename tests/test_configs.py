@@ -26,7 +26,8 @@ from flowins.training.unroll import METHODS
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 PRIMARY = sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
-GROUPS = sorted(p.name for p in CONFIG_DIR.iterdir() if p.is_dir())
+#: flowins's groups (``configs/hydra`` holds Hydra's own: the job's logging)
+GROUPS = sorted(p.name for p in CONFIG_DIR.iterdir() if p.is_dir() and p.name != "hydra")
 
 
 def options(group: str) -> list[str]:
@@ -40,7 +41,8 @@ def defaults(primary: str) -> dict[str, str | None]:
     for entry in entries:
         if isinstance(entry, dict):
             (key, value), = entry.items()
-            out[key] = value
+            if not key.startswith("override hydra/"):
+                out[key] = value
     return out
 
 

@@ -74,7 +74,7 @@ from flowins.data.csvio import (
     rigid_transform_from_matrix,
 )
 from flowins.data.sequence import CameraFrames, PinholeCamera, Sequence
-from flowins.data.streams import GnssStream, ImuStream, PoseStream
+from flowins.data.streams import gap_hint, GnssStream, ImuStream, PoseStream
 from flowins.geometry.camera import RigidTransform
 
 __all__ = [
@@ -211,7 +211,7 @@ def _read_imu(iphone: Path, *, max_gap_s: float) -> tuple[ImuStream, dict[str, A
     gyro_file = _first_existing(iphone, ("gyro.csv", "gyroscope.csv"), what=f"the gyroscope ({_GYRO_LAYOUT})")
     acc = _read_xyz(acc_file, _ACC_LAYOUT)
     gyro = _read_xyz(gyro_file, _GYRO_LAYOUT)
-    hint = f" (max_imu_gap_s={max_gap_s:g}); pass a larger max_imu_gap_s to bridge it"
+    hint = gap_hint(max_gap_s)
     # the accelerometer is interpolated across its steps: a long gap there would be bridged silently
     check_increasing(acc.time, acc.lines, path=acc_file, unit="s", max_step=max_gap_s, max_step_hint=hint)
     median = float(np.median(np.linalg.norm(acc.values, axis=1))) * STANDARD_GRAVITY_MPS2

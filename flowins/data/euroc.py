@@ -46,7 +46,7 @@ from flowins.data.csvio import (
     yaml_numbers,
 )
 from flowins.data.sequence import CameraFrames, PinholeCamera, Sequence
-from flowins.data.streams import ImuStream, PoseStream
+from flowins.data.streams import gap_hint, ImuStream, PoseStream
 from flowins.geometry.camera import RigidTransform
 
 __all__ = ["read_euroc"]
@@ -98,7 +98,7 @@ def _read_imu(mav0: Path, *, max_gap_s: float) -> tuple[np.ndarray, ImuStream, d
         path=file,
         unit="ns",
         max_step=int(round(max_gap_s * 1e9)),
-        max_step_hint=f" (max_imu_gap_s={max_gap_s:g}); pass a larger max_imu_gap_s to bridge it",
+        max_step_hint=gap_hint(max_gap_s),
     )
     acc = table.values[:, 3:6]
     median = float(np.median(np.linalg.norm(acc, axis=1)))

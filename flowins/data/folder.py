@@ -450,13 +450,14 @@ def _read_frames(folder: Path, camera: PinholeCamera | None, *, check_frames: bo
     return frames
 
 
-def _read_tracks(file: Path) -> Tracks:
+def _read_tracks(file: Path, camera: PinholeCamera, frames: CameraFrames | None) -> Tracks:
     table = _read_table(file, TRACK_COLUMNS)
     t_s = table.floats("t", expected="a time in seconds")
     ids = table.integers("track_id", expected="a non-negative integer track id")
     uv = np.stack([table.floats("u", expected="a pixel column"), table.floats("v", expected="a pixel row")], axis=1)
     with _lines_for(table):
-        return Tracks(t_s, torch.from_numpy(ids), uv, name=str(file))
+        return Tracks(t_s, torch.from_numpy(ids), uv, name=str(file), image_size=camera.size,
+                      frame_times_s=None if frames is None else frames.t_s)
 
 
 def _read_gnss(file: Path) -> GnssStream:
@@ -549,13 +550,13 @@ def read_folder(
             )
 
     frames = _read_frames(folder, camera, check_frames=check_frames) if (folder / "frames.csv").is_file() else None
-    tracks = _read_tracks(folder / "tracks.csv") if (folder / "tracks.csv").is_file() else None
+    tracks = _read_tracks(folder / "tracks.csv", camera, frames) if (folder / "tracks.csv").is_file() else None
     gnss = _read_gnss(folder / "gnss.csv") if (folder / "gnss.csv").is_file() else None
     groundtruth = _read_groundtruth(folder / "groundtruth.csv") if (folder / "groundtruth.csv").is_file() else None
     metadata = _read_metadata(folder / "metadata.yaml") if (folder / "metadata.yaml").is_file() else {}
     return Sequence(
         imu,
-        name=folder.resolve().name or str(folder),
+        name=metadata["name"] if isinstance(metadata.get("name"), str) else folder.resolve().name or str(folder),
         camera=camera,
         imu_to_camera=transform,
         frames=frames,

@@ -77,7 +77,7 @@ import torch
 
 from flowins.data.csvio import check_increasing, require_file, rigid_transform_from_matrix
 from flowins.data.sequence import CameraFrames, PinholeCamera, Sequence
-from flowins.data.streams import GnssStream, ImuStream, PoseStream
+from flowins.data.streams import gap_hint, GnssStream, ImuStream, PoseStream
 from flowins.geometry import quaternion as quat
 from flowins.geometry.camera import RigidTransform
 from flowins.geometry.geodesy import LocalTangentPlane
@@ -165,7 +165,7 @@ def _read_oxts(drive: Path, *, max_gap_s: float) -> tuple[np.ndarray, list[str],
     """``(t_ns (N,), timestamp texts, packets (N, 30))``; packet k is ``oxts/data/{k:010d}.txt``."""
     stamps = drive / "oxts" / "timestamps.txt"
     t_ns, lines, texts = _read_timestamps(stamps)
-    hint = f" (max_imu_gap_s={max_gap_s:g}); pass a larger max_imu_gap_s to bridge it"
+    hint = gap_hint(max_gap_s)
     check_increasing(t_ns, lines, path=stamps, unit="ns", max_step=int(round(max_gap_s * 1e9)), max_step_hint=hint)
     folder = drive / "oxts" / "data"
     found = {p.name for p in folder.glob("*.txt")}

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator
+import dataclasses
 from dataclasses import KW_ONLY, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -40,6 +41,14 @@ from flowins.data.streams import (
 from flowins.geometry.camera import RigidTransform
 
 SOURCES = ("imu", "frames", "tracks", "gnss", "groundtruth")
+
+
+#: how far (px) a track point may lie beyond the image's edge pixels (sub-pixel trackers overshoot)
+TRACK_MARGIN_PX = 2.0
+#: how far (s) a track time may be from a frame time
+FRAME_TIME_TOLERANCE_S = 1e-4
+#: the fields of view (degrees, along each image axis) a camera's intrinsics may give
+MIN_FOV_DEG, MAX_FOV_DEG = 10.0, 179.0
 
 
 @dataclass(frozen=True)
@@ -73,6 +82,19 @@ class PinholeCamera:
             object.__setattr__(self, key, value)
         if self.fx <= 0 or self.fy <= 0:
             raise ValueError(f"{self.name}: focal lengths fx={self.fx}, fy={self.fy}; expected > 0 pixels")
+        for key, focal, extent, axis in (("fx", self.fx, self.width, "width"), ("fy", self.fy, self.height, "height")):
+            fov = math.degrees(2.0 * math.atan(0.5 * extent / focal))
+            if not MIN_FOV_DEG <= fov <= MAX_FOV_DEG:
+                raise ValueError(
+                    f"{self.name}: {key}={focal:g} px over an image {axis} of {extent} px is a {fov:.1f}° field of "
+                    f"view; expected {MIN_FOV_DEG:g}° to {MAX_FOV_DEG:g}° (focal length in pixels of this image size?)"
+                )
+        for key, centre, extent, axis in (("cx", self.cx, self.width, "width"), ("cy", self.cy, self.height, "height")):
+            if not -0.5 <= centre <= extent - 0.5:
+                raise ValueError(
+                    f"{self.name}: principal point {key}={centre:g} px is outside the image ({axis} {extent} px: "
+                    f"expected -0.5 to {extent - 0.5:g}); are the intrinsics for this image size?"
+                )
         distortion = tuple(float(c) for c in self.distortion)
         if len(distortion) not in (0, 4, 5) or not all(math.isfinite(c) for c in distortion):
             raise ValueError(
@@ -230,6 +252,11 @@ class Tracks:
     uv_px: Tensor
     _: KW_ONLY
     name: str = "tracks"
+    #: ``(H, W)`` of the images: every point must lie on it (within :data:`TRACK_MARGIN_PX`)
+    image_size: tuple[int, int] | None = None
+    #: the camera's frame times (``frames.csv``): every track time must be one of them
+    #: (within :data:`FRAME_TIME_TOLERANCE_S`); ``None``: the tracks' own times are the frame clock
+    frame_times_s: Tensor | None = None
 
     def __post_init__(self) -> None:
         name = str(self.name)
@@ -271,6 +298,30 @@ class Tracks:
                 f"{name}: row {k} (0-based): track_id {int(ids[k])} appears twice at time {float(t_s[k])!r} s; "
                 "expected one row per track and frame"
             )
+        if self.image_size is not None:
+            h, w = self.image_size
+            m = TRACK_MARGIN_PX
+            off = torch.nonzero((uv[:, 0] < -0.5 - m) | (uv[:, 0] > w - 0.5 + m)
+                                | (uv[:, 1] < -0.5 - m) | (uv[:, 1] > h - 0.5 + m))
+            if off.numel():
+                k = int(off[0, 0])
+                raise ValueError(
+                    f"{name}: row {k} (0-based): point (u, v) = ({float(uv[k, 0]):g}, {float(uv[k, 1]):g}) px is outside "
+                    f"the {w}x{h} image (u in [-0.5, {w - 0.5:g}], v in [-0.5, {h - 0.5:g}], ±{m:g} px); "
+                    f"{off.shape[0]} rows are; expected pixels of the calibration's image size"
+                )
+        if self.frame_times_s is not None:
+            frames = torch.as_tensor(self.frame_times_s, dtype=torch.float64)
+            i = torch.searchsorted(frames, t_s).clamp(1, max(frames.shape[0] - 1, 1))
+            nearest = torch.minimum((t_s - frames[i - 1]).abs(), (t_s - frames[i.clamp(max=frames.shape[0] - 1)]).abs())
+            off = torch.nonzero(nearest > FRAME_TIME_TOLERANCE_S)
+            if off.numel():
+                k = int(off[0, 0])
+                raise ValueError(
+                    f"{name}: row {k} (0-based): time {float(t_s[k])!r} s is {1e3 * float(nearest[k]):.3f} ms from "
+                    f"the nearest frame time; {off.shape[0]} rows are off; expected every track time to be a time "
+                    f"of frames.csv (within {1e3 * FRAME_TIME_TOLERANCE_S:g} ms)"
+                )
         _set(self, t_s=t_s, track_id=ids, uv_px=uv, name=name)
 
     def __len__(self) -> int:
@@ -350,3 +401,60 @@ class Sequence:
             kind = "poses" if self.groundtruth.quat_wxyz is not None else "positions"
             parts.append(f"{len(self.groundtruth)} ground-truth {kind}")
         return ", ".join(parts)
+
+
+#: the streams an estimate is made from, each checked against the IMU's time span
+INPUT_STREAMS = ("frames", "tracks", "gnss")
+
+
+def _rows(stream: Any, keep: Tensor) -> Any:
+    """``stream`` with only the rows where ``keep`` (an ``(N,)`` bool) holds."""
+    index = torch.nonzero(keep)[:, 0]
+    if isinstance(stream, CameraFrames):
+        files = None if stream.files is None else tuple(stream.files[i] for i in index.tolist())
+        indices = None if stream.indices is None else torch.as_tensor(stream.indices)[index]
+        return dataclasses.replace(stream, t_s=stream.t_s[index], files=files, indices=indices, check_files=False)
+    if isinstance(stream, Tracks):
+        return dataclasses.replace(stream, t_s=stream.t_s[index], track_id=torch.as_tensor(stream.track_id)[index],
+                                   uv_px=stream.uv_px[index])
+    if isinstance(stream, GnssStream):
+        return dataclasses.replace(stream, **{k: getattr(stream, k)[index] for k in
+                                              ("t_s", "lat_deg", "lon_deg", "alt_m", "h_acc_m", "v_acc_m")})
+    raise TypeError(f"no row selection for {type(stream).__name__}")
+
+
+def within_imu_span(seq: Sequence, *, crop: bool = False) -> tuple[Sequence, list[str]]:
+    """``seq`` with every input stream (:data:`INPUT_STREAMS`) inside the IMU's time span.
+
+    A row outside the span is an error naming the stream (its file), the first such row
+    and both spans; with ``crop`` every stream is cropped to the span instead and the
+    second value lists what was cropped, one line per stream (nothing is dropped
+    without a line). Ground truth is a reference, not an input: it is left whole (the
+    evaluation pairs it with the estimate by time)."""
+    t0, t1 = float(seq.imu.t_s[0]), float(seq.imu.t_s[-1])
+    changes: dict[str, Any] = {}
+    notes: list[str] = []
+    for label in INPUT_STREAMS:
+        stream = getattr(seq, label)
+        if stream is None:
+            continue
+        t = torch.as_tensor(stream.t_s, dtype=torch.float64)
+        keep = (t >= t0) & (t <= t1)
+        if bool(keep.all()):
+            continue
+        before, after = int((t < t0).sum()), int((t > t1).sum())
+        if not crop:
+            k = int(torch.nonzero(~keep)[0, 0])
+            raise ValueError(
+                f"{stream.name}: row {k} (0-based) at t = {float(t[k]):.3f} s is outside the IMU's time span "
+                f"[{t0:.3f}, {t1:.3f}] s ({label} span [{float(t[0]):.3f}, {float(t[-1]):.3f}] s; {before} rows "
+                f"before, {after} after); check that every stream is on the IMU's clock, or set sequence.crop=true "
+                "to crop every stream to the IMU span"
+            )
+        if not bool(keep.any()):
+            raise ValueError(f"{stream.name}: no row inside the IMU's time span [{t0:.3f}, {t1:.3f}] s "
+                             f"({label} span [{float(t[0]):.3f}, {float(t[-1]):.3f}] s); nothing is left to crop to")
+        changes[label] = _rows(stream, keep)
+        notes.append(f"{stream.name}: cropped {before} rows before and {after} after the IMU span "
+                     f"[{t0:.3f}, {t1:.3f}] s (sequence.crop=true); {int(keep.sum())} of {len(t)} kept")
+    return (dataclasses.replace(seq, **changes) if changes else seq), notes

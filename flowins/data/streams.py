@@ -95,9 +95,15 @@ def _check_increasing(t_s: Tensor, *, stream: str, max_gap_s: float | None = Non
             k = int(gap[0, 0]) + 1
             raise ValueError(
                 f"{stream}: gap of {float(dt[k - 1]):.6g} s between rows {k - 1} and {k} (0-based; "
-                f"t_s={float(t_s[k - 1])!r} s -> {float(t_s[k])!r} s) exceeds max_gap_s={max_gap_s:g}; "
-                "pass a larger max_gap_s to bridge it"
+                f"t_s={float(t_s[k - 1])!r} s -> {float(t_s[k])!r} s) exceeds the largest allowed step"
+                + gap_hint(max_gap_s)
             )
+
+
+def gap_hint(max_gap_s: float) -> str:
+    """The remedy for an IMU gap, as every reader words it."""
+    return (f" (max_imu_gap_s={max_gap_s:g}); to bridge it, raise sequence.max_imu_gap_s in evaluate.py or "
+            "train.py (read_sequence(..., max_imu_gap_s=...) in Python)")
 
 
 def _set(obj: object, **fields: Any) -> None:

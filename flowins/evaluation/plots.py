@@ -2,10 +2,17 @@
 
 :func:`plot_trajectory` follows Fig. 5 of Meronen et al. (2020): one top-view
 panel per track (e.g. filter and smoother) side by side, the track as points
-coloured by time (viridis, blue at the start to yellow at the end), ground
-truth as a red line, GNSS fixes as blue dots with a shaded circle of their
-accuracy radius.
+coloured by time (viridis, purple at the start to yellow at the end), ground
+truth as a red line, GNSS fixes as magenta ``+`` markers, each with an unfilled
+outline of its accuracy radius. Magenta is at least 0.9 (RGB distance, channels
+in [0, 1]) from every viridis colour and 1.0 from the red of the ground truth,
+so fixes never read as part of the track. The circles have no fill, so hundreds
+of overlapping fixes do not add up to an opaque blob; their outline alpha falls
+as ``1 / G`` beyond 50 fixes (:func:`accuracy_outline_alpha`), so a dense run of
+fixes draws a band of about the ink of 50 outlines.
 
+:func:`trajectory_figure` builds that figure and returns it (for inspection or
+further drawing); :func:`plot_trajectory` builds it and writes the PNG.
 Figures are built on a ``matplotlib.figure.Figure`` with an explicit Agg canvas,
 never through ``pyplot``: no global backend switch, no figure registry to leak.
 """
@@ -24,7 +31,11 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 from torch import Tensor
 
-_GNSS_BLUE = "tab:blue"
+GNSS_COLOR = "magenta"
+"""Colour of the GNSS fixes and their accuracy outlines: far from viridis (track) and red (truth)."""
+_OUTLINE_ALPHA = 0.5  # outline alpha of each fix up to _OUTLINE_FULL_COUNT fixes
+_OUTLINE_FULL_COUNT = 50
+_OUTLINE_MIN_ALPHA = 0.05
 
 
 def _to_numpy(x, name: str, shape_tail: tuple[int, ...]) -> np.ndarray:
@@ -42,16 +53,32 @@ def _to_numpy(x, name: str, shape_tail: tuple[int, ...]) -> np.ndarray:
     return a
 
 
+def _figure(figsize_in: tuple[float, float], dpi: int) -> Figure:
+    """A constrained-layout ``Figure`` with its own Agg canvas (``fig.canvas.buffer_rgba()`` after ``draw``)."""
+    fig = Figure(figsize=figsize_in, dpi=dpi, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
 def _save(fig: Figure, path: str | os.PathLike, dpi: int) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    FigureCanvasAgg(fig)
     fig.savefig(path, dpi=dpi, format="png")
     return path
 
 
-def plot_trajectory(
-    path: str | os.PathLike,
+def accuracy_outline_alpha(count: int) -> float:
+    """Alpha of each GNSS accuracy outline when ``count`` fixes are drawn.
+
+    ``0.5`` up to 50 fixes, then ``0.5 * 50 / count`` (never below ``0.05``): the
+    ink of a dense run of coinciding outlines stays about that of 50 outlines.
+    """
+    if count <= _OUTLINE_FULL_COUNT:
+        return _OUTLINE_ALPHA
+    return max(_OUTLINE_ALPHA * _OUTLINE_FULL_COUNT / count, _OUTLINE_MIN_ALPHA)
+
+
+def trajectory_figure(
     *,
     ground_truth_m: Tensor | None,
     tracks: dict[str, tuple[Tensor, Tensor]],
@@ -60,19 +87,24 @@ def plot_trajectory(
     title: str = "",
     panel_size_in: tuple[float, float] = (5.0, 4.5),
     dpi: int = 120,
-) -> Path:
-    """Top view (East, North) of each track next to the ground truth; saves a PNG.
+) -> Figure:
+    """Top view (East, North) of each track next to the ground truth, as a ``Figure`` on an Agg canvas.
+
+    Each panel shows, bottom to top: the accuracy circles of the GNSS fixes
+    (magenta outlines, no fill, alpha from :func:`accuracy_outline_alpha`), the
+    fixes (magenta ``+``), the ground truth (red line) and the track (points
+    coloured by time, viridis, one time scale for all panels). The legend names
+    the ground truth, the GNSS fixes and the track (by its name in ``tracks``).
 
     Args:
-        path: output PNG file.
         ground_truth_m: ``(M, 3)`` ground-truth positions (m) drawn as a red line, or ``None``.
         tracks: name → ``(t_s (N,), pos_m (N, 3))``; one panel per entry, in order.
         gnss_m: ``(G, 3)`` GNSS fix positions (m), or ``None``.
-        gnss_radius_m: ``(G,)`` accuracy radius of each fix (m), drawn as a shaded circle.
+        gnss_radius_m: ``(G,)`` accuracy radius of each fix (m), drawn as an unfilled circle.
         title: figure title.
         panel_size_in: ``(width, height)`` of one panel in inches; the figure is
             ``(width * len(tracks), height)`` inches, i.e. that times ``dpi`` pixels.
-        dpi: resolution of the PNG.
+        dpi: resolution of the figure's canvas.
 
     Raises:
         ValueError: no tracks, shapes that disagree, NaN/inf anywhere (named), or
@@ -109,19 +141,26 @@ def plot_trajectory(
     cmap = colormaps["viridis"]
 
     width_in, height_in = panel_size_in
-    fig = Figure(figsize=(width_in * len(data), height_in), layout="constrained")
+    fig = _figure((width_in * len(data), height_in), dpi)
     axes = fig.subplots(1, len(data), squeeze=False)[0]
     for ax, (name, (t, p)) in zip(axes, data.items()):
         if gnss is not None:
             if radius is not None:
                 circles = [Circle((e, n), r) for (e, n), r in zip(gnss[:, :2], radius)]
                 ax.add_collection(
-                    PatchCollection(circles, facecolor=_GNSS_BLUE, edgecolor="none", alpha=0.15, zorder=1)
+                    PatchCollection(
+                        circles,
+                        facecolor="none",
+                        edgecolor=GNSS_COLOR,
+                        linewidth=0.6,
+                        alpha=accuracy_outline_alpha(len(circles)),
+                        zorder=1,
+                    )
                 )
-            ax.scatter(gnss[:, 0], gnss[:, 1], s=4, color=_GNSS_BLUE, zorder=2, label="GNSS")
+            ax.scatter(gnss[:, 0], gnss[:, 1], s=16, marker="+", linewidths=0.8, color=GNSS_COLOR, zorder=2, label="GNSS")
         if gt is not None:
             ax.plot(gt[:, 0], gt[:, 1], color="red", linewidth=1.2, zorder=3, label="ground truth")
-        points = ax.scatter(p[:, 0], p[:, 1], c=t, cmap=cmap, norm=norm, s=3, zorder=4, rasterized=True)
+        points = ax.scatter(p[:, 0], p[:, 1], c=t, cmap=cmap, norm=norm, s=3, zorder=4, rasterized=True, label=name)
         colorbar = fig.colorbar(points, ax=ax, shrink=0.9)
         colorbar.set_label("time [s]")
         ax.set_title(name)
@@ -129,10 +168,37 @@ def plot_trajectory(
         ax.set_ylabel("North [m]")
         ax.set_aspect("equal", adjustable="datalim")
         ax.autoscale_view()
-        if gt is not None or gnss is not None:
-            ax.legend(loc="best", fontsize="small")
+        ax.legend(loc="best", fontsize="small")
     if title:
         fig.suptitle(title)
+    return fig
+
+
+def plot_trajectory(
+    path: str | os.PathLike,
+    *,
+    ground_truth_m: Tensor | None,
+    tracks: dict[str, tuple[Tensor, Tensor]],
+    gnss_m: Tensor | None = None,
+    gnss_radius_m: Tensor | None = None,
+    title: str = "",
+    panel_size_in: tuple[float, float] = (5.0, 4.5),
+    dpi: int = 120,
+) -> Path:
+    """:func:`trajectory_figure` written as a PNG at ``path`` (parent folders made); returns the path.
+
+    The arguments are those of :func:`trajectory_figure`; the PNG is
+    ``(width * len(tracks), height) * dpi`` pixels for ``panel_size_in = (width, height)``.
+    """
+    fig = trajectory_figure(
+        ground_truth_m=ground_truth_m,
+        tracks=tracks,
+        gnss_m=gnss_m,
+        gnss_radius_m=gnss_radius_m,
+        title=title,
+        panel_size_in=panel_size_in,
+        dpi=dpi,
+    )
     return _save(fig, path, dpi)
 
 
@@ -155,7 +221,7 @@ def plot_errors(
     """
     if not series:
         raise ValueError("series is empty: give at least one name -> (t_s, errors_m)")
-    fig = Figure(figsize=figsize_in, layout="constrained")
+    fig = _figure(figsize_in, dpi)
     ax = fig.subplots()
     for name, value in series.items():
         if not (isinstance(value, (tuple, list)) and len(value) == 2):

@@ -20,8 +20,8 @@ from typing import Any, Protocol
 
 import torch
 from torch import Tensor
-from tqdm.auto import tqdm
 
+from flowins.progress import progress as track_progress
 from flowins.filter.ekf import UpdateResult, linear_predict
 from flowins.filter.propagation import propagate_batched, propagate_reference
 from flowins.ins.mechanization import STANDARD_GRAVITY_MPS2, ProcessNoise
@@ -285,8 +285,8 @@ def run_filter(
     last = torch.searchsorted(node_index, ends, right=True).tolist()
     start = 0
     segments = zip(segment_ends, first, last)
-    for end, i0, i1 in tqdm(segments, total=len(segment_ends), desc="filter", unit="update",
-                            disable=None if progress else True, leave=False):
+    for end, i0, i1 in track_progress(segments, total=len(segment_ends), description="filter", unit="update",
+                                      enabled=progress):
         nodes = node_index[i0:i1] - start
         out = propagate(
             chain.mean,

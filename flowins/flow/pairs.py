@@ -28,8 +28,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
-from tqdm.auto import tqdm
 
+from flowins.progress import Progress, progress as track_progress
 from flowins.cache import content_key, library_versions, source_digest
 from flowins.flow.base import FlowResult, resize_flow
 from flowins.flow.points import FlowPoints, grid_candidates
@@ -243,8 +243,8 @@ def dense_pairs(
     t = torch.as_tensor(frames.t_s, dtype=torch.float64)
     points: list[FlowPoints] = []
     cache: dict[int, Tensor] = {}
-    bar = tqdm(total=len(pairs), desc=f"dense flow ({description or type(provider).__name__})", unit="pair",
-               disable=None if progress else True)
+    bar = Progress(total=len(pairs), description=f"dense flow ({description or type(provider).__name__})",
+                   unit="pair", enabled=progress)
     for start in range(0, len(pairs), batch_size):
         chunk = pairs[start : start + batch_size]
         need = sorted({i for pair in chunk for i in pair})
@@ -274,8 +274,8 @@ def sparse_pairs(
     t = torch.as_tensor(frames.t_s, dtype=torch.float64)
     points = []
     previous: tuple[int, Tensor] | None = None
-    for k, (a, b) in enumerate(tqdm(pairs, desc=f"sparse flow ({description or type(tracker).__name__})", unit="pair",
-                                    disable=None if progress else True)):
+    for k, (a, b) in enumerate(track_progress(pairs, description=f"sparse flow ({description or type(tracker).__name__})",
+                                              unit="pair", enabled=progress)):
         if k % RELEASE_EVERY == 0:
             release_freed_memory()
         image1 = previous[1] if previous is not None and previous[0] == a else read_frame(frames, a)

@@ -11,7 +11,8 @@ Magnitudes beyond the normaliser are darkened to 75 %.
 
 :func:`flow_panel` writes Fig. 2 of the paper: frame 1, frame 2, horizontal and
 vertical flow (diverging colour maps, symmetric limits) and the uncertainty,
-each with a colour bar, as a PNG (matplotlib, Agg backend).
+each with a colour bar labelled with its quantity in px, as a PNG (matplotlib,
+Agg backend); :func:`flow_panel_figure` returns the same figure unsaved.
 """
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["COLOR_WHEEL", "color_wheel", "flow_panel", "flow_to_rgb"]
+__all__ = ["COLOR_WHEEL", "color_wheel", "flow_panel", "flow_panel_figure", "flow_to_rgb"]
 
 _RAMPS = (("RY", 15), ("YG", 6), ("GC", 4), ("CB", 11), ("BM", 13), ("MR", 6))
 
@@ -100,12 +101,11 @@ def _as_rgb_image(image, *, name: str) -> np.ndarray:
     return arr if arr.dtype == np.uint8 else np.clip(arr.astype(np.float64), 0.0, 1.0)
 
 
-def flow_panel(
+def flow_panel_figure(
     image1,
     image2,
     flow,
     sigma,
-    path: str | Path,
     *,
     title: str | None = None,
     flow_limit_px: float | None = None,
@@ -113,15 +113,17 @@ def flow_panel(
     sigma_mode: str = "magnitude",
     panel_width_in: float = 2.4,
     dpi: int = 100,
-) -> Path:
-    """Write the paper's Fig. 2 for one pair as a PNG at ``path``; returns the path.
+):
+    """The paper's Fig. 2 for one pair as a ``matplotlib.figure.Figure`` on an Agg canvas.
 
     Panels: frame 1, frame 2, horizontal flow ``Δu``, vertical flow ``Δv`` (both on
     ``[-flow_limit_px, flow_limit_px]``, default the 99th percentile of ``|flow|``),
-    and the uncertainty: ``sigma_mode="magnitude"`` draws ``sqrt(σu² + σv²)`` in one
+    and the uncertainty: ``sigma_mode="magnitude"`` draws ``|σ| = sqrt(σu² + σv²)`` in one
     panel, ``"components"`` draws ``σu`` and ``σv`` in two (on ``[0, sigma_limit_px]``,
     default the 99th percentile). Images as ``(H, W, 3)`` uint8 or ``(3, H, W)``
-    float; ``flow`` and ``sigma`` ``(2, H, W)`` or ``(1, 2, H, W)`` px.
+    float; ``flow`` and ``sigma`` ``(2, H, W)`` or ``(1, 2, H, W)`` px. Each colour
+    bar is labelled with its quantity and unit (``Δu [px]``, ``Δv [px]``,
+    ``|σ| [px]`` or ``σu [px]`` and ``σv [px]``), above the bar.
 
     The figure is ``panel_width_in`` inches per panel wide (``dpi`` pixels per
     inch), each panel the images' aspect plus room for the titles and colour bar;
@@ -150,16 +152,18 @@ def flow_panel(
         return max(float(np.percentile(x, 99)) if x.size else 0.0, 1e-3)
 
     flow_lim = limit(uv, flow_limit_px)
+    # (panel title, colour-bar label, data)
     if sigma_mode == "magnitude":
-        sig_panels = [("uncertainty |σ| (px)", np.hypot(s[..., 0], s[..., 1]))]
+        sig_panels = [("uncertainty |σ| (px)", "|σ| [px]", np.hypot(s[..., 0], s[..., 1]))]
     else:
-        sig_panels = [("uncertainty σu (px)", s[..., 0]), ("uncertainty σv (px)", s[..., 1])]
-    sig_lim = limit(np.stack([p for _, p in sig_panels]), sigma_limit_px)
+        sig_panels = [("uncertainty σu (px)", "σu [px]", s[..., 0]), ("uncertainty σv (px)", "σv [px]", s[..., 1])]
+    sig_lim = limit(np.stack([p for _, _, p in sig_panels]), sigma_limit_px)
 
+    # (panel title, image, (colour map, low, high, colour-bar label) or None for a picture)
     panels = [("frame #1", a, None), ("frame #2", b, None)]
-    panels += [("horizontal flow Δu (px)", uv[..., 0], ("RdBu_r", -flow_lim, flow_lim))]
-    panels += [("vertical flow Δv (px)", uv[..., 1], ("RdBu_r", -flow_lim, flow_lim))]
-    panels += [(label, arr, ("magma", 0.0, sig_lim)) for label, arr in sig_panels]
+    panels += [("horizontal flow Δu (px)", uv[..., 0], ("RdBu_r", -flow_lim, flow_lim, "Δu [px]"))]
+    panels += [("vertical flow Δv (px)", uv[..., 1], ("RdBu_r", -flow_lim, flow_lim, "Δv [px]"))]
+    panels += [(label, arr, ("magma", 0.0, sig_lim, unit)) for label, unit, arr in sig_panels]
 
     n = len(panels)
     image_h_in = panel_width_in * h / w
@@ -173,16 +177,52 @@ def flow_panel(
         if cmap is None:
             ax.imshow(data, interpolation="nearest")
         else:
-            name, lo, hi = cmap
+            name, lo, hi, bar_label = cmap
             im = ax.imshow(np.where(np.isfinite(data), data, np.nan), cmap=name, vmin=lo, vmax=hi, interpolation="nearest")
+            # bar 0.25 .. 0.37 in from the bottom, ticks below it, its label in the 0.18 in above it
             cax = fig.add_axes((i / n + 0.03, 0.25 / height_in, 1.0 / n - 0.06, 0.12 / height_in))
-            fig.colorbar(im, cax=cax, orientation="horizontal")
+            bar = fig.colorbar(im, cax=cax, orientation="horizontal")
             cax.tick_params(labelsize=7)
+            cax.xaxis.set_label_position("top")
+            bar.set_label(bar_label, fontsize=7, labelpad=2.5)
         ax.set_title(label, fontsize=8)
         ax.set_xticks([])
         ax.set_yticks([])
     if title:
         fig.suptitle(title, fontsize=9, y=1.0 - 0.08 / height_in, va="top")
+    return fig
+
+
+def flow_panel(
+    image1,
+    image2,
+    flow,
+    sigma,
+    path: str | Path,
+    *,
+    title: str | None = None,
+    flow_limit_px: float | None = None,
+    sigma_limit_px: float | None = None,
+    sigma_mode: str = "magnitude",
+    panel_width_in: float = 2.4,
+    dpi: int = 100,
+) -> Path:
+    """Write :func:`flow_panel_figure` (the paper's Fig. 2 for one pair) as a PNG at ``path``; returns the path.
+
+    The arguments other than ``path`` are those of :func:`flow_panel_figure`.
+    """
+    fig = flow_panel_figure(
+        image1,
+        image2,
+        flow,
+        sigma,
+        title=title,
+        flow_limit_px=flow_limit_px,
+        sigma_limit_px=sigma_limit_px,
+        sigma_mode=sigma_mode,
+        panel_width_in=panel_width_in,
+        dpi=dpi,
+    )
     path = Path(path)
     fig.savefig(path, format="png", dpi=dpi)
     return path

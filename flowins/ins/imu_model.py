@@ -7,12 +7,14 @@ preset carries an ``inflation`` of the densities it hands the filter.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from flowins.config import build, setting
 from flowins.ins.mechanization import ProcessNoise
 
 #: Kalibr's key -> ImuModel field
@@ -46,6 +48,37 @@ class ImuModel:
                 raise ValueError(f"imu.{key} ({self.name}) must be a finite number >= 0, got {value!r}")
         if self.inflation == 0:
             raise ValueError(f"imu.inflation ({self.name}) must be > 0")
+        for key in ("acc_range_mps2", "gyro_range_rps"):
+            value = getattr(self, key)
+            if value is not None and not value > 0:
+                raise ValueError(f"imu.{key} ({self.name}) must be > 0 or null (unchecked), got {value!r}")
+
+    def check_readings(self, imu: Any) -> None:
+        """Every reading of ``imu`` (an :class:`~flowins.data.streams.ImuStream`) within the
+        sensor's range (``imu.acc_range_mps2``, ``imu.gyro_range_rps``; null: unchecked),
+        with 5 % of margin for the sensor's own scale errors; else a ValueError naming the
+        stream, the sample and the key. A gyroscope in deg/s is named as such."""
+        import torch
+
+        for array, key, unit in ((imu.acc_mps2, "acc_range_mps2", "m/s²"), (imu.gyro_rps, "gyro_range_rps", "rad/s")):
+            limit = getattr(self, key)
+            if limit is None:
+                continue
+            peak = array.abs().amax(-1)
+            over = torch.nonzero(peak > 1.05 * limit)
+            if not over.numel():
+                continue
+            k = int(over[0, 0])
+            what = "accelerometer" if key.startswith("acc") else "gyroscope"
+            hint = f"fix or remove the sample, or set imu.{key} to the sensor's range"
+            if what == "gyroscope":
+                degrees = float(array.norm(dim=-1).median())
+                if float(peak.max()) <= 1.05 * limit * 180.0 / math.pi and degrees > 0.5:
+                    hint = (f"the readings look like deg/s (median |ω| {degrees:.3g}; {over.shape[0]} samples beyond "
+                            "the range): convert them to rad/s (× π/180)")
+            raise ValueError(f"{imu.name}: sample {k} (0-based, t = {float(imu.t_s[k]):.3f} s): {what} reading "
+                             f"{float(peak[k]):.6g} {unit} beyond the sensor's range ±{limit:g} {unit} (imu.{key}, "
+                             f"preset {self.name}); {hint}")
 
     def noise(self) -> dict[str, float]:
         """The densities the filter uses: the noise densities times ``inflation``, the walks as given."""
@@ -101,10 +134,8 @@ def imu_model(cfg: Any, *, recording: bool, sensor: str | None = None) -> ImuMod
         path = cfg.get("path")
         if not path or path == "???":
             raise ValueError("imu=kalibr needs imu.path=FILE (a Kalibr IMU YAML file)")
-        return read_kalibr_imu(path, inflation=float(cfg.get("inflation", 1.0)))
-    fields = ("name", "acc_noise", "gyro_noise", "acc_bias_walk", "gyro_bias_walk", "inflation", "acc_range_mps2",
-              "gyro_range_rps", "source")
-    unknown = sorted(set(cfg) - set(fields) - {"path", "rate_hz"})
-    if unknown:
-        raise ValueError(f"imu: unknown keys {unknown}; expected {', '.join(fields)}")
-    return ImuModel(**{k: cfg[k] for k in fields if k in cfg})
+        model = read_kalibr_imu(path, inflation=setting({"imu": cfg}, "imu.inflation", float, minimum=0.0, default=1.0))
+        ranges = {key: setting({"imu": cfg}, f"imu.{key}", float | None, minimum=0.0, default=None)
+                  for key in ("acc_range_mps2", "gyro_range_rps")}
+        return dataclasses.replace(model, **{k: v for k, v in ranges.items() if v is not None})
+    return build(ImuModel, {k: v for k, v in cfg.items() if k != "path"}, "imu")

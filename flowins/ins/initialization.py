@@ -247,6 +247,9 @@ def still_interval(t_s: Tensor, acc_mps2: Tensor, gyro_rps: Tensor, settings: St
             end = int(hit[0, 0])
             reason = (f"row {end} (t = {float(t[end]):.3f} s): {what} {float(value[end]):.3g} {unit} "
                       f"(filter.init.still.{key}={limit})")
+            if key == "max_gyro_rps" and float(acc_dev[:end + 1].max()) < 0.25 * settings.max_acc_mps2:
+                reason += ("; the rate moves while the specific force stays still, as a gyroscope in deg/s "
+                           "would (rad/s expected)")
     if end < n:
         # a smooth start of motion crosses the limits late: the interval ends where the
         # motion rose out of the noise, the last row before ``end`` below a quarter of the limits

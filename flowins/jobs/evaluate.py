@@ -8,8 +8,11 @@ plus the Fig. 2 flow panel for a few frame pairs.
 """
 from __future__ import annotations
 
+
+import dataclasses
 import functools
 import json
+import logging
 import math
 import time
 from collections.abc import Mapping
@@ -19,9 +22,11 @@ from typing import Any
 
 import torch
 
+from flowins.jobs.cli import console_logging
 from flowins.cache import cache_root
+from flowins.config import build, setting
 from flowins.data.fingerprint import camera_content_key
-from flowins.data.sequence import Sequence
+from flowins.data.sequence import Sequence, within_imu_span
 from flowins.data.streams import GnssStream, ImuStream, PoseStream
 from flowins.evaluation import plot_trajectory, trajectory_errors, write_tum
 from flowins.evaluation.gnss_floor import gnss_floor
@@ -46,6 +51,8 @@ from flowins.navigation import NavigationConfig, NavigationResult, navigate
 from flowins.start import GroundtruthSettings, MovingSettings, StartSettings
 from flowins.state import STATE
 
+log = logging.getLogger("flowins")
+
 #: the filter's precision: float64 only. In float32 the pose copy's nugget (1e-9) is below
 #: the rounding of the position variances and the flow update's covariances lose their
 #: definiteness (measured on the 60 s walk: ins_gnss smoother 3.6e6 m, ins_dense NaN)
@@ -53,52 +60,47 @@ _DTYPES = {"float64": torch.float64}
 
 
 def start_settings(cfg: Mapping[str, Any]) -> StartSettings:
-    """:class:`~flowins.start.StartSettings` from ``filter.init``."""
-    cfg = dict(cfg)
-    moving = dict(cfg.pop("moving"))
-    if moving.get("velocity_mps") is not None:
-        moving["velocity_mps"] = tuple(float(v) for v in moving["velocity_mps"])
-        if len(moving["velocity_mps"]) != 3:
-            raise ValueError(f"filter.init.moving.velocity_mps={list(moving['velocity_mps'])}; expected [east, north, up]")
-    return StartSettings(still=StillSettings(**dict(cfg.pop("still"))), moving=MovingSettings(**moving),
-                         groundtruth=GroundtruthSettings(**dict(cfg.pop("groundtruth"))), **cfg)
+    """:class:`~flowins.start.StartSettings` from ``filter.init`` (values checked by key)."""
+    return build(StartSettings, cfg, "filter.init")
 
 
 def navigation_config(cfg: Mapping[str, Any], imu: ImuModel | None = None) -> NavigationConfig:
     """:class:`NavigationConfig` from the ``filter`` config group; its IMU noise keys that are
-    null come from ``imu`` (the ``imu`` config group, :func:`flowins.ins.imu_model.imu_model`)."""
+    null come from ``imu`` (the ``imu`` config group, :func:`flowins.ins.imu_model.imu_model`).
+    Every value is checked against the settings it builds; errors name the key."""
     if cfg["dtype"] not in _DTYPES:
-        raise ValueError(f"filter.dtype must be one of {list(_DTYPES)}, got {cfg['dtype']!r} (float32 is not "
+        raise ValueError(f"filter.dtype={cfg['dtype']!r}: expected one of {list(_DTYPES)} (float32 is not "
                          "precise enough for the pose augmentation and the flow update)")
     noise = {}
     for key in ("acc_noise", "gyro_noise", "acc_bias_walk", "gyro_bias_walk"):
         noise[key] = cfg[key] if cfg[key] is not None else (None if imu is None else imu.noise()[key])
         if noise[key] is None:
             raise ValueError(f"filter.{key} is null and no imu preset was given; set filter.{key} or choose imu=...")
-    return NavigationConfig(
-        noise=ProcessNoise(**noise, acc_scale_walk=cfg["acc_scale_walk"], discretization=cfg["discretization"]),
-        initial=InitialUncertainty(**dict(cfg["initial"])),
+    noise.update(acc_scale_walk=cfg["acc_scale_walk"], discretization=cfg["discretization"])
+    simple = ("gnss_noise_scale", "gnss_correlation_s", "output_every", "scheme", "gravity_mps2", "jacobians")
+    groups = ("init", "initial", "gnss_gate", "gnss_recovery", "gnss_heading", "flow", "dtype")
+    known = (*noise, *simple, *groups)
+    for key in cfg:
+        if key not in known:
+            raise ValueError(f"filter.{key}: unknown key; filter takes {', '.join(known)}")
+    return build(
+        NavigationConfig,
+        {key: cfg[key] for key in simple},
+        "filter",
+        noise=build(ProcessNoise, noise, "filter"),
+        initial=build(InitialUncertainty, cfg["initial"], "filter.initial"),
         start=start_settings(cfg["init"]),
-        gnss_gate=Gate(mode=cfg["gnss_gate"]["mode"], probability=cfg["gnss_gate"]["probability"]),
-        gnss_recovery=GnssRecovery(**dict(cfg["gnss_recovery"])),
-        gnss_noise_scale=cfg["gnss_noise_scale"],
-        gnss_correlation_s=cfg["gnss_correlation_s"],
-        gnss_heading=HeadingAlignment(**dict(cfg["gnss_heading"])),
-        output_every=cfg["output_every"],
-        scheme=cfg["scheme"],
-        gravity_mps2=cfg["gravity_mps2"],
-        jacobians=cfg["jacobians"],
+        gnss_gate=build(Gate, cfg["gnss_gate"], "filter.gnss_gate"),
+        gnss_recovery=build(GnssRecovery, cfg["gnss_recovery"], "filter.gnss_recovery"),
+        gnss_heading=build(HeadingAlignment, cfg["gnss_heading"], "filter.gnss_heading"),
         dtype=_DTYPES[cfg["dtype"]],
         flow_update=flow_update_config(cfg["flow"]),
     )
 
 
 def flow_update_config(cfg: Mapping[str, Any]) -> FlowUpdate:
-    """:class:`FlowUpdate` from ``filter.flow``."""
-    cfg = dict(cfg)
-    gate = cfg.pop("gate")
-    recovery = FlowRecovery(**dict(cfg.pop("recovery", {})))
-    return FlowUpdate(gate=Gate(mode=gate["mode"], probability=gate["probability"]), recovery=recovery, **cfg)
+    """:class:`FlowUpdate` from ``filter.flow`` (values checked by key)."""
+    return build(FlowUpdate, cfg, "filter.flow")
 
 
 def learned_settings(checkpoint: str, nav_cfg: NavigationConfig, cfg: Mapping[str, Any]) -> tuple[NavigationConfig, dict]:
@@ -111,7 +113,7 @@ def learned_settings(checkpoint: str, nav_cfg: NavigationConfig, cfg: Mapping[st
     cfg = dict(cfg)
     if "p" in cfg["flow"]:
         cfg["flow"] = {**cfg["flow"], "p": values["dropout_p"]}
-    print(f"learned parameters from {checkpoint}: " + ", ".join(f"{k}={v:.4g}" for k, v in values.items()))
+    log.info(f"learned parameters from {checkpoint}: " + ", ".join(f"{k}={v:.4g}" for k, v in values.items()))
     return params.apply(nav_cfg, training=False), cfg
 
 
@@ -124,6 +126,8 @@ class EvalInputs:
     gnss: GnssStream | None
     truth: PoseStream | None
     sequence: Sequence | None = None
+    #: what reading changed (a stream cropped to the IMU span), printed and kept in metrics.json
+    warnings: list[str] = dataclasses.field(default_factory=list)
 
     @functools.cached_property
     def content_key(self) -> str:
@@ -146,8 +150,11 @@ def load_sequence(cfg: Mapping[str, Any], *, quick: bool, progress: bool = False
     if cfg.get("path"):
         from flowins.data.read import read_sequence
 
-        seq = read_sequence(cfg["path"])
-        return EvalInputs(seq.name, seq.imu, seq.gnss, seq.groundtruth, seq)
+        seq = read_sequence(cfg["path"], max_imu_gap_s=cfg["max_imu_gap_s"])
+        seq, cropped = within_imu_span(seq, crop=cfg["crop"])
+        for line in cropped:
+            log.warning("warning: %s", line)
+        return EvalInputs(seq.name, seq.imu, seq.gnss, seq.groundtruth, seq, cropped)
     if cfg["kind"] != "simulated_walk":
         raise ValueError(
             f"sequence.kind={cfg['kind']!r} is not supported; use the built-in 'simulated_walk' "
@@ -199,7 +206,7 @@ def load_flow(kind: str, rec: EvalInputs, cfg: Mapping[str, Any], *, progress: b
         return sparse_pairs(seq.frames, provider, step=step, progress=progress, description=label)
 
     if path.is_file():
-        print(f"{kind} flow: {label}, read from the cache {path}")
+        log.info(f"{kind} flow: {label}, read from the cache {path}")
     pairs = cached(path, compute)
     return pairs.undistorted(seq.camera)
 
@@ -232,15 +239,31 @@ def format_table(rows: list[Row]) -> str:
     return "\n".join(lines)
 
 
+#: a ground truth that spans less (m, largest distance from its mean) leaves the alignment's rotation undetermined
+MIN_TRUTH_EXTENT_M = 0.5
+
+
+def truth_extent_problem(truth: PoseStream | None) -> str | None:
+    """Why ``truth`` can't score a track (it barely moves), or None."""
+    if truth is None:
+        return None
+    extent = float(torch.linalg.vector_norm(truth.pos_m - truth.pos_m.mean(0), dim=-1).max())
+    if extent >= MIN_TRUTH_EXTENT_M:
+        return None
+    return (f"{truth.name}: the ground truth stays within {extent:.3g} m of its mean (< {MIN_TRUTH_EXTENT_M} m), so "
+            "the alignment's rotation is undetermined: no RMSE is computed (n/a); the tracks are written as TUM files")
+
+
 def _export(out: Path, name: str, result: NavigationResult, rec: EvalInputs, plots: bool) -> dict[str, Any]:
     metrics: dict[str, Any] = {}
     tracks = {}
+    score = rec.truth is not None and truth_extent_problem(rec.truth) is None
     # the filter's nodes before a heading alignment are re-expressed in the aligned frame
     # (FilterTrack.in_final_frame): one frame per track, as the smoother's
     for kind, track in (("filter", result.filter.in_final_frame()), ("smoother", result.smoother)):
         pos, q = track.mean[:, STATE.p], track.mean[:, STATE.q]
         write_tum(out / f"{name}_{kind}.tum", track.t, pos, q)
-        if rec.truth is None:
+        if not score:
             metrics[f"{kind}_rmse_m"] = None
             continue
         err = trajectory_errors(track.t, pos, rec.truth.t_s, rec.truth.pos_m, align="se3")
@@ -260,7 +283,7 @@ def _export(out: Path, name: str, result: NavigationResult, rec: EvalInputs, plo
     heading = [{k: v for k, v in e.items() if k not in ("kind", "name")} for e in result.heading_status]
     if heading:
         metrics["heading_alignment"] = heading  # filter.gnss_heading: when and how the heading was set (or given up)
-    if plots and rec.truth is not None:
+    if plots and score:
         gnss = radius = None
         if result.gnss_enu_m is not None:
             # GNSS is plotted in the frame the aligned tracks live in (the truth's)
@@ -384,33 +407,63 @@ def describe_gnss_floor(floor: Mapping[str, Any]) -> str:
     )
 
 
+def check_job_settings(cfg: Mapping[str, Any]) -> None:
+    """The job's own keys (``combinations``, ``flow_pairs``, ``sequence``, ...) checked
+    before any work: each error names the key and what was expected."""
+    combinations, methods = cfg["combinations"], cfg["methods"]
+    if isinstance(combinations, str) or not hasattr(combinations, "__len__") or not len(combinations):
+        raise ValueError(f"combinations={combinations!r}: expected a list of at least one of {', '.join(methods)} "
+                         "(configs/method/)")
+    for name in combinations:
+        if name not in methods:
+            raise ValueError(f"combinations: unknown combination {name!r}; expected one of {', '.join(methods)} "
+                             "(configs/method/)")
+    for key in ("quick", "progress", "plots"):
+        setting(cfg, key, bool)
+    setting(cfg, "flow_panels", int, minimum=0)
+    setting(cfg, "flow_pairs.step", int, minimum=1)
+    setting(cfg, "flow_pairs.input_scale", float, minimum=1e-3, maximum=1.0)
+    setting(cfg, "flow_pairs.stride_px", int, minimum=1)
+    setting(cfg, "flow_pairs.border_px", int, minimum=0)
+    setting(cfg, "flow_pairs.batch_size", int, minimum=1)
+    setting(cfg, "sequence.path", str | None)
+    setting(cfg, "sequence.max_imu_gap_s", float, minimum=1e-6)
+    setting(cfg, "sequence.crop", bool)
+    if not cfg["sequence"].get("path"):
+        setting(cfg, "sequence.duration_s", float, minimum=1.0)
+        setting(cfg, "sequence.quick_duration_s", float, minimum=1.0)
+        setting(cfg, "sequence.seed", int)
+        setting(cfg, "sequence.imu_rate_hz", float, minimum=1.0)
+
+
 def run(cfg: Mapping[str, Any]) -> list[Row]:
     """Run the job; returns the table rows (also printed and written to ``metrics.json``)."""
+    console_logging()
+    check_job_settings(cfg)
     out = Path(cfg["output_dir"])
     out.mkdir(parents=True, exist_ok=True)
-    quick = bool(cfg.get("quick", False))
-    progress = bool(cfg.get("progress"))
-    plots = bool(cfg.get("plots", True))
+    quick, progress, plots = cfg["quick"], cfg["progress"], cfg["plots"]
     methods: Mapping[str, Mapping[str, bool]] = cfg["methods"]
-    for name in cfg["combinations"]:
-        if name not in methods:
-            raise ValueError(f"unknown combination {name!r}; expected one of {list(methods)} (configs/method/)")
     t0 = time.perf_counter()
     rec = load_sequence(cfg["sequence"], quick=quick, progress=progress)
     n_gnss = 0 if rec.gnss is None else len(rec.gnss)
     seq = rec.sequence
     n_frames = 0 if seq is None or seq.frames is None else len(seq.frames)
-    print(f"sequence: {rec.name}, {rec.imu.duration_s:.0f} s, {len(rec.imu)} IMU samples, {n_frames} camera frames, "
+    log.info(f"sequence: {rec.name}, {rec.imu.duration_s:.0f} s, {len(rec.imu)} IMU samples, {n_frames} camera frames, "
           f"{n_gnss} GNSS fixes, ground truth: {'yes' if rec.truth is not None else 'no'} "
           f"({time.perf_counter() - t0:.1f} s to load)")
+    unscored = truth_extent_problem(rec.truth)
+    if unscored:
+        log.warning("warning: %s", unscored)
     sensor = None if seq is None else seq.metadata.get("imu")
     imu = imu_model(cfg["imu"], recording=bool(cfg["sequence"].get("path")), sensor=sensor)
+    imu.check_readings(rec.imu)
     nav_cfg = navigation_config(cfg["filter"], imu)
     checkpoint = (cfg.get("model") or {}).get("checkpoint")
     if checkpoint:
         nav_cfg, cfg = learned_settings(checkpoint, nav_cfg, cfg)
     noise = nav_cfg.noise
-    print(f"imu: {imu.name} ({imu.source or 'config'}): filter densities acc {float(noise.acc_noise):.3g} m/s²/√Hz, "
+    log.info(f"imu: {imu.name} ({imu.source or 'config'}): filter densities acc {float(noise.acc_noise):.3g} m/s²/√Hz, "
           f"gyro {float(noise.gyro_noise):.3g} rad/s/√Hz, walks {float(noise.acc_bias_walk):.3g} m/s³/√Hz, "
           f"{float(noise.gyro_bias_walk):.3g} rad/s²/√Hz")
     calibration = None if seq is None or seq.imu_to_camera is None else seq.imu_to_camera
@@ -423,7 +476,7 @@ def run(cfg: Mapping[str, Any]) -> list[Row]:
             t1 = time.perf_counter()
             flows[kind] = load_flow(kind, rec, cfg, progress=progress)
             if isinstance(flows[kind], FlowPairs):
-                print(f"{kind} flow: {len(flows[kind])} frame pairs ({time.perf_counter() - t1:.1f} s)")
+                log.info(f"{kind} flow: {len(flows[kind])} frame pairs ({time.perf_counter() - t1:.1f} s)")
 
     rows, metrics = [], {}
     for name in cfg["combinations"]:
@@ -450,38 +503,41 @@ def run(cfg: Mapping[str, Any]) -> list[Row]:
         if flow is not None:
             m.update(_flow_stats(result, flow))
         m["seconds"] = time.perf_counter() - t1
-        m["warnings"] = run_warnings(result)
+        m["warnings"] = run_warnings(result) + ([unscored] if unscored else [])
         metrics[name] = m
-        note = "" if rec.truth is not None else "no ground truth: TUM tracks only"
+        note = ("no ground truth: TUM tracks only" if rec.truth is None else
+                "the ground truth does not move: TUM tracks only" if unscored else "")
         rows.append(Row(name, sources, m["filter_rmse_m"], m["smoother_rmse_m"], note, seconds=m["seconds"]))
         fr = "n/a" if m["filter_rmse_m"] is None else f"{m['filter_rmse_m']:.2f} m"
-        print(f"  {name:<16} filter RMSE {fr} ({m['seconds']:.1f} s); {result.start.describe()}")
+        log.info(f"  {name:<16} filter RMSE {fr} ({m['seconds']:.1f} s); {result.start.describe()}")
         for entry in m.get("heading_alignment", []):
             if entry["status"] == "never set":
-                print(f"  {'':<16} GNSS: {entry['fixes']} fixes held for the heading to the end: {entry['reason']}")
+                log.info(f"  {'':<16} GNSS: {entry['fixes']} fixes held for the heading to the end: {entry['reason']}")
     if plots and isinstance(flows.get("dense"), FlowPairs) and int(cfg.get("flow_panels", 0)) > 0:
         flow_panels(rec, cfg, out, int(cfg["flow_panels"]))
     table = format_table(rows)
-    print("\nRMSE after Procrustes alignment (rotation + translation) to the ground truth\n")
-    print(table)
+    log.info("\nRMSE after Procrustes alignment (rotation + translation) to the ground truth\n")
+    log.info(table)
     starts = {m["start"]["mode"] for m in metrics.values() if isinstance(m, dict) and "start" in m}
     if starts:
-        print(f"\nstart: {', '.join(sorted(starts))} (filter.init.mode={nav_cfg.start.mode}; per row in metrics.json)")
+        log.info(f"\nstart: {', '.join(sorted(starts))} (filter.init.mode={nav_cfg.start.mode}; per row in metrics.json)")
     warned = [(n, w) for n, m in metrics.items() if isinstance(m, dict) for w in m.get("warnings", [])]
     if warned:
-        print("\nwarnings:")
+        log.info("\nwarnings:")
         for n, w in warned:
-            print(f"  {n}: {w}")
+            log.info(f"  {n}: {w}")
     uses_gnss = any(methods[name]["gnss"] for name in cfg["combinations"])
-    if uses_gnss and rec.gnss is not None and rec.truth is not None and len(rec.gnss) >= 3:
+    if uses_gnss and rec.gnss is not None and rec.truth is not None and not unscored and len(rec.gnss) >= 3:
         try:
             metrics["gnss_floor"] = gnss_floor_metrics(rec.gnss, rec.truth)
-            print("\n" + describe_gnss_floor(metrics["gnss_floor"]))
+            log.info("\n" + describe_gnss_floor(metrics["gnss_floor"]))
         except ValueError as error:  # e.g. too few fixes inside the truth's time span: reported, not fatal
             metrics["gnss_floor"] = {"status": "not computed", "reason": str(error)}
-            print(f"\nGNSS floor not computed: {error}")
+            log.info(f"\nGNSS floor not computed: {error}")
+    if rec.warnings:
+        metrics["input_warnings"] = rec.warnings
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=float))
-    print(f"\nwrote {out}/metrics.json, *.tum" + (", *.png" if plots else ""))
+    log.info(f"\nwrote {out}/metrics.json, *.tum" + (", *.png" if plots else ""))
     for r in rows:
         if r.filter_rmse_m is not None and not math.isfinite(r.filter_rmse_m):
             raise RuntimeError(f"{r.name}: non-finite RMSE; see {out}")

@@ -15,7 +15,10 @@ from typing import Any
 
 import pytorch_lightning as pl
 
+from flowins.jobs.cli import console_logging
 from flowins.training.parameters import NAMES, NOISE_NAMES, FROZEN_BY_DEFAULT, FilterParameters, starting_values
+
+log = logging.getLogger("flowins")
 
 
 def parameter_sets(cfg: Mapping[str, Any], base) -> tuple[dict[str, float], dict[str, float], set[str]]:
@@ -48,6 +51,7 @@ def flow_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
 
 def run(cfg: Mapping[str, Any]) -> dict[str, Any]:
     """Fit, test on the held-out sequences, and return the held-out results."""
+    console_logging()
     from hydra.utils import instantiate
 
     from flowins.ins.imu_model import imu_model
@@ -67,7 +71,7 @@ def run(cfg: Mapping[str, Any]) -> dict[str, Any]:
     base = navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=recording))
     tuned, start, learn = parameter_sets(cfg, base)
     params = FilterParameters(start, learn)
-    print(f"learning {len(params.learned)} parameters: {', '.join(params.learned)}")
+    log.info(f"learning {len(params.learned)} parameters: {', '.join(params.learned)}")
     data_cfg = {**cfg, "flow": flow_settings(cfg)}
     data = SequenceDataModule(train=cfg["data"]["train"], val=cfg["data"]["val"], config=data_cfg, methods=methods,
                               progress=bool(cfg.get("progress", True)))
@@ -89,10 +93,10 @@ def run(cfg: Mapping[str, Any]) -> dict[str, Any]:
         trainer.test(module, datamodule=data, verbose=False)
     learned = module.params.values()
     (out / "learned_parameters.json").write_text(json.dumps(learned, indent=2))
-    print(f"\nlearned parameters: {out / 'learned_parameters.json'}")
+    log.info(f"\nlearned parameters: {out / 'learned_parameters.json'}")
     if best:
-        print(f"checkpoint: {best}\n  python evaluate.py model.checkpoint={best}")
-    print(f"skipped windows (non-finite loss or gradient): {module.skipped_windows}; trained: {module.trained_windows}")
+        log.info(f"checkpoint: {best}\n  python evaluate.py model.checkpoint={best}")
+    log.info(f"skipped windows (non-finite loss or gradient): {module.skipped_windows}; trained: {module.trained_windows}")
     return {"learned": learned, "start": start, "hand-tuned": tuned, "checkpoint": best,
             "skipped_windows": module.skipped_windows}
 

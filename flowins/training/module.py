@@ -16,6 +16,7 @@ the held-out table of the starting, the learned and the hand-tuned parameters.
 from __future__ import annotations
 
 import json
+import logging
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -26,6 +27,8 @@ import torch
 from flowins.navigation import NavigationConfig
 from flowins.training.parameters import FilterParameters
 from flowins.training.unroll import TrainingSequence, run_window, sequence_rmse, window_bounds, window_loss
+
+log = logging.getLogger("flowins")
 
 
 class FilterLearner(pl.LightningModule):
@@ -158,8 +161,8 @@ class FilterLearner(pl.LightningModule):
 
     def on_test_epoch_end(self) -> None:
         table = heldout_table(self._heldout, self.methods)
-        print("\nheld-out filter RMSE (m, Table I alignment), mean over the held-out sequences\n")
-        print(table)
+        log.info("\nheld-out filter RMSE (m, Table I alignment), mean over the held-out sequences\n")
+        log.info(table)
         if self.output_dir:
             out = Path(self.output_dir)
             out.mkdir(parents=True, exist_ok=True)

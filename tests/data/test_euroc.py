@@ -30,7 +30,7 @@ GT_HEADER = (
     "b_w_RS_S_z [rad s^-1], b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], b_a_RS_S_z [m s^-2]"
 )
 WIDTH, HEIGHT = 8, 6
-INTRINSICS = (458.654, 457.296, 3.215, 2.375)
+INTRINSICS = (4.58654, 4.57296, 3.215, 2.375)  # EuRoC cam0 scaled to the 8x6 test images
 DISTORTION = (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05)
 
 

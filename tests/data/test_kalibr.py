@@ -19,7 +19,7 @@ from flowins.data.kalibr import read_kalibr_camchain, read_kalibr_timeshift
 from flowins.data.read import read_sequence
 from flowins.data.sequence import PinholeCamera
 
-INTRINSICS = (458.654, 457.296, 3.5, 2.5)
+INTRINSICS = (4.58654, 4.57296, 3.5, 2.5)  # EuRoC cam0 scaled to the 8x6 test images
 DISTORTION = (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05)
 WIDTH, HEIGHT = 8, 6
 

@@ -127,8 +127,10 @@ def _homogeneous(R, t):
 T_VELO_IMU = _homogeneous(_rz(0.0075) @ _rx(-0.002), [-0.8086759, 0.3195559, -0.7997231])
 T_CAM0_VELO = _homogeneous(_rx(-math.pi / 2) @ _rz(-math.pi / 2) @ _ry(0.01), [-0.004069766, -0.07631618, -0.2717806])
 R_RECT_00 = _rz(0.0098) @ _ry(-0.0074)
-K = np.array([[721.5377, 0.0, 609.5593], [0.0, 721.5377, 172.854], [0.0, 0.0, 1.0]])
-P_RECT = {i: np.hstack([K, p[:, None]]) for i, p in {
+# KITTI's 1242x375 rectified camera, scaled to the WIDTH x HEIGHT test images
+SCALE = np.diag([WIDTH / 1242.0, HEIGHT / 375.0, 1.0])
+K = SCALE @ np.array([[721.5377, 0.0, 609.5593], [0.0, 721.5377, 172.854], [0.0, 0.0, 1.0]])
+P_RECT = {i: np.hstack([K, SCALE @ p[:, None]]) for i, p in {
     0: np.zeros(3), 1: np.array([-387.5744, 0.0, 0.0]), 2: np.array([44.85728, 0.2163791, 0.002745884]),
     3: np.array([-339.5242, 2.199936, 0.002729905]),
 }.items()}

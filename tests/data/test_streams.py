@@ -97,7 +97,7 @@ def test_imu_gap_is_reported_with_rows_and_hint():
         ImuStream(t, acc, gyro)
     msg = str(err.value)
     assert re.search(r"^IMU: gap of 0\.73 s between rows 99 and 100", msg), msg
-    assert "max_gap_s=0.2" in msg and "pass a larger max_gap_s" in msg
+    assert "max_imu_gap_s=0.2" in msg and "raise sequence.max_imu_gap_s" in msg
     # ...and the hint works: the same data is accepted, unchanged, with a larger bound.
     imu = ImuStream(t, acc, gyro, max_gap_s=1.0)
     assert len(imu) == 120 and np.array_equal(imu.t_s.numpy(), t)

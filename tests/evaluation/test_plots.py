@@ -1,4 +1,5 @@
-"""Trajectory and error figures: a real PNG of the promised size, content, and no plots of NaN."""
+"""Trajectory and error figures: a real PNG of the promised size, content, and no plots of NaN;
+the figure's artists: legend entries, GNSS colours apart from viridis, accuracy circles that do not fill."""
 import math
 import struct
 
@@ -6,9 +7,12 @@ import numpy as np
 import pytest
 import torch
 from matplotlib import colormaps
+from matplotlib.collections import PatchCollection
+from matplotlib.colors import to_rgba_array
 from matplotlib.image import imread
 
 from flowins.evaluation import plot_errors, plot_trajectory
+from flowins.evaluation.plots import trajectory_figure
 
 F64 = torch.float64
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -92,3 +96,107 @@ def test_shape_and_argument_errors(tmp_path):
         plot_trajectory(
             tmp_path / "x.png", ground_truth_m=None, tracks={"f": (t, circle(t))}, gnss_radius_m=torch.ones(3, dtype=F64)
         )
+
+
+# ---------------------------------------------------------------- the figure's artists
+
+VIRIDIS_RGB = colormaps["viridis"](np.linspace(0.0, 1.0, 256))[:, :3]
+
+
+def panels(fig):
+    """The trajectory panels (the axes with a title), without the colour-bar axes."""
+    return [ax for ax in fig.axes if ax.get_title()]
+
+
+def gnss_layers(ax):
+    """The GNSS fixes (the scatter labelled GNSS...) and the accuracy circles (the PatchCollection) of one panel."""
+    fixes = [c for c in ax.collections if c.get_label().startswith("GNSS")]
+    circles = [c for c in ax.collections if isinstance(c, PatchCollection)]
+    assert len(fixes) == 1 and len(circles) == 1, [type(c).__name__ + ":" + c.get_label() for c in ax.collections]
+    return fixes[0], circles[0]
+
+
+def visible_rgb(*colour_arrays):
+    """RGB rows of every colour with a non-zero alpha."""
+    rgba = np.concatenate([to_rgba_array(c) for c in colour_arrays])
+    return rgba[rgba[:, 3] > 0, :3]
+
+
+def gnss_inputs(n=30, radius=5.0):
+    t = torch.linspace(0, 60, 400, dtype=F64)
+    gnss_t = torch.linspace(0, 60, n, dtype=F64)
+    return dict(
+        ground_truth_m=circle(t),
+        tracks={"filter": (t, circle(t) + 2.0), "smoother": (t, circle(t) + 0.5)},
+        gnss_m=circle(gnss_t),
+        gnss_radius_m=torch.full((n,), radius, dtype=F64),
+    )
+
+
+def test_legend_names_truth_gnss_and_the_track():
+    fig = trajectory_figure(**gnss_inputs(), dpi=50)
+    assert [ax.get_title() for ax in panels(fig)] == ["filter", "smoother"]
+    for ax in panels(fig):
+        texts = [t.get_text() for t in ax.get_legend().get_texts()]
+        assert ax.get_title() in texts, texts  # the scatter coloured by time
+        assert "ground truth" in texts, texts
+        assert any(t.startswith("GNSS") for t in texts), texts
+    # a track alone still has its legend entry
+    t = torch.linspace(0, 10, 50, dtype=F64)
+    (ax,) = panels(trajectory_figure(ground_truth_m=None, tracks={"estimate": (t, circle(t))}, dpi=50))
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == ["estimate"]
+
+
+def test_gnss_colours_are_far_from_viridis_and_from_the_red_truth():
+    fig = trajectory_figure(**gnss_inputs(), dpi=50)
+    for ax in panels(fig):
+        fixes, circles = gnss_layers(ax)
+        for layer in (fixes, circles):
+            rgb = visible_rgb(layer.get_facecolor(), layer.get_edgecolor())
+            assert len(rgb) > 0
+            to_viridis = np.linalg.norm(rgb[:, None, :] - VIRIDIS_RGB[None], axis=-1)  # (colours, 256)
+            assert to_viridis.min() > 0.5, (rgb, to_viridis.min())  # tab:blue was 0.07 from viridis, black is 0.42
+            assert np.linalg.norm(rgb - np.array([1.0, 0.0, 0.0]), axis=-1).min() > 0.5, rgb
+        # the truth line stays red
+        (truth,) = [line for line in ax.get_lines() if line.get_label() == "ground truth"]
+        assert to_rgba_array(truth.get_color())[0, :3].tolist() == [1.0, 0.0, 0.0]
+
+
+def rgba_at(fig, ax, points_m):
+    """Rendered RGBA (0..255) of the pixels at the data points ``(K, 2)`` (East, North) of ``ax``."""
+    fig.canvas.draw()
+    image = np.asarray(fig.canvas.buffer_rgba())
+    xy = ax.transData.transform(points_m)  # display pixels, origin at the bottom left
+    cols = np.floor(xy[:, 0]).astype(int)
+    rows = image.shape[0] - 1 - np.floor(xy[:, 1]).astype(int)
+    return image[rows, cols].astype(np.float64)
+
+
+def test_300_overlapping_accuracy_circles_do_not_fill_their_inside():
+    """300 fixes within 1 m of the origin, each with a 10 m radius: inside the circles stays white."""
+    g = 300
+    rng = np.random.default_rng(3)
+    gnss = np.zeros((g, 3))
+    gnss[:, :2] = rng.uniform(-1.0, 1.0, (g, 2))
+    t = torch.linspace(0, 10, 50, dtype=F64)
+    track = torch.stack((torch.full_like(t, 40.0), torch.linspace(-10, 10, 50, dtype=F64), torch.zeros_like(t)), -1)
+    fig = trajectory_figure(
+        ground_truth_m=None,
+        tracks={"filter": (t, track)},
+        gnss_m=torch.from_numpy(gnss),
+        gnss_radius_m=torch.full((g,), 10.0, dtype=F64),
+        panel_size_in=(6.0, 4.0),
+        dpi=100,
+    )
+    (ax,) = panels(fig)
+    _, circles = gnss_layers(ax)
+    assert (to_rgba_array(circles.get_facecolor())[:, 3] == 0).all()  # no fill at all
+    ax.get_legend().set_visible(False)  # "best" may put it anywhere; only the circles are under test
+    angle = np.linspace(0.0, 2 * np.pi, 72, endpoint=False)
+    ring = lambda r: np.stack((r * np.cos(angle), r * np.sin(angle)), -1)  # noqa: E731
+    inside = rgba_at(fig, ax, np.concatenate([ring(r) for r in (3.0, 5.0, 7.0)]))
+    # the old drawing (300 fills of alpha 0.15) made this a solid blue: 1 - 0.85**300 = 1
+    assert inside[:, :3].min() > 0.95 * 255, inside[:, :3].min()
+    # the outlines themselves are drawn: the band 9..11 m is tinted (magenta has no green)
+    band = rgba_at(fig, ax, np.concatenate([ring(r) for r in np.linspace(9.0, 11.0, 9)]))
+    assert band[:, 1].min() < 0.8 * 255, band[:, 1].min()

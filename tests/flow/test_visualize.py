@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from flowins.flow.flo import FLO_MAGIC, read_flo, write_flo
-from flowins.flow.visualize import flow_panel, flow_to_rgb
+from flowins.flow.visualize import flow_panel, flow_panel_figure, flow_to_rgb
 
 # ---------------------------------------------------------------- colour wheel
 
@@ -126,6 +126,43 @@ def test_flow_panel_writes_png(tmp_path):
     assert abs(png_size(six)[0] - 6 * 2.4 * 100) < 1
     with pytest.raises(ValueError, match="same size"):
         flow_panel(image1[:30], image2, flow_a, sigma, tmp_path / "d.png")
+
+
+@pytest.mark.parametrize(
+    "sigma_mode, expected",
+    [
+        ("magnitude", {"horizontal flow Δu (px)": "Δu [px]", "vertical flow Δv (px)": "Δv [px]", "uncertainty |σ| (px)": "|σ| [px]"}),
+        (
+            "components",
+            {
+                "horizontal flow Δu (px)": "Δu [px]",
+                "vertical flow Δv (px)": "Δv [px]",
+                "uncertainty σu (px)": "σu [px]",
+                "uncertainty σv (px)": "σv [px]",
+            },
+        ),
+    ],
+)
+def test_flow_panel_colour_bars_are_labelled(sigma_mode, expected):
+    h, w = 60, 80
+    v, u = np.mgrid[0:h, 0:w].astype(np.float32)
+    flow = np.stack([0.1 * u, -0.05 * v])
+    sigma = np.full((2, h, w), 0.5, np.float32)
+    image = np.zeros((h, w, 3), np.uint8)
+    fig = flow_panel_figure(image, image, flow, sigma, title="pair", sigma_mode=sigma_mode)
+    fig.canvas.draw()
+    bars = {ax.get_title(): im.colorbar for ax in fig.axes for im in ax.images if im.colorbar is not None}
+    assert {title: bar.ax.get_xlabel() for title, bar in bars.items()} == expected
+    figure_box = fig.bbox
+    renderer = fig.canvas.get_renderer()
+    for title, bar in bars.items():
+        (image_ax,) = [ax for ax in fig.axes if ax.get_title() == title]
+        label_box = bar.ax.xaxis.label.get_window_extent(renderer)
+        assert label_box.width > 0 and "px" in bar.ax.get_xlabel()
+        # drawn inside the figure, between the colour bar and the image above it
+        assert figure_box.x0 <= label_box.x0 and label_box.x1 <= figure_box.x1, (title, label_box, figure_box)
+        assert bar.ax.get_window_extent(renderer).y1 <= label_box.y0, title
+        assert label_box.y1 <= image_ax.get_window_extent(renderer).y0, title
 
 
 # ---------------------------------------------------------------- .flo files

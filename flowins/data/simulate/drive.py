@@ -174,9 +174,10 @@ def drive_sequence(config: DriveConfig = DriveConfig()) -> tuple[Sequence, dict[
         "gnss_origin_lat_lon_alt": list(config.origin),
         "gnss_outage_s": [t0, t1] if config.outage_s > 0 else None,
     }
+    metadata["name"] = f"simulated drive (seed {config.seed})"  # the folder's name is the cache key
     sequence = Sequence(
         ImuStream(t, acc, gyro, name="simulated car IMU"),
-        name=f"simulated drive (seed {config.seed})",
+        name=metadata["name"],
         gnss=GnssStream(t_gnss[keep], lat, lon, alt, h_acc[keep], v_acc[keep], name="simulated GNSS"),
         groundtruth=PoseStream(t_gt, drive.position(t_gt), drive.quaternion(t_gt), name="simulated ground truth"),
         metadata=metadata,

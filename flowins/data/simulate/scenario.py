@@ -27,8 +27,8 @@ from typing import Any
 import numpy as np
 import torch
 from torch import Tensor
-from tqdm.auto import tqdm
 
+from flowins.progress import progress as track_progress
 from flowins.cache import cache_root, content_key, library_versions, source_digest
 from flowins.data.sequence import CameraFrames, PinholeCamera, Sequence
 from flowins.data.simulate.gnss import GnssErrors, simulate_fixes
@@ -254,7 +254,7 @@ def simulate(
     previous = None
     import cv2
 
-    for i in tqdm(range(t_frames.shape[0]), desc="simulate frames", unit="frame", disable=not progress):
+    for i in track_progress(range(t_frames.shape[0]), description="simulate frames", unit="frame", enabled=progress):
         t = float(t_frames[i])
         pose = (R_all[i], p_all[i], t)
         blur = ()
@@ -303,9 +303,10 @@ def simulate(
             else "not written"
         ),
     }
+    metadata["name"] = f"simulated city walk (seed {config.seed})"  # the folder's name is the cache key
     sequence = Sequence(
         ImuStream(t_imu, acc, gyro, name="simulated IMU"),
-        name=f"simulated city walk (seed {config.seed})",
+        name=metadata["name"],
         camera=camera,
         imu_to_camera=imu_to_camera,
         frames=CameraFrames(t_frames, files=tuple(files), name="simulated frames"),

@@ -1,0 +1,146 @@
+"""Config values checked on their way into the package: every error names the key.
+
+A Hydra override arrives as whatever its text parses to (``filter.acc_noise=abc`` is the
+string ``'abc'``). :func:`build` makes a settings dataclass from a config node and checks
+each value against the field's annotation first, so a wrong value stops with the key and
+what was expected (``filter.acc_noise='abc': expected a number``) rather than deep in torch;
+:func:`setting` does the same for one job key with a range.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import types
+import typing
+from collections.abc import Mapping, Sequence
+from typing import Any, TypeVar
+
+import torch
+
+T = TypeVar("T")
+
+_KINDS = {float: "a number", int: "an integer", bool: "true or false", str: "a string"}
+
+
+def _expected(tp: Any) -> str:
+    args = typing.get_args(tp)
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):
+        return " or ".join(dict.fromkeys("null" if a is type(None) else _expected(a) for a in args))
+    if typing.get_origin(tp) is tuple:
+        return f"a list of {len(args)} numbers" if args and args[-1] is not Ellipsis else "a list of numbers"
+    if dataclasses.is_dataclass(tp):
+        return "a group of keys"
+    return _KINDS.get(tp, getattr(tp, "__name__", str(tp)))
+
+
+def _scalar(value: Any, tp: Any, key: str) -> Any:
+    """``value`` as ``tp`` (float, int, bool, str), or ValueError naming ``key``."""
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+    elif tp is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            if not math.isfinite(value):
+                raise ValueError(f"{key}={value!r}: expected a finite number")
+            return float(value)
+    elif tp is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+    elif tp is str:
+        if isinstance(value, str):
+            return value
+    else:
+        raise TypeError(f"flowins.config: no check for {tp!r} ({key})")
+    raise ValueError(f"{key}={value!r}: expected {_KINDS[tp]}")
+
+
+def check_value(value: Any, tp: Any, key: str) -> Any:
+    """``value`` checked against the annotation ``tp`` (and converted: ints to floats,
+    lists to tuples, mappings to the dataclass); ValueError naming ``key`` otherwise."""
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        options = typing.get_args(tp)
+        if value is None:
+            if type(None) in options:
+                return None
+            raise ValueError(f"{key}=null: expected {_expected(tp)}")
+        if isinstance(value, torch.Tensor) and torch.Tensor in options:
+            return value
+        errors = []
+        for option in options:
+            if option in (type(None), torch.Tensor):
+                continue
+            try:
+                return check_value(value, option, key)
+            except ValueError as error:
+                errors.append(error)
+        if len(errors) == 1:
+            raise errors[0]
+        raise ValueError(f"{key}={value!r}: expected {_expected(tp)}")
+    if origin is tuple:
+        args = typing.get_args(tp)
+        if isinstance(value, (str, bytes)) or not isinstance(value, Sequence):
+            raise ValueError(f"{key}={value!r}: expected {_expected(tp)}")
+        if args and args[-1] is not Ellipsis and len(value) != len(args):
+            raise ValueError(f"{key}={list(value)!r}: expected {_expected(tp)}")
+        items = args if args and args[-1] is not Ellipsis else (args[0] if args else float,) * len(value)
+        return tuple(check_value(v, a, f"{key}[{i}]") for i, (v, a) in enumerate(zip(value, items)))
+    if dataclasses.is_dataclass(tp):
+        if isinstance(value, tp):
+            return value
+        if not isinstance(value, Mapping):
+            raise ValueError(f"{key}={value!r}: expected a group of keys ({', '.join(_fields(tp))})")
+        return build(tp, value, key)
+    if tp is torch.dtype:
+        if isinstance(value, torch.dtype):
+            return value
+        raise ValueError(f"{key}={value!r}: expected a torch dtype")
+    if tp is typing.Any:
+        return value
+    return _scalar(value, tp, key)
+
+
+def _fields(cls: type) -> list[str]:
+    return [f.name for f in dataclasses.fields(cls) if f.init]
+
+
+def build(cls: type[T], values: Mapping[str, Any], key: str, **ready: Any) -> T:
+    """``cls(**values, **ready)`` for a dataclass ``cls``, each of ``values`` checked
+    against its field's annotation (nested dataclasses from nested mappings). ``key`` is
+    the config node's dotted name; an unknown key, a value of the wrong kind, or a value
+    the dataclass itself refuses raises ValueError naming ``key.field``. ``ready`` holds
+    values already built (not checked)."""
+    hints = typing.get_type_hints(cls)
+    names = _fields(cls)
+    kwargs: dict[str, Any] = {}
+    for name, value in values.items():
+        if name not in names:
+            raise ValueError(f"{key}.{name}: unknown key; {key} takes {', '.join(names)}")
+        kwargs[name] = check_value(value, hints[name], f"{key}.{name}")
+    kwargs.update(ready)
+    try:
+        return cls(**kwargs)
+    except (ValueError, TypeError) as error:
+        message = str(error).replace(f"{cls.__name__}.", f"{key}.")
+        raise ValueError(message if key in message else f"{key}: {message}") from None
+
+
+def setting(cfg: Mapping[str, Any], key: str, tp: type[T], *, minimum: float | None = None,
+            maximum: float | None = None, default: Any = dataclasses.MISSING) -> T:
+    """The value at dotted ``key`` of ``cfg`` as ``tp`` within ``[minimum, maximum]``;
+    ValueError naming ``key`` and what was expected otherwise."""
+    node: Any = cfg
+    for part in key.split("."):
+        if not isinstance(node, Mapping) or part not in node:
+            if default is not dataclasses.MISSING:
+                return default
+            raise ValueError(f"{key}: missing from the config")
+        node = node[part]
+    value = check_value(node, tp, key)
+    if value is not None and minimum is not None and value < minimum:
+        raise ValueError(f"{key}={node!r}: expected {_expected(tp)} >= {minimum:g}")
+    if value is not None and maximum is not None and value > maximum:
+        raise ValueError(f"{key}={node!r}: expected {_expected(tp)} <= {maximum:g}")
+    return value
