@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import types
 import typing
 from collections.abc import Mapping, Sequence
@@ -62,6 +63,8 @@ def check_value(value: Any, tp: Any, key: str) -> Any:
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):
         options = typing.get_args(tp)
+        if isinstance(value, (str, os.PathLike)) and os.PathLike in options:
+            return value
         if value is None:
             if type(None) in options:
                 return None
@@ -93,6 +96,19 @@ def check_value(value: Any, tp: Any, key: str) -> Any:
         if not isinstance(value, Mapping):
             raise ValueError(f"{key}={value!r}: expected a group of keys ({', '.join(_fields(tp))})")
         return build(tp, value, key)
+    if origin is typing.Literal:
+        choices = typing.get_args(tp)
+        if value in choices and not isinstance(value, bool):
+            return value
+        raise ValueError(f"{key}={value!r}: expected one of {', '.join(map(str, choices))}")
+    if tp is os.PathLike:
+        if isinstance(value, (str, os.PathLike)):
+            return value
+        raise ValueError(f"{key}={value!r}: expected a path")
+    if tp is torch.device:
+        if isinstance(value, (str, torch.device)):
+            return value
+        raise ValueError(f"{key}={value!r}: expected a device name (cpu, cuda, ...)")
     if tp is torch.dtype:
         if isinstance(value, torch.dtype):
             return value
@@ -144,3 +160,37 @@ def setting(cfg: Mapping[str, Any], key: str, tp: type[T], *, minimum: float | N
     if value is not None and maximum is not None and value > maximum:
         raise ValueError(f"{key}={node!r}: expected {_expected(tp)} <= {maximum:g}")
     return value
+
+
+def instantiate(node: Mapping[str, Any], key: str, **extra: Any) -> Any:
+    """``hydra.utils.instantiate(node, **extra)`` with each value of ``node`` checked first
+    against the annotation of its ``_target_``'s parameter (where flowins can check that
+    kind), and any ValueError or TypeError of the constructor prefixed with ``key``."""
+    from hydra.utils import instantiate as hydra_instantiate
+
+    check_target(node, key)
+    try:
+        return hydra_instantiate(node, **extra)
+    except (ValueError, TypeError) as error:
+        message = str(error)
+        raise ValueError(message if key in message else f"{key}: {message}") from None
+
+
+def check_target(node: Mapping[str, Any], key: str) -> None:
+    """Each value of a ``_target_`` node checked against the annotation of the target's
+    parameter of that name (kinds flowins can check; others are left to the target)."""
+    from hydra.utils import get_object
+
+    target = node.get("_target_")
+    if target is not None:
+        try:
+            made = get_object(target)
+            hints = typing.get_type_hints(made.__init__ if isinstance(made, type) else made)
+        except Exception:  # an object flowins does not own (Lightning's): its own errors speak
+            hints = {}
+        for name, value in node.items():
+            if name in hints and not name.startswith("_"):
+                try:
+                    check_value(value, hints[name], f"{key}.{name}")
+                except TypeError:  # a kind flowins has no check for
+                    pass

@@ -261,13 +261,18 @@ def choose_start(
                 if speed > max(0.5, 4.0 * sigma):
                     contradicted = (f"the IMU looks still for {still.duration_s:.2f} s but the {int(inside.sum())} GNSS "
                                     f"fixes in it move at {speed:.1f} m/s")
+        still_to_end = still.end >= imu.t_s.shape[0]
+        too_short = (f"the recording lasts {imu.duration_s:.2f} s, shorter than filter.init.still.min_s="
+                     f"{settings.still.min_s} (it is still throughout)" if still_to_end else
+                     f"still for {still.duration_s:.2f} s only (< filter.init.still.min_s={settings.still.min_s}; "
+                     f"motion at {still.reason})")
         if mode == "still" or (long_enough and contradicted is None):
             if not long_enough:
                 raise ValueError(
-                    f"filter.init.mode=still: the recording is still for {still.duration_s:.2f} s only, less than "
-                    f"filter.init.still.min_s={settings.still.min_s}; motion at {still.reason}. Use "
-                    "filter.init.mode=moving (GNSS or filter.init.moving.velocity_mps) or groundtruth, or lower "
-                    "min_s / raise the still thresholds (filter.init.still)")
+                    f"filter.init.mode=still: {too_short}. Lower filter.init.still.min_s"
+                    + ("" if still_to_end else ", raise the still thresholds (filter.init.still.max_acc_mps2, "
+                       "max_gyro_rps)")
+                    + ", or use filter.init.mode=moving (GNSS or filter.init.moving.velocity_mps) or groundtruth")
             rows = slice(0, still.end)
             position = None if fixes is None or not fused else fixes[1][0]
             u = uncertainty if position is None else InitialUncertainty(
@@ -281,8 +286,7 @@ def choose_start(
                       f"auto: still for {still.duration_s:.2f} s >= filter.init.still.min_s={settings.still.min_s}")
             facts = {"still_s": still.duration_s, "still_end_s": still.end_s, "still_ends": still.reason}
             return Start("still", 0, t0, mean, cov, reason, zupt, facts)
-        why_not_still = contradicted or (f"still for {still.duration_s:.2f} s only (< filter.init.still.min_s="
-                                         f"{settings.still.min_s}; motion at {still.reason})")
+        why_not_still = contradicted or too_short
         if fit is None:
             raise ValueError(
                 f"filter.init.mode=auto: the recording does not start still ({why_not_still}) and has fewer than 2 "

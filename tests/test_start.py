@@ -123,3 +123,16 @@ def test_a_vibrating_standstill_is_found_and_starts_the_walk_level(seed):
     for k in (0, 1):  # roll, pitch
         assert abs(float(shaken[k] - still[k])) < math.radians(0.05)
         assert abs(float(shaken[k] - truth[k])) < math.radians(1.0)
+
+
+def test_a_still_window_longer_than_the_recording_says_the_recording_is_shorter():
+    from flowins.data.streams import ImuStream
+    from flowins.ins.initialization import StillSettings
+    from flowins.start import StartSettings
+
+    t = torch.arange(2500, dtype=torch.float64) * 0.01  # 25 s, still throughout
+    imu = ImuStream(t, torch.tensor([0.0, 0.0, 9.80665]).expand(2500, 3), torch.zeros(2500, 3))
+    settings = StartSettings(mode="still", still=StillSettings(min_s=30.0))
+    with pytest.raises(ValueError, match=r"the recording lasts 24\.99 s, shorter than filter\.init\.still\.min_s=30\.0"):
+        choose_start(imu, settings=settings)
+    assert choose_start(imu, settings=StartSettings(mode="still", still=StillSettings(min_s=20.0))).mode == "still"

@@ -24,7 +24,7 @@ import torch
 
 from flowins.jobs.cli import console_logging
 from flowins.cache import cache_root
-from flowins.config import build, setting
+from flowins.config import build, check_target, instantiate, setting
 from flowins.data.fingerprint import camera_content_key
 from flowins.data.sequence import Sequence, within_imu_span
 from flowins.data.streams import GnssStream, ImuStream, PoseStream
@@ -187,13 +187,11 @@ def load_flow(kind: str, rec: EvalInputs, cfg: Mapping[str, Any], *, progress: b
         return track_pairs(seq.tracks, sigma_px=float(cfg["sparse"]["sigma_px"]), step=step).undistorted(seq.camera)
     if seq.frames is None:
         return "the sequence has no camera frames"
-    from hydra.utils import instantiate
-
     settings = cfg["flow"] if kind == "dense" else cfg["sparse"]
     target = settings if kind == "dense" else settings["tracker"]  # what instantiate builds
     extra = dict(stride_px=pairs_cfg["stride_px"], border_px=pairs_cfg["border_px"],
                  input_scale=pairs_cfg["input_scale"]) if kind == "dense" else {}
-    provider = instantiate(target)
+    provider = instantiate(target, "flow" if kind == "dense" else "sparse.tracker")
     weights = provider if isinstance(provider, torch.nn.Module) else None  # keyed by its state dict
     key = cache_key(kind=kind, source=rec.content_key, provider=settings, weights=weights, step=step, **extra)
     path = Path(cfg["cache_dir"] or cache_root()) / "flow" / f"{kind}-{key}.npz"
@@ -278,6 +276,9 @@ def _export(out: Path, name: str, result: NavigationResult, rec: EvalInputs, plo
     resets = [{k: v for k, v in e.items() if k not in ("kind",)} for e in result.filter.log if e.get("kind") == "gnss_reset"]
     if resets:
         metrics["gnss_resets"] = resets
+    if result.flow_pairs_outside:
+        warnings.append(f"flow: {result.flow_pairs_outside} frame pairs outside the filter's span (its start at "
+                        f"{result.start.t_s:.2f} s to the IMU's last sample) are not used")
     if result.gnss_before_start:
         metrics["gnss_before_start"] = result.gnss_before_start
     heading = [{k: v for k, v in e.items() if k not in ("kind", "name")} for e in result.heading_status]
@@ -301,13 +302,11 @@ def _export(out: Path, name: str, result: NavigationResult, rec: EvalInputs, plo
 
 def flow_panels(rec: EvalInputs, cfg: Mapping[str, Any], out: Path, count: int) -> list[Path]:
     """The paper's Fig. 2 (frames, Δu, Δv, σ) for ``count`` frame pairs spread over the recording."""
-    from hydra.utils import instantiate
-
     from flowins.flow.visualize import flow_panel
 
     frames = rec.sequence.frames
     step = int(cfg["flow_pairs"]["step"])
-    provider = instantiate(cfg["flow"])
+    provider = instantiate(cfg["flow"], "flow")
     paths = []
     n = len(frames) - step
     for i in torch.linspace(0.2 * n, 0.8 * n, count).round().long().tolist():
@@ -372,6 +371,9 @@ def run_warnings(result: NavigationResult) -> list[str]:
         if len(tail) >= 3 and sum(e["accepted"] < 0.5 for e in tail) > len(tail) / 2:
             warnings.append(f"GNSS: the run ends inconsistent: {sum(e['accepted'] < 0.5 for e in tail)} of the last "
                             f"{len(tail)} fixes failed the gate")
+    if result.flow_pairs_outside:
+        warnings.append(f"flow: {result.flow_pairs_outside} frame pairs outside the filter's span (its start at "
+                        f"{result.start.t_s:.2f} s to the IMU's last sample) are not used")
     if result.gnss_before_start:
         warnings.append(f"GNSS: {result.gnss_before_start} fixes before the filter's start "
                         f"({result.start.t_s:.2f} s) are not used")
@@ -415,12 +417,31 @@ def check_job_settings(cfg: Mapping[str, Any]) -> None:
         raise ValueError(f"combinations={combinations!r}: expected a list of at least one of {', '.join(methods)} "
                          "(configs/method/)")
     for name in combinations:
-        if name not in methods:
+        if not isinstance(name, str) or name not in methods:
             raise ValueError(f"combinations: unknown combination {name!r}; expected one of {', '.join(methods)} "
                              "(configs/method/)")
     for key in ("quick", "progress", "plots"):
         setting(cfg, key, bool)
     setting(cfg, "flow_panels", int, minimum=0)
+    setting(cfg, "model.checkpoint", str | None)
+    check_data_settings(cfg)
+    flows = {kind for name in combinations for kind in ("sparse", "dense") if methods[name][kind]}
+    if "dense" in flows:
+        check_target(cfg["flow"], "flow")
+    if "sparse" in flows:
+        source = setting(cfg, "sparse.source", str)
+        if source not in ("tracker", "tracks"):
+            raise ValueError(f"sparse.source={source!r}: expected tracker (run sparse.tracker on the frames) or "
+                             "tracks (the recording's tracks.csv)")
+        if source == "tracks":
+            setting(cfg, "sparse.sigma_px", float, minimum=1e-6)
+        else:
+            check_target(cfg["sparse"]["tracker"], "sparse.tracker")
+
+
+def check_data_settings(cfg: Mapping[str, Any]) -> None:
+    """The keys both jobs share (``flow_pairs``, ``sequence``, ``cache_dir``), checked by key."""
+    setting(cfg, "cache_dir", str | None)
     setting(cfg, "flow_pairs.step", int, minimum=1)
     setting(cfg, "flow_pairs.input_scale", float, minimum=1e-3, maximum=1.0)
     setting(cfg, "flow_pairs.stride_px", int, minimum=1)

@@ -15,6 +15,7 @@ from typing import Any
 
 import pytorch_lightning as pl
 
+from flowins.config import check_target, check_value, instantiate, setting
 from flowins.jobs.cli import console_logging
 from flowins.training.parameters import NAMES, NOISE_NAMES, FROZEN_BY_DEFAULT, FilterParameters, starting_values
 
@@ -49,24 +50,71 @@ def flow_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
     return flow
 
 
+def check_train_settings(cfg: Mapping[str, Any]) -> None:
+    """The training job's keys checked before any work; each error names the key."""
+    from flowins.jobs.evaluate import check_data_settings
+    from flowins.training.unroll import METHODS
+
+    methods = cfg["methods"]
+    if isinstance(methods, str) or not hasattr(methods, "__len__") or not len(methods):
+        raise ValueError(f"methods={methods!r}: expected a list of at least one of {', '.join(METHODS)}")
+    for m in methods:
+        if not isinstance(m, str) or m not in METHODS:
+            raise ValueError(f"methods: unknown {m!r}; expected names from {', '.join(METHODS)}")
+    setting(cfg, "window_s", float, minimum=1e-3)
+    setting(cfg, "seed", int)
+    for key in ("flow_moments", "progress"):
+        setting(cfg, key, bool, default=True)
+    for key, minimum in (("lr", 1e-12), ("gradient_clip", 1e-12), ("nll_weight", 0.0),
+                         ("orientation_weight_m_per_rad", 0.0), ("mistune", 1e-12)):
+        setting(cfg, f"model.{key}", float, minimum=minimum)
+    setting(cfg, "model.checkpoint", str | None)
+    start = cfg["model"].get("start") or {}
+    if not isinstance(start, Mapping):
+        raise ValueError(f"model.start={start!r}: expected a mapping of parameter name to starting value")
+    for name, value in start.items():
+        if name not in NAMES:
+            raise ValueError(f"model.start.{name}: unknown parameter; expected names from {', '.join(NAMES)}")
+        setting(cfg, f"model.start.{name}", float, minimum=0.0)
+    for key in ("learn", "freeze"):
+        names = cfg["model"].get(key)
+        if names is None and key == "learn":
+            continue
+        if isinstance(names, str) or not isinstance(names, (list, tuple)):
+            raise ValueError(f"model.{key}={names!r}: expected a list of parameter names ({', '.join(NAMES)})")
+        for name in names:
+            if not isinstance(name, str) or name not in NAMES:
+                raise ValueError(f"model.{key}: unknown parameter {name!r}; expected names from {', '.join(NAMES)}")
+    for part in ("train", "val"):
+        sources = cfg["data"][part]
+        if isinstance(sources, str) or not isinstance(sources, (list, tuple)) or not sources:
+            raise ValueError(f"data.{part}={sources!r}: expected a list of sources, each {{path: DIR}} or {{seed: N}}")
+        for i, source in enumerate(sources):
+            key = f"data.{part}[{i}]"
+            if not isinstance(source, Mapping) or not (source.get("path") or "seed" in source):
+                raise ValueError(f"{key}={source!r}: expected {{path: DIR}} or {{seed: N}} (optionally duration_s)")
+            for name, tp in (("path", str | None), ("seed", int), ("duration_s", float)):
+                if name in source:
+                    check_value(source[name], tp, f"{key}.{name}")
+    setting(cfg, "trainer.max_epochs", int | None, minimum=-1, default=None)
+    check_data_settings(cfg)
+    check_target(cfg["flow"], "flow")
+
+
 def run(cfg: Mapping[str, Any]) -> dict[str, Any]:
     """Fit, test on the held-out sequences, and return the held-out results."""
     console_logging()
-    from hydra.utils import instantiate
+    check_train_settings(cfg)
 
     from flowins.ins.imu_model import imu_model
     from flowins.jobs.evaluate import navigation_config
     from flowins.training.data import SequenceDataModule
     from flowins.training.module import FilterLearner
-    from flowins.training.unroll import METHODS
 
     pl.seed_everything(int(cfg.get("seed", 0)), workers=True)
     out = Path(cfg["output_dir"])
     out.mkdir(parents=True, exist_ok=True)
     methods = list(cfg["methods"])
-    for m in methods:
-        if m not in METHODS:
-            raise ValueError(f"methods: unknown {m!r}; expected names from {list(METHODS)}")
     recording = any(item.get("path") for part in ("train", "val") for item in cfg["data"][part])
     base = navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=recording))
     tuned, start, learn = parameter_sets(cfg, base)
@@ -83,9 +131,9 @@ def run(cfg: Mapping[str, Any]) -> dict[str, Any]:
     )
     checkpoint = pl.callbacks.ModelCheckpoint(dirpath=out / "checkpoints", filename="best", monitor="val/rmse_mean_m",
                                               mode="min", save_last=True)
-    logger = instantiate(cfg["logger"]) if cfg.get("logger") else False
+    logger = instantiate(cfg["logger"], "logger") if cfg.get("logger") else False
     with _without_lightning_noise():
-        trainer: pl.Trainer = instantiate(cfg["trainer"], logger=logger, callbacks=[checkpoint])
+        trainer: pl.Trainer = instantiate(cfg["trainer"], "trainer", logger=logger, callbacks=[checkpoint])
         trainer.fit(module, datamodule=data)
         best = checkpoint.best_model_path or None
         if best:

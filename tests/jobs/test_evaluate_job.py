@@ -127,3 +127,40 @@ def test_a_car_recording_that_starts_moving_runs_with_no_overrides_and_says_why_
     sigma_m = float(drift[0].split("σ reaches ")[1].split(" m")[0])
     assert 100.0 < sigma_m and rows["ins"].filter_rmse_m < 3 * sigma_m
     assert Drive(config).velocity(torch.zeros(1, dtype=torch.float64)).norm() > 8.0
+
+
+def test_a_ground_truth_that_does_not_move_is_named_and_the_tracks_are_still_written(tmp_path, capsys):
+    from flowins.data.streams import PoseStream
+
+    rec = synthetic_walk_recording(duration_s=20.0, seed=2)
+    still = PoseStream(rec.truth.t_s, 1e-3 * torch.randn(len(rec.truth.t_s), 3, dtype=torch.float64),
+                       name="groundtruth")
+    folder = write_folder(Sequence(rec.imu, name="walk", groundtruth=still), tmp_path / "walk")
+    out = tmp_path / "out"
+    (row,) = run(_compose([f"sequence.path={folder}", f"output_dir={out}", "progress=false", "combinations=[ins]"]))
+    assert row.filter_rmse_m is None and "does not move" in row.note
+    assert "groundtruth.csv: the ground truth stays within" in capsys.readouterr().out
+    assert (out / "ins_filter.tum").is_file() and (out / "ins_smoother.tum").is_file()
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["ins"]["filter_rmse_m"] is None and any("does not move" in w or "stays within" in w
+                                                            for w in metrics["ins"]["warnings"])
+
+
+def test_a_fix_before_the_imu_is_an_error_and_crop_runs_and_records_the_crop(tmp_path):
+    from flowins.data.streams import GnssStream
+
+    rec = synthetic_walk_recording(duration_s=20.0, seed=2)
+    g = rec.gnss
+    early = GnssStream(torch.cat([g.t_s[:1] * 0 + float(rec.imu.t_s[0]) - 0.006, g.t_s]),
+                       *(torch.cat([getattr(g, k)[:1], getattr(g, k)]) for k in
+                         ("lat_deg", "lon_deg", "alt_m", "h_acc_m", "v_acc_m")), name="gnss")
+    folder = write_folder(Sequence(rec.imu, name="walk", gnss=early, groundtruth=rec.truth), tmp_path / "walk")
+    base = [f"sequence.path={folder}", "plots=false", "progress=false", "combinations=[ins_gnss]"]
+    with pytest.raises(ValueError, match=r"gnss\.csv: row 0 \(0-based\) at t = .* is outside the IMU's time span"):
+        run(_compose([*base, f"output_dir={tmp_path / 'a'}"]))
+    (row,) = run(_compose([*base, f"output_dir={tmp_path / 'b'}", "sequence.crop=true"]))
+    assert row.filter_rmse_m is not None
+    metrics = json.loads((tmp_path / "b" / "metrics.json").read_text())
+    (note,) = metrics["input_warnings"]
+    assert "gnss.csv: cropped 1 rows before and 0 after the IMU span" in note
+    assert metrics["ins_gnss"]["gnss_fixes"] == len(g)  # the cropped fix is not among them
