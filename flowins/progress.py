@@ -3,7 +3,8 @@
 On a terminal (stderr is a TTY) :func:`progress` draws a tqdm bar. In a log file, a pipe
 or a notebook cell captured to a file, a bar's carriage-return updates become thousands of
 lines; there it logs ``<description>: 30% (90/300 pairs, 12.1 s)`` to the ``flowins``
-logger when each further tenth of the work is done, and once at the end.
+logger when each further tenth of the work is done, from ``min_seconds`` (5 s) on: work
+that is done sooner says nothing.
 """
 from __future__ import annotations
 
@@ -27,10 +28,10 @@ class Progress:
     """Counts work done of ``total`` and reports it (:func:`progress`); ``update(n)``, ``close()``."""
 
     def __init__(self, *, total: int, description: str, unit: str = "it", enabled: bool = True,
-                 terminal: bool | None = None, steps: int = 10) -> None:
+                 terminal: bool | None = None, steps: int = 10, min_seconds: float = 5.0) -> None:
         self.total, self.description, self.unit = int(total), description, unit
         self.enabled = enabled and self.total > 0
-        self.done, self.reported, self.steps = 0, 0, steps
+        self.done, self.reported, self.steps, self.min_seconds = 0, 0, steps, min_seconds
         self.start = time.perf_counter()
         self.bar = None
         if self.enabled and (is_terminal() if terminal is None else terminal):
@@ -46,10 +47,11 @@ class Progress:
             self.bar.update(n)
             return
         tenth = min(self.steps, self.done * self.steps // self.total)
-        if tenth > self.reported:
+        elapsed = time.perf_counter() - self.start
+        if tenth > self.reported and elapsed >= self.min_seconds:
             self.reported = tenth
             log.info("%s: %d%% (%d/%d %ss, %.1f s)", self.description, round(100 * self.done / self.total),
-                     self.done, self.total, self.unit, time.perf_counter() - self.start)
+                     self.done, self.total, self.unit, elapsed)
 
     def close(self) -> None:
         if self.bar is not None:
@@ -58,11 +60,12 @@ class Progress:
 
 
 def progress(items: Iterable[T], *, total: int | None = None, description: str, unit: str = "it",
-             enabled: bool = True, terminal: bool | None = None) -> Iterator[T]:
+             enabled: bool = True, terminal: bool | None = None, min_seconds: float = 5.0) -> Iterator[T]:
     """Iterate ``items`` reporting progress (a bar on a terminal, a log line per tenth elsewhere)."""
     if total is None:
         total = len(items)  # type: ignore[arg-type]
-    counter = Progress(total=total, description=description, unit=unit, enabled=enabled, terminal=terminal)
+    counter = Progress(total=total, description=description, unit=unit, enabled=enabled, terminal=terminal,
+                       min_seconds=min_seconds)
     try:
         for item in items:
             yield item
