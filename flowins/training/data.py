@@ -46,6 +46,11 @@ def load_training_sequence(
     from flowins.jobs.evaluate import load_flow, load_sequence
 
     rec = load_sequence(_sequence_config(source, cfg["sequence"]), quick=False, progress=progress)
+    if "imu" in cfg:  # every reading within the sensor's range, as the evaluation checks
+        from flowins.ins.imu_model import imu_model
+
+        sensor = None if rec.sequence is None else rec.sequence.metadata.get("imu")
+        imu_model(cfg["imu"], recording=bool(source.get("path")), sensor=sensor).check_readings(rec.imu)
     if rec.truth is None:
         raise ValueError(f"{rec.name}: training needs ground truth; the sequence has none")
     pairs: dict[str, FlowPairs | None] = {"dense": None, "sparse": None}

@@ -56,3 +56,25 @@ def test_a_preset_inflates_its_densities_but_not_its_walks():
     model = imu_model(_imu("imu=adis16448"), recording=True)
     assert model.noise()["acc_noise"] == pytest.approx(2.0e-3 * model.inflation)
     assert model.noise()["gyro_bias_walk"] == model.gyro_bias_walk == 1.9393e-5
+
+
+@pytest.mark.parametrize("text, message", [
+    (KALIBR.replace("0.0186", "abc"), r"imu\.yaml: accelerometer_noise_density is 'abc'; expected a finite number"),
+    (KALIBR.replace("0.00187", "-0.1"), r"imu\.yaml: gyroscope_noise_density is -0\.1; expected a finite number >= 0"),
+    (KALIBR.replace("200.0", ".nan"), r"imu\.yaml: update_rate is nan"),
+    ("- a list\n", r"imu\.yaml"),
+    ("x: !!python/object/apply:os.system ['touch RAN']\n", r"imu\.yaml"),
+])
+def test_a_bad_kalibr_file_names_the_file_and_key_and_runs_nothing(tmp_path, monkeypatch, text, message):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "imu.yaml").write_text(text)
+    with pytest.raises(ValueError, match=message):
+        imu_model(_imu("imu=kalibr", f"imu.path={tmp_path / 'imu.yaml'}"), recording=True)
+    assert not (tmp_path / "RAN").exists()
+
+
+def test_a_missing_kalibr_file_or_path_is_named(tmp_path):
+    with pytest.raises((ValueError, OSError), match=r"nowhere\.yaml"):
+        imu_model(_imu("imu=kalibr", f"imu.path={tmp_path / 'nowhere.yaml'}"), recording=True)
+    with pytest.raises(ValueError, match=r"imu=kalibr needs imu\.path=FILE"):
+        imu_model(_imu("imu=kalibr"), recording=True)

@@ -111,3 +111,19 @@ def test_a_few_steps_from_a_mistuned_start_reduce_the_loss(workdir):
     assert {"acc_noise", "gyro_noise", "flow_sigma_scale", "flow_sigma_floor_px"} <= set(moved)
     assert all(values[n] != pytest.approx(start[n], rel=1e-9) for n in moved), {n: (values[n], start[n]) for n in moved}
     assert all(values[n] == pytest.approx(start[n], rel=1e-12) for n in set(start) - set(params.learned))
+
+
+def test_a_training_recording_with_an_impossible_reading_is_refused(tmp_path):
+    from flowins.data.folder import write_folder
+    from flowins.data.sequence import Sequence
+    from flowins.data.streams import ImuStream
+    from flowins.data.synthetic import synthetic_walk_recording
+
+    rec = synthetic_walk_recording(duration_s=10.0, seed=1)
+    acc = rec.imu.acc_mps2.clone()
+    acc[321, 2] = 1e6
+    imu = ImuStream(rec.imu.t_s, acc, rec.imu.gyro_rps)
+    folder = write_folder(Sequence(imu, name="spiked", groundtruth=rec.truth), tmp_path / "spiked")
+    cfg = _cfg(tmp_path)
+    with pytest.raises(ValueError, match=r"imu\.csv: sample 321 .*accelerometer reading 1e\+06 m/s².*imu\.acc_range_mps2"):
+        load_training_sequence({"path": str(folder)}, cfg, methods=["ins_gnss"])
