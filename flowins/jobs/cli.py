@@ -23,16 +23,30 @@ USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError)
 log = logging.getLogger("flowins")
 
 
+class BelowError(logging.Filter):
+    """Lets through what is not an error: the console's stdout half (errors go to stderr)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.levelno < logging.ERROR
+
+
 class _Stdout(logging.StreamHandler):
-    """A handler that writes to whatever ``sys.stdout`` is when a record comes."""
+    """A handler that writes to whatever ``sys.stdout`` (below ERROR) or ``sys.stderr``
+    (ERROR and above) is when a record comes."""
 
     def __init__(self) -> None:
         super().__init__()
         self.setFormatter(logging.Formatter("%(message)s"))
+        self._record: logging.LogRecord | None = None
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self._record = record
+        super().emit(record)
 
     @property
     def stream(self):  # type: ignore[override]
-        return sys.stdout
+        error = self._record is not None and self._record.levelno >= logging.ERROR
+        return sys.stderr if error else sys.stdout
 
     @stream.setter
     def stream(self, value) -> None:

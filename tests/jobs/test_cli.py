@@ -25,7 +25,7 @@ def test_a_config_mistake_prints_error_and_exits_2_without_a_traceback(tmp_path)
     done = _evaluate(tmp_path, "combinations=[]")
     out = done.stdout + done.stderr
     assert done.returncode == 2, out
-    assert "error: combinations=[]: expected a list of at least one of" in out
+    assert "error: combinations=[]: expected a list of at least one of" in done.stderr  # on stderr
     assert "Traceback" not in out and "Error executing job" not in out
     log = (tmp_path / "evaluate.log").read_text()
     assert "combinations=[]" in log and "ERROR" in log  # the job's log holds it too
@@ -56,7 +56,7 @@ def test_only_user_errors_are_caught(capsys):
     with pytest.raises(SystemExit) as stop:
         bad_value()
     assert stop.value.code == 2
-    assert "error: imu.csv line 3: ax is 'x'" in capsys.readouterr().out
+    assert "error: imu.csv line 3: ax is 'x'" in capsys.readouterr().err
     with pytest.raises(KeyError):  # a bug keeps its traceback
         bug()
     assert ValueError in USER_ERRORS and OSError in USER_ERRORS and KeyError not in USER_ERRORS
