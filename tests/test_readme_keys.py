@@ -140,3 +140,21 @@ def test_a_wrong_value_for_each_documented_key_names_the_key(key, command):
     with pytest.raises(ValueError) as info:
         validate(primary, cfg)
     assert key in str(info.value), str(info.value)
+
+
+def help_commands() -> list[tuple[str, ...]]:
+    """The overrides each job's ``--help`` (``hydra.help.template``) shows, one line each."""
+    pattern = re.compile(rf"(?<![\w./-])\+?((?:{KEYS})(?:\.[a-z_0-9]+)*)=(\[[^\]]*\]|[^\s`|,);]+)")
+    out = []
+    for primary in ("evaluate", "train"):
+        template = OmegaConf.load(CONFIG_DIR / f"{primary}.yaml")["hydra"]["help"]["template"]
+        assert len(template.splitlines()) <= 40, f"{primary} --help is {len(template.splitlines())} lines"
+        out += [tuple(f"{k}={v}" for k, v in pattern.findall(line)) for line in template.splitlines()]
+    return sorted({c for c in out if c})
+
+
+@pytest.mark.parametrize("command", help_commands(), ids=" ".join)
+def test_each_override_the_help_shows_composes_and_passes(command):
+    primary, cfg = compose_config(list(command))
+    if not any(PLACEHOLDER.match(_value(o)) for o in command):
+        validate(primary, cfg)

@@ -68,3 +68,12 @@ def test_the_logger_reaches_the_console_when_nobody_set_up_logging(capsys):
     console_logging()
     logging.getLogger("flowins").info("a line of the run's story")
     assert "a line of the run's story" in capsys.readouterr().out
+
+
+def test_help_is_short_and_says_where_the_full_config_is():
+    done = subprocess.run([sys.executable, "evaluate.py", "--help"], cwd=ROOT, capture_output=True, text=True,
+                          timeout=300)
+    lines = done.stdout.strip().splitlines()
+    assert done.returncode == 0 and 10 <= len(lines) <= 40, done.stdout
+    assert "sequence.path=DIR" in done.stdout and "--cfg job" in done.stdout
+    assert "data.train" not in done.stdout  # no train-only group in evaluate's help
