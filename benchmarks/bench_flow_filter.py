@@ -54,11 +54,11 @@ def run(imu, gnss, pairs, camera, config):
 
 #: (module, function) timed by --breakdown, in the order they are printed
 STAGES = (
-    ("flowins.measurements.flow", "flow_measurements"),
+    ("flowins.measurements.flow_update", "flow_measurements"),
     ("flowins.filter.runner", "propagate_batched"),
-    ("flowins.measurements.selection", "select_points"),
-    ("flowins.filter.events", "ekf_update"),
-    ("flowins.measurements.flow", "epipolar_update"),
+    ("flowins.measurements.flow_update", "select_points"),
+    ("flowins.measurements.flow_update", "ekf_update"),
+    ("flowins.measurements.flow_update", "epipolar_update"),
     ("flowins.navigation", "rts_smooth"),
 )
 

@@ -21,7 +21,7 @@ from flowins.data.simulate.scenario import CameraConfig, CameraTrajectory, Simul
 from flowins.data.simulate.world import build_city
 from flowins.data.synthetic import ImuErrors, Walk, WalkConfig
 from flowins.filter.ekf import Gate
-from flowins.filter.events import FlowFrame, FlowUpdate
+from flowins.measurements.flow_update import FlowFrame, FlowUpdate
 from flowins.flow.points import FlowPoints
 from flowins.filter.runner import run_filter
 from flowins.geometry import quaternion as quat

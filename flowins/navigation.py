@@ -12,8 +12,10 @@ from torch import Tensor
 
 from flowins.data.streams import GnssStream, ImuStream, PoseStream
 from flowins.filter.ekf import Gate
-from flowins.filter.events import FlowFrame, FlowUpdate, GnssRecovery, ZeroVelocity, gnss_fixes
-from flowins.filter.heading import HeadingAlignment
+from flowins.measurements.flow_update import FlowFrame, FlowUpdate
+from flowins.measurements.gnss import gnss_fixes, GnssRecovery
+from flowins.measurements.zero_velocity import ZeroVelocity
+from flowins.measurements.gnss_heading import HeadingAlignment
 from flowins.filter.runner import FilterTrack, run_filter
 from flowins.filter.smoother import SmoothedTrack, rts_smooth
 from flowins.geometry.geodesy import LocalTangentPlane, gnss_to_enu
@@ -32,13 +34,13 @@ class NavigationConfig:
     #: how the filter starts (:mod:`flowins.start`): still, moving, from the ground truth, or auto
     start: StartSettings = field(default_factory=StartSettings)
     gnss_gate: Gate = field(default_factory=Gate)
-    #: what follows a run of rejected fixes (:class:`~flowins.filter.events.GnssRecovery`)
+    #: what follows a run of rejected fixes (:class:`~flowins.measurements.gnss.GnssRecovery`)
     gnss_recovery: GnssRecovery = field(default_factory=GnssRecovery)
     gnss_noise_scale: float = 1.0
     #: correlation time of the GNSS errors (s): each fix's R is inflated by
     #: :func:`~flowins.measurements.gnss.correlation_inflation`; 0: white, as in the paper
     gnss_correlation_s: float = 0.0
-    #: heading from the first fixes while the yaw is unknown (:mod:`flowins.filter.heading`)
+    #: heading from the first fixes while the yaw is unknown (:mod:`flowins.measurements.gnss_heading`)
     gnss_heading: HeadingAlignment = field(default_factory=HeadingAlignment)
     output_every: int = 10
     scheme: str = "midpoint"

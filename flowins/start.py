@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 
 from flowins.data.streams import ImuStream, PoseStream
-from flowins.filter.heading import fit_heading, rotation_2d
+from flowins.measurements.gnss_heading import fit_heading, rotation_2d
 from flowins.geometry import quaternion as quat
 from flowins.ins.initialization import (
     InitialUncertainty,

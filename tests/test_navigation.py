@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from flowins.data.synthetic import synthetic_walk_recording
-from flowins.filter.heading import HeadingAlignment
+from flowins.measurements.gnss_heading import HeadingAlignment
 from flowins.navigation import NavigationConfig, carries_gradient, navigate
 
 

@@ -11,7 +11,7 @@ import torch
 
 from flowins.data.simulate.drive import AUTOMOTIVE_IMU, Drive, DriveConfig, drive_sequence
 from flowins.data.synthetic import Vibration, WalkConfig, synthetic_walk_recording
-from flowins.filter.events import GnssRecovery
+from flowins.measurements.gnss import GnssRecovery
 from flowins.geometry import quaternion as quat
 from flowins.geometry.geodesy import LocalTangentPlane
 from flowins.ins.initialization import InitialUncertainty

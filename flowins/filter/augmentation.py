@@ -17,11 +17,14 @@ relative ``P_pp / σ²_{p,0}`` per frame; :func:`copy_pose` is the exact
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 from torch import Tensor
 
 from flowins.constants import cached_constant
 from flowins.filter.ekf import ekf_update, linear_predict
+from flowins.filter.runner import ChainBuilder
 from flowins.state import CORE_DIM, STATE, STATE_DIM, normalize_quaternions, symmetrize
 
 
@@ -80,6 +83,7 @@ def augment_pose(mean: Tensor, cov: Tensor, *, nugget_var: float | Tensor) -> tu
         innovation=innovation.reshape(*batch, 1, 7),
         H=H.expand(*batch, 1, 7, STATE_DIM),
         noise_cov=R.expand(*batch, 1, 7, 7),
+        normalize=normalize_quaternions,
     )
     return result.mean, result.cov
 
@@ -119,3 +123,35 @@ def copy_pose(mean: Tensor, cov: Tensor, *, nugget_var: float | Tensor) -> tuple
     T, Q = copy_matrices(nugget_var, dtype=mean.dtype, device=mean.device)
     new_mean, new_cov = linear_predict(mean, cov, T, Q)
     return normalize_quaternions(new_mean), symmetrize(new_cov)
+
+
+@dataclass(frozen=True)
+class PoseAugmentation:
+    """Pose forgetting then pose augmentation at ``time_s`` (the per-frame step of the paper).
+
+    ``mode="paper"`` applies ``A⋆, Q⋆`` and the ``H⋆`` update literally;
+    ``mode="limit"`` applies their ``σ → ∞`` limit (:func:`copy_pose`) as one
+    linear step.
+    """
+
+    time_s: float
+    sigma_p0: float | Tensor = 1e3
+    sigma_q0: float | Tensor = 1e2
+    nugget_var: float | Tensor = 1e-9
+    mode: str = "paper"
+    name: str = "pose augmentation"
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("paper", "limit"):
+            raise ValueError(f"PoseAugmentation.mode must be 'paper' or 'limit', got {self.mode!r}")
+
+    def apply(self, chain: ChainBuilder) -> None:
+        mean = chain.mean
+        if self.mode == "paper":
+            A, Q = forgetting_matrices(self.sigma_p0, self.sigma_q0, dtype=mean.dtype, device=mean.device)
+            chain.linear_predict(A, Q)
+            chain.update(augment_pose(chain.mean, chain.cov, nugget_var=self.nugget_var))
+        else:
+            # one linear step, recorded as such so the smoother sees its transition
+            T, Q = copy_matrices(self.nugget_var, dtype=mean.dtype, device=mean.device)
+            chain.linear_predict(T, Q)

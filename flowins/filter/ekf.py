@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 from torch.func import jacrev, vmap
 
-from flowins.state import normalize_quaternions, symmetrize
+from flowins.state import symmetrize
 
 # --------------------------------------------------------------------------- prediction
 
@@ -253,7 +253,7 @@ def ekf_update(
     noise_cov: Tensor,
     gate: Gate | None = None,
     sequential: bool = False,
-    normalize: bool = True,
+    normalize: Callable[[Tensor], Tensor] | None = None,
 ) -> UpdateResult:
     """Gated EKF update with ``M`` independent measurement blocks of dimension ``d``.
 
@@ -267,8 +267,9 @@ def ekf_update(
             update, each gated against the covariance updated so far) instead of
             one stacked update. With linear measurements and all blocks accepted the
             two are the same posterior.
-        normalize: re-normalise the state quaternions afterwards (for state vectors
-            in the flowins layout; set False for other state spaces).
+        normalize: applied to the updated mean, the caller's hook for a state with
+            constraints (the flowins layout passes :func:`flowins.state.normalize_quaternions`);
+            None: the mean as the update gives it.
     """
     if innovation.ndim < 2 or H.shape[:-1] != innovation.shape or noise_cov.shape[-2:] != innovation.shape[-1:] * 2:
         raise ValueError(
@@ -286,7 +287,7 @@ def ekf_update(
             # (first order: v_i - H_i (m - m_prior), exact for linear measurements)
             shift = (Hi[..., 0, :, :] @ (mean - prior_mean).unsqueeze(-1)).squeeze(-1)
             v = innovation[..., i : i + 1, :] - shift.unsqueeze(-2)
-            result = ekf_update(mean, cov, innovation=v, H=Hi, noise_cov=Ri, gate=gate, normalize=False)
+            result = ekf_update(mean, cov, innovation=v, H=Hi, noise_cov=Ri, gate=gate)
             mean, cov = result.mean, result.cov
             nis_list.append(result.nis)
             weight_list.append(result.weight)
@@ -307,6 +308,6 @@ def ekf_update(
                 (w.unsqueeze(-1) * H).reshape(*batch, M * d, H.shape[-1]),
                 _block_diagonal(noise_cov),
             )
-    if normalize:
-        mean = normalize_quaternions(mean)
+    if normalize is not None:
+        mean = normalize(mean)
     return UpdateResult(mean, cov, nis, weight)  # each branch's covariance is already symmetrised

@@ -134,6 +134,7 @@ def imu_model(cfg: Any, *, recording: bool, sensor: str | None = None) -> ImuMod
         path = cfg.get("path")
         if not path or path == "???":
             raise ValueError("imu=kalibr needs imu.path=FILE (a Kalibr IMU YAML file)")
+        path = setting({"imu": cfg}, "imu.path", str)
         model = read_kalibr_imu(path, inflation=setting({"imu": cfg}, "imu.inflation", float, minimum=0.0, default=1.0))
         ranges = {key: setting({"imu": cfg}, f"imu.{key}", float | None, minimum=0.0, default=None)
                   for key in ("acc_range_mps2", "gyro_range_rps")}

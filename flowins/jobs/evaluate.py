@@ -31,8 +31,9 @@ from flowins.data.streams import GnssStream, ImuStream, PoseStream
 from flowins.evaluation import plot_trajectory, trajectory_errors, write_tum
 from flowins.evaluation.gnss_floor import gnss_floor
 from flowins.filter.ekf import Gate
-from flowins.filter.events import FlowRecovery, FlowUpdate, GnssRecovery
-from flowins.filter.heading import HeadingAlignment
+from flowins.measurements.flow_update import FlowRecovery, FlowUpdate
+from flowins.measurements.gnss import GnssRecovery
+from flowins.measurements.gnss_heading import HeadingAlignment
 from flowins.flow.pairs import (
     FlowPairs,
     cache_key,

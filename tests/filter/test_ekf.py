@@ -109,7 +109,7 @@ def test_ekf_update_blocks_equal_textbook_stacked(seed):
     R = torch.stack([random_spd(gen, d, scale=0.5) for _ in range(M)])
     z = torch.randn(M, d, generator=gen, dtype=F64)
     innovation = z - (H @ m)
-    result = ekf_update(m, P, innovation=innovation, H=H, noise_cov=R, normalize=False)
+    result = ekf_update(m, P, innovation=innovation, H=H, noise_cov=R)
     expected_m, expected_P = textbook_update(m, P, z.reshape(-1), H.reshape(M * d, D), block_diag(R))
     torch.testing.assert_close(result.mean, expected_m, rtol=0, atol=1e-10)
     torch.testing.assert_close(result.cov, expected_P, rtol=0, atol=1e-10)
@@ -137,7 +137,6 @@ def test_ekf_update_batches_like_a_loop(batch):
         innovation=v.reshape(*batch, M, d),
         H=H.reshape(*batch, M, d, D),
         noise_cov=R.reshape(*batch, M, d, d),
-        normalize=False,
     )
     assert out.mean.shape == (*batch, D) and out.cov.shape == (*batch, D, D) and out.nis.shape == (*batch, M)
     for i in range(n):
@@ -197,7 +196,7 @@ def test_linear_system_matches_closed_form_kalman_filter(seed, D):
         m, P = linear_predict(m, P, A, Q)
         if k % 4 != 3:
             innovation = (z - H_flat @ m).reshape(M, d)
-            out = ekf_update(m, P, innovation=innovation, H=H, noise_cov=R, gate=gate, normalize=False)
+            out = ekf_update(m, P, innovation=innovation, H=H, noise_cov=R, gate=gate)
             m, P = out.mean, out.cov
         torch.testing.assert_close(m, m_ref, rtol=0, atol=1e-9)
         torch.testing.assert_close(P, P_ref, rtol=0, atol=1e-9)
@@ -213,8 +212,8 @@ def test_sequential_update_equals_stacked(seed):
     R = torch.stack([random_spd(gen, d, scale=0.5) for _ in range(M)])
     z = torch.randn(M, d, generator=gen, dtype=F64)
     innovation = z - H @ m
-    stacked = ekf_update(m, P, innovation=innovation, H=H, noise_cov=R, normalize=False)
-    sequential = ekf_update(m, P, innovation=innovation, H=H, noise_cov=R, normalize=False, sequential=True)
+    stacked = ekf_update(m, P, innovation=innovation, H=H, noise_cov=R)
+    sequential = ekf_update(m, P, innovation=innovation, H=H, noise_cov=R, sequential=True)
     assert torch.equal(sequential.weight, torch.ones(M, dtype=F64))
     torch.testing.assert_close(sequential.cov, stacked.cov, rtol=0, atol=1e-9)
     torch.testing.assert_close(sequential.mean, stacked.mean, rtol=0, atol=1e-9)
@@ -230,7 +229,7 @@ def test_sequential_update_covariance_equals_stacked():
     R = torch.stack([random_spd(gen, d, scale=0.5) for _ in range(M)])
     v = torch.randn(M, d, generator=gen, dtype=F64)
     _, expected_P = textbook_update(m, P, v.reshape(-1) + H.reshape(M * d, D) @ m, H.reshape(M * d, D), block_diag(R))
-    sequential = ekf_update(m, P, innovation=v, H=H, noise_cov=R, normalize=False, sequential=True)
+    sequential = ekf_update(m, P, innovation=v, H=H, noise_cov=R, sequential=True)
     torch.testing.assert_close(sequential.cov, expected_P, rtol=0, atol=1e-9)
 
 
@@ -310,7 +309,7 @@ def _gate_problem(seed=11, D=4, M=3, d=2, offset=0.0):
 
 def test_off_gate_accepts_everything():
     m, P, H, R, v = _gate_problem(offset=1e4)  # an absurd outlier in block 0
-    out = ekf_update(m, P, innovation=v, H=H, noise_cov=R, gate=Gate(mode="off"), normalize=False)
+    out = ekf_update(m, P, innovation=v, H=H, noise_cov=R, gate=Gate(mode="off"))
     assert float(out.nis[0]) > 1e6
     assert torch.equal(out.weight, torch.ones(3, dtype=F64))
     M, d, D = H.shape
@@ -322,7 +321,7 @@ def test_off_gate_accepts_everything():
 def test_rejected_blocks_leave_the_gaussian_unchanged_exactly():
     m, P, H, R, v = _gate_problem(offset=1e4)
     v = v * 1e3  # every block is an outlier
-    out = ekf_update(m, P, innovation=v, H=H, noise_cov=R, gate=Gate(mode="hard"), normalize=False)
+    out = ekf_update(m, P, innovation=v, H=H, noise_cov=R, gate=Gate(mode="hard"))
     assert torch.equal(out.weight, torch.zeros(3, dtype=F64))
     assert torch.equal(out.mean, m)
     assert torch.equal(out.cov, P)
@@ -330,7 +329,7 @@ def test_rejected_blocks_leave_the_gaussian_unchanged_exactly():
 
 def test_hard_gate_drops_only_the_outlier_block():
     m, P, H, R, v = _gate_problem(offset=1e3)
-    out = ekf_update(m, P, innovation=v, H=H, noise_cov=R, gate=Gate(mode="hard", probability=0.999), normalize=False)
+    out = ekf_update(m, P, innovation=v, H=H, noise_cov=R, gate=Gate(mode="hard", probability=0.999))
     assert torch.equal(out.weight, torch.tensor([0.0, 1.0, 1.0], dtype=F64))
     # equals the textbook update with blocks 1 and 2 only
     Hk, Rk = H[1:].reshape(-1, H.shape[-1]), block_diag(R[1:])
@@ -342,7 +341,7 @@ def test_hard_gate_drops_only_the_outlier_block():
 def test_weight_w_equals_noise_divided_by_w_squared():
     m, P, H, R, v = _gate_problem(offset=2.0)
     gate = Gate(mode="soft", threshold=3.0, softness=1.5)
-    out = ekf_update(m, P, innovation=v, H=H, noise_cov=R, gate=gate, normalize=False)
+    out = ekf_update(m, P, innovation=v, H=H, noise_cov=R, gate=gate)
     w = out.weight
     assert ((w > 0.01) & (w < 0.99)).all(), w  # genuinely fractional weights
     # NIS does not depend on the gate
@@ -365,7 +364,7 @@ def test_soft_gate_is_differentiable_in_threshold_and_softness():
 
     def objective(thr, soft):
         gate = Gate(mode="soft", threshold=thr, softness=soft)
-        out = ekf_update(m, P, innovation=v, H=H, noise_cov=R, gate=gate, normalize=False)
+        out = ekf_update(m, P, innovation=v, H=H, noise_cov=R, gate=gate)
         return (out.mean * direction).sum() + out.cov.trace()
 
     g_thr, g_soft = torch.autograd.grad(objective(threshold, softness), (threshold, softness))
@@ -377,3 +376,26 @@ def test_soft_gate_is_differentiable_in_threshold_and_softness():
         fd_soft = (objective(threshold, softness + h) - objective(threshold, softness - h)) / (2 * h)
     assert abs(float(g_thr) - float(fd_thr)) <= 1e-6 * max(1.0, abs(float(fd_thr)))
     assert abs(float(g_soft) - float(fd_soft)) <= 1e-6 * max(1.0, abs(float(fd_soft)))
+
+
+def test_the_update_knows_no_state_layout_and_the_caller_hooks_its_constraint():
+    from flowins.state import STATE, STATE_DIM, normalize_quaternions
+
+    gen = torch.Generator().manual_seed(3)
+    m = torch.randn(STATE_DIM, generator=gen, dtype=F64)
+    P = torch.eye(STATE_DIM, dtype=F64)
+    H = torch.zeros(1, 3, STATE_DIM, dtype=F64)
+    H[0, :, STATE.p] = torch.eye(3, dtype=F64)
+    kwargs = dict(innovation=torch.ones(1, 3, dtype=F64), H=H, noise_cov=torch.eye(3, dtype=F64).reshape(1, 3, 3))
+    plain = ekf_update(m, P, **kwargs)
+    hooked = ekf_update(m, P, **kwargs, normalize=normalize_quaternions)
+    # the position moves half way (P = R = I); the quaternion is untouched without the hook ...
+    torch.testing.assert_close(plain.mean[STATE.p], m[STATE.p] + 0.5)
+    torch.testing.assert_close(plain.mean[STATE.q], m[STATE.q])
+    # ... and unit with it, the rest identical
+    torch.testing.assert_close(hooked.mean[STATE.q], m[STATE.q] / m[STATE.q].norm())
+    torch.testing.assert_close(hooked.mean[STATE.p], plain.mean[STATE.p])
+    # any state size: a 2-dim state has no quaternion to touch
+    small = ekf_update(torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64), innovation=torch.ones(1, 1, dtype=F64),
+                       H=torch.tensor([[[1.0, 0.0]]], dtype=F64), noise_cov=torch.ones(1, 1, 1, dtype=F64))
+    torch.testing.assert_close(small.mean, torch.tensor([0.5, 0.0], dtype=F64))

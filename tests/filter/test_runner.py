@@ -13,7 +13,8 @@ from flowins.data.synthetic import (
     sample_times,
 )
 from flowins.filter.ekf import Gate
-from flowins.filter.events import GnssFix, PoseAugmentation, gnss_fixes
+from flowins.measurements.gnss import gnss_fixes, GnssFix
+from flowins.filter.augmentation import PoseAugmentation
 from flowins.filter.runner import run_filter
 from flowins.filter.smoother import rts_smooth
 from flowins.geometry import quaternion as quat

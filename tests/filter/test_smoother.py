@@ -14,7 +14,7 @@ from flowins.filter.augmentation import (
     forgetting_matrices,
 )
 from flowins.filter.ekf import ekf_update, linear_predict
-from flowins.filter.events import PoseAugmentation
+from flowins.filter.augmentation import PoseAugmentation
 from flowins.filter.runner import ChainBuilder
 from flowins.filter.smoother import rts_smooth
 from flowins.geometry import quaternion as quat
@@ -66,7 +66,6 @@ class LinearChain:
             innovation=innovation.reshape(1, n),
             H=H.reshape(1, n, -1),
             noise_cov=R.reshape(1, n, n),
-            normalize=False,
         )
         self.chain.update(result)
         self.meas.append((self.J - 1, H, z, R))

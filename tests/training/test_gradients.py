@@ -24,7 +24,8 @@ from flowins.data.synthetic import (
     increment_imu,
 )
 from flowins.filter.ekf import Gate
-from flowins.filter.events import FlowFrame, FlowUpdate, GnssFix
+from flowins.measurements.flow_update import FlowFrame, FlowUpdate
+from flowins.measurements.gnss import GnssFix
 from flowins.filter.runner import run_filter
 from flowins.flow.points import FlowPoints
 from flowins.geometry import quaternion as quat

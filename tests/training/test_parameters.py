@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from flowins.filter.ekf import Gate
-from flowins.filter.events import FlowUpdate
+from flowins.measurements.flow_update import FlowUpdate
 from flowins.ins.initialization import InitialUncertainty
 from flowins.ins.mechanization import ProcessNoise
 from flowins.navigation import NavigationConfig

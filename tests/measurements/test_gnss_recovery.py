@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from flowins.filter.ekf import Gate
-from flowins.filter.events import GnssRecovery, gnss_fixes, reset_matrices
+from flowins.measurements.gnss import gnss_fixes, GnssRecovery, reset_matrices
 from flowins.filter.runner import run_filter
 from flowins.ins.initialization import InitialUncertainty, still_prior
 from flowins.ins.mechanization import STANDARD_GRAVITY_MPS2 as G

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from flowins.data.simulate.scenario import CameraConfig
-from flowins.filter.events import FlowFrame, FlowRecovery, FlowUpdate
+from flowins.measurements.flow_update import FlowFrame, FlowRecovery, FlowUpdate
 from flowins.filter.runner import run_filter
 from flowins.flow.points import FlowPoints
 from flowins.ins.initialization import InitialUncertainty, still_prior

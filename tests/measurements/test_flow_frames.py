@@ -7,7 +7,7 @@ from flowins.data.simulate.render import exact_flow, render
 from flowins.data.simulate.scenario import CameraConfig, CameraTrajectory, SimulationConfig, simulate_imu
 from flowins.data.simulate.world import build_city
 from flowins.data.synthetic import Walk, WalkConfig
-from flowins.filter.events import FlowFrame
+from flowins.measurements.flow_update import FlowFrame
 from flowins.flow.points import FlowPoints
 from flowins.filter.runner import run_filter
 from flowins.ins.initialization import augmented_covariance

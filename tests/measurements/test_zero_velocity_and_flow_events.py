@@ -1,7 +1,8 @@
 """Zero-velocity updates against the closed-form Kalman update; flow frames from flow pairs."""
 import torch
 
-from flowins.filter.events import FlowFrame, FlowUpdate, ZeroVelocity
+from flowins.measurements.flow_update import FlowFrame, FlowUpdate
+from flowins.measurements.zero_velocity import ZeroVelocity
 from flowins.filter.runner import ChainBuilder
 from flowins.flow.pairs import FlowPairs
 from flowins.flow.points import FlowPoints

@@ -1,11 +1,11 @@
-"""Heading alignment from GNSS fixes (flowins.filter.heading) and correlated GNSS noise."""
+"""Heading alignment from GNSS fixes (flowins.measurements.gnss_heading) and correlated GNSS noise."""
 import dataclasses
 import math
 
 import pytest
 import torch
 
-from flowins.filter.heading import (
+from flowins.measurements.gnss_heading import (
     HeadingAlignment,
     HeadingFit,
     fit_heading,
