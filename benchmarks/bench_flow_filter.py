@@ -27,7 +27,10 @@ from omegaconf import OmegaConf
 
 from flowins.data.streams import GnssStream, ImuStream
 from flowins.ins.imu_model import imu_model
-from flowins.jobs.evaluate import load_flow, load_sequence, navigation_config
+from flowins.data.load import load_recording
+from flowins.flow.load import load_flow
+from flowins.measurements.flow import FlowCamera
+from flowins.settings import navigation_config
 from flowins.navigation import navigate
 
 CONFIGS = str(Path(__file__).resolve().parents[1] / "configs")
@@ -133,17 +136,17 @@ def main() -> None:
     args = parser.parse_args()
     with initialize_config_dir(config_dir=CONFIGS, version_base=None):
         cfg = OmegaConf.to_container(compose("evaluate", overrides=[f"filter.flow.n_points={args.points}"]), resolve=False)
-    rec = load_sequence(cfg["sequence"], quick=False, progress=True)
+    rec = load_recording(cfg["sequence"], quick=False, progress=True)
     pairs = load_flow("dense", rec, cfg, progress=True)
     config = navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=False))
     duration = float(rec.imu.t_s[-1] - rec.imu.t_s[0])
     print(f"{rec.name}: {duration:.0f} s, {len(pairs)} flow frames, up to {args.points} points each, "
           f"{len(rec.gnss)} GNSS fixes, float64, {torch.get_num_threads()} threads")
 
-    run(*crop(rec, pairs, 10.0)[:3], rec.camera, config)  # warm-up
+    run(*crop(rec, pairs, 10.0)[:3], FlowCamera.from_sequence(rec.sequence), config)  # warm-up
     times = []
     for _ in range(args.repeats):
-        seconds, result = run(rec.imu, rec.gnss, pairs, rec.camera, config)
+        seconds, result = run(rec.imu, rec.gnss, pairs, FlowCamera.from_sequence(rec.sequence), config)
         times.append(seconds)
     fast = statistics.median(times)
     log = result.flow_log
@@ -155,14 +158,14 @@ def main() -> None:
                                 flow_update=dataclasses.replace(config.flow_update, sequential=True))
     imu_c, gnss_c, pairs_c = crop(rec, pairs, args.reference_s)
     span = float(imu_c.t_s[-1] - imu_c.t_s[0])
-    slow, _ = run(imu_c, gnss_c, pairs_c, rec.camera, paper)
-    fast_c, _ = run(imu_c, gnss_c, pairs_c, rec.camera, config)
+    slow, _ = run(imu_c, gnss_c, pairs_c, FlowCamera.from_sequence(rec.sequence), paper)
+    fast_c, _ = run(imu_c, gnss_c, pairs_c, FlowCamera.from_sequence(rec.sequence), config)
     print(f"paper's way:   {slow:7.2f} s for the first {span:.0f} s -> {span / slow:6.1f}x real time "
           f"(flowins on the same window: {fast_c:.2f} s, {slow / fast_c:.1f}x faster)")
     if args.breakdown_s > 0:
-        breakdown(*crop(rec, pairs, args.breakdown_s), rec.camera, config)
+        breakdown(*crop(rec, pairs, args.breakdown_s), FlowCamera.from_sequence(rec.sequence), config)
     if args.count_ops_s > 0:
-        count_ops(*crop(rec, pairs, args.count_ops_s), rec.camera, config)
+        count_ops(*crop(rec, pairs, args.count_ops_s), FlowCamera.from_sequence(rec.sequence), config)
 
 
 if __name__ == "__main__":

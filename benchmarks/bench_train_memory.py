@@ -30,8 +30,8 @@ def measure(mode: str, window_s: float, points: int, method: str) -> dict:
     from omegaconf import OmegaConf
 
     from flowins.ins.imu_model import imu_model
-    from flowins.jobs.evaluate import navigation_config
-    from flowins.jobs.train import flow_settings, parameter_sets
+    from flowins.settings import navigation_config
+    from flowins.settings import flow_settings, parameter_sets
     from flowins.training.data import load_training_sequence
     from flowins.training.parameters import FilterParameters
     from flowins.training.unroll import run_window, window_loss

@@ -6,22 +6,24 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 from torch import Tensor
 
 from flowins.data.streams import GnssStream, ImuStream, PoseStream
 from flowins.filter.ekf import Gate
-from flowins.measurements.flow_update import FlowFrame, FlowUpdate
-from flowins.measurements.gnss import gnss_fixes, GnssRecovery
-from flowins.measurements.zero_velocity import ZeroVelocity
-from flowins.measurements.gnss_heading import HeadingAlignment
 from flowins.filter.runner import FilterTrack, run_filter
 from flowins.filter.smoother import SmoothedTrack, rts_smooth
+from flowins.flow.pairs import FlowPairs
 from flowins.geometry.geodesy import LocalTangentPlane, gnss_to_enu
 from flowins.ins.initialization import InitialUncertainty
 from flowins.ins.mechanization import SCHEMES, STANDARD_GRAVITY_MPS2, ProcessNoise
-from flowins.measurements.gnss import correlation_inflation, gnss_noise
+from flowins.measurements.flow_update import FlowFrame, FlowUpdate
+from flowins.measurements.gnss import GnssRecovery, correlation_inflation, gnss_fixes, gnss_noise
+from flowins.measurements.gnss_heading import HeadingAlignment
+from flowins.measurements.zero_velocity import ZeroVelocity
+from flowins.state import STATE
 from flowins.start import Start, StartSettings, choose_start
 
 
@@ -101,6 +103,25 @@ class NavigationResult:
                             "reason": "the run ended before the held fixes could set the heading "
                             "(filter.gnss_heading: baseline_m, max_sigma_rad); they never updated the filter"})
         return entries
+
+    def summary(self) -> dict[str, Any]:
+        """What the run did, for ``metrics.json``: GNSS fixes accepted, how it started, its
+        GNSS resets, fixes before the start, and the heading alignment (each when present)."""
+        out: dict[str, Any] = {}
+        if self.gnss_accepted is not None:
+            out["gnss_accepted"] = int(self.gnss_accepted.sum())
+            out["gnss_fixes"] = int(self.gnss_accepted.numel())
+        if self.start is not None:
+            out["start"] = self.start.as_dict()
+        resets = [{k: v for k, v in e.items() if k != "kind"} for e in self.filter.log if e.get("kind") == "gnss_reset"]
+        if resets:
+            out["gnss_resets"] = resets
+        if self.gnss_before_start:
+            out["gnss_before_start"] = self.gnss_before_start
+        heading = [{k: v for k, v in e.items() if k not in ("kind", "name")} for e in self.heading_status]
+        if heading:
+            out["heading_alignment"] = heading  # filter.gnss_heading: when and how the heading was set (or given up)
+        return out
 
     @property
     def flow_log(self) -> list[dict]:
@@ -289,3 +310,66 @@ def _navigate(imu, gnss, *, config, frame, flow, camera, truth, forward_b, start
         start=setup.start,
         gnss_before_start=setup.gnss_before_start,
     )
+
+
+def flow_statistics(result: NavigationResult, pairs: FlowPairs) -> dict[str, Any]:
+    """How the flow fared in a run: frames, points per frame, accepted, left out."""
+    log = result.flow_log
+    frames = [e for e in log if e["points"]]
+    n = max(1, len(frames))
+    return {
+        "flow_frames": len(frames),
+        "flow_pairs": len(pairs),
+        "flow_pairs_outside_imu": result.flow_pairs_outside,
+        "mean_candidates": sum(e["candidates"] for e in frames) / n,
+        "mean_points": sum(e["points"] for e in frames) / n,
+        "mean_valid": sum(e["valid"] for e in frames) / n,
+        "mean_accepted": sum(e["accepted"] for e in frames) / n,
+        "mean_low_parallax": sum(e["low_parallax"] for e in frames) / n,
+        "mean_degenerate": sum(e["degenerate"] + e["behind"] for e in frames) / n,
+    }
+
+
+def run_warnings(result: NavigationResult) -> list[str]:
+    """What a reader of the table must know about a run: GNSS resets, flow inflations, an
+    unbounded position σ (inertial drift), most fixes rejected, a filter that ends rejecting
+    the fixes (inconsistent), fixes before the start."""
+    warnings = []
+    log = result.filter.log
+    resets = [e for e in log if e.get("kind") == "gnss_reset"]
+    if resets:
+        worst = max(resets, key=lambda e: e["offset_m"])
+        rejected = sum(e["why"] == "rejected" for e in resets)
+        why = ", ".join(part for part in (f"{rejected} after rejected fixes" if rejected else "",
+                                          f"{len(resets) - rejected} after inconsistent innovations"
+                                          if len(resets) > rejected else "") if part)
+        warnings.append(f"GNSS: the filter drifted from the fixes and was reset {len(resets)} time(s) ({why}; largest "
+                        f"jump {worst['offset_m']:.1f} m at {worst['t_s']:.1f} s; filter.gnss_recovery)")
+    inflated = [e for e in log if e.get("kind") == "flow_inflate"]
+    if inflated:
+        warnings.append(f"flow: {len(inflated)} time(s) most points of {inflated[0]['frames']} frames in a row failed "
+                        f"the gate (first at {inflated[0]['t_s']:.1f} s); the velocity and gyroscope bias σ were "
+                        "inflated to let the flow back in (filter.flow.recovery)")
+    sigma = result.filter.node_cov[:, STATE.p, STATE.p].diagonal(dim1=-2, dim2=-1)[:, :2].sum(-1).sqrt()
+    if float(sigma.max()) > 100.0:
+        k = int(sigma.argmax())
+        warnings.append(f"the filter's own horizontal position σ reaches {float(sigma[k]):.0f} m (at "
+                        f"{float(result.filter.t_s[k]):.0f} s): nothing bounds the position there, the error is "
+                        "inertial drift")
+    fixes = [e for e in log if e.get("kind") == "gnss" and "nis" in e]
+    if fixes:
+        rejected = sum(e["accepted"] < 0.5 for e in fixes)
+        if rejected > len(fixes) / 2:
+            warnings.append(f"GNSS: {rejected} of {len(fixes)} fixes failed the gate: the filter disagrees with them "
+                            "(filter.gnss_gate, imu noise)")
+        tail = fixes[-10:]
+        if len(tail) >= 3 and sum(e["accepted"] < 0.5 for e in tail) > len(tail) / 2:
+            warnings.append(f"GNSS: the run ends inconsistent: {sum(e['accepted'] < 0.5 for e in tail)} of the last "
+                            f"{len(tail)} fixes failed the gate")
+    if result.flow_pairs_outside:
+        warnings.append(f"flow: {result.flow_pairs_outside} frame pairs outside the filter's span (its start at "
+                        f"{result.start.t_s:.2f} s to the IMU's last sample) are not used")
+    if result.gnss_before_start:
+        warnings.append(f"GNSS: {result.gnss_before_start} fixes before the filter's start "
+                        f"({result.start.t_s:.2f} s) are not used")
+    return warnings

@@ -28,7 +28,7 @@ from flowins.ins.initialization import (
     still_interval,
     still_prior,
 )
-from flowins.state import STATE, make_state
+from flowins.state import make_state
 
 MODES = ("auto", "still", "moving", "groundtruth")
 

@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 
 from flowins.config import build, check_value, setting
 from flowins.ins.imu_model import imu_model
-from flowins.jobs.evaluate import check_job_settings, navigation_config
+from flowins.settings import check_job_settings, navigation_config
 from flowins.navigation import NavigationConfig
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"

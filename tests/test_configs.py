@@ -18,8 +18,8 @@ from hydra.utils import get_object, instantiate
 from omegaconf import OmegaConf
 
 from flowins.ins.imu_model import imu_model
-from flowins.jobs.evaluate import navigation_config
-from flowins.jobs.train import flow_settings, parameter_sets
+from flowins.settings import navigation_config
+from flowins.settings import flow_settings, parameter_sets
 from flowins.navigation import NavigationConfig
 from flowins.training.parameters import NAMES, FilterParameters
 from flowins.training.unroll import METHODS

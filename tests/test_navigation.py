@@ -48,3 +48,20 @@ def test_navigate_gradient_matches_finite_differences_and_the_fast_path_matches_
     assert torch.allclose(fast.filter.node_mean, tracked.filter.node_mean.detach(), rtol=0, atol=1e-12)
     assert torch.allclose(fast.smoother.node_cov, tracked.smoother.node_cov.detach(), rtol=0, atol=1e-12)
     assert float(fast_value) == pytest.approx(float(value.detach()), abs=1e-12)
+
+
+def test_run_warnings_name_flow_pairs_outside_the_filter_span_and_fixes_before_the_start():
+    from types import SimpleNamespace
+
+    from flowins.navigation import run_warnings
+    from flowins.state import STATE_DIM
+
+    cov = torch.eye(STATE_DIM, dtype=torch.float64).expand(3, STATE_DIM, STATE_DIM)
+    track = SimpleNamespace(log=[], node_cov=cov, t_s=torch.tensor([0.0, 1.0, 2.0], dtype=torch.float64))
+    result = SimpleNamespace(filter=track, flow_pairs_outside=7, gnss_before_start=2, start=SimpleNamespace(t_s=1.25))
+    assert run_warnings(result) == [
+        "flow: 7 frame pairs outside the filter's span (its start at 1.25 s to the IMU's last sample) are not used",
+        "GNSS: 2 fixes before the filter's start (1.25 s) are not used",
+    ]
+    quiet = SimpleNamespace(filter=track, flow_pairs_outside=0, gnss_before_start=0, start=SimpleNamespace(t_s=1.25))
+    assert run_warnings(quiet) == []

@@ -16,8 +16,8 @@ from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
 from flowins.ins.imu_model import imu_model
-from flowins.jobs.evaluate import check_job_settings, navigation_config
-from flowins.jobs.train import check_train_settings, parameter_sets
+from flowins.settings import check_job_settings, navigation_config
+from flowins.settings import check_train_settings, parameter_sets
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG_DIR = ROOT / "configs"

@@ -34,11 +34,13 @@ autocorrelation of ``e_k / s_k``).
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from collections.abc import Mapping
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
 
+from flowins.data.streams import GnssStream, PoseStream
 from flowins.evaluation.alignment import apply_alignment, umeyama
 from flowins.evaluation.metrics import (
     associate,
@@ -243,4 +245,33 @@ def gnss_floor(
         error_sigma_m=tuple(float(v) for v in err_rms),
         track_t_s=truth_t,
         track_m=track,
+    )
+
+
+def gnss_floor_metrics(gnss: GnssStream, truth: PoseStream, *, correlation_s: float | None = None) -> dict[str, Any]:
+    """:func:`~flowins.evaluation.gnss_floor.gnss_floor` of a sequence's fixes against its truth
+    (``correlation_s``: the GNSS errors' τ; estimated from them when None)."""
+    from flowins.geometry.geodesy import gnss_to_enu
+
+    enu, cov, _ = gnss_to_enu(gnss)
+    floor = gnss_floor(gnss.t_s, enu, cov.diagonal(dim1=-2, dim2=-1).sqrt(), truth.t_s, truth.pos_m,
+                       correlation_s=correlation_s)
+    return {
+        "rmse_m": floor.rmse_m,
+        "horizontal_rmse_m": floor.horizontal_rmse_m,
+        "correlation_s": floor.correlation_s,
+        "fixes_used": floor.fixes_used,
+        "fixes": floor.fixes,
+        "error_rms_enu_m": list(floor.error_sigma_m),
+    }
+
+
+def describe_gnss_floor(floor: Mapping[str, Any]) -> str:
+    e, n, u = floor["error_rms_enu_m"]
+    return (
+        f"GNSS floor (flowins.evaluation.gnss_floor): a causal filter that knew the motion exactly and weighted\n"
+        f"the fixes by their true error model would score {floor['rmse_m']:.2f} m ({floor['horizontal_rmse_m']:.2f} m "
+        f"if it also knew the height); the fixes'\nerrors are {e:.1f}/{n:.1f}/{u:.1f} m RMS (E/N/U), correlated over "
+        f"{floor['correlation_s']:.1f} s ({floor['fixes_used']} of {floor['fixes']} fixes pass the gate).\n"
+        f"A GNSS filter scores below it only by trusting the fixes less than they deserve; the smoother has no such floor."
     )

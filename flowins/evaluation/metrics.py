@@ -20,6 +20,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from flowins.data.streams import PoseStream
 from flowins.evaluation.alignment import (
     Alignment,
     apply_alignment,
@@ -270,3 +271,18 @@ def trajectory_errors(
         orientation_errors_rad=orientation_errors,
         orientation_rmse_rad=orientation_rmse,
     )
+
+
+#: a ground truth that spans less (m, largest distance from its mean) leaves the alignment's rotation undetermined
+MIN_TRUTH_EXTENT_M = 0.5
+
+
+def truth_extent_problem(truth: PoseStream | None) -> str | None:
+    """Why ``truth`` can't score a track (it barely moves), or None."""
+    if truth is None:
+        return None
+    extent = float(torch.linalg.vector_norm(truth.pos_m - truth.pos_m.mean(0), dim=-1).max())
+    if extent >= MIN_TRUTH_EXTENT_M:
+        return None
+    return (f"{truth.name}: the ground truth stays within {extent:.3g} m of its mean (< {MIN_TRUTH_EXTENT_M} m), so "
+            "the alignment's rotation is undetermined: no RMSE is computed (n/a); the tracks are written as TUM files")

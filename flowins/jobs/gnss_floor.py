@@ -19,7 +19,7 @@ import argparse
 import sys
 
 from flowins.data.read import read_sequence
-from flowins.jobs.evaluate import gnss_floor_metrics
+from flowins.evaluation.gnss_floor import gnss_floor_metrics
 
 
 def _parser() -> argparse.ArgumentParser:

@@ -61,6 +61,13 @@ class FlowCamera:
         """From a :class:`~flowins.data.PinholeCamera` and a :class:`~flowins.geometry.camera.RigidTransform`."""
         return cls(camera.K, imu_to_camera.rotation_matrix, imu_to_camera.translation_m)
 
+    @classmethod
+    def from_sequence(cls, sequence) -> FlowCamera | None:
+        """From a :class:`~flowins.data.Sequence`'s calibration; None without one."""
+        if sequence is None or sequence.camera is None or sequence.imu_to_camera is None:
+            return None
+        return cls.from_calibration(sequence.camera, sequence.imu_to_camera)
+
     @property
     def centre_b(self) -> Tensor:
         """The camera centre in the body (IMU) frame ``(3,)``: ``-R_ciᵀ t_ci`` (kept after the

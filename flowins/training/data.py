@@ -16,7 +16,10 @@ from typing import Any
 import pytorch_lightning as pl
 from torch.utils.data import DataLoader, Dataset
 
+from flowins.data.load import load_recording
+from flowins.flow.load import load_flow
 from flowins.flow.pairs import FlowPairs
+from flowins.measurements.flow import FlowCamera
 from flowins.training.unroll import METHODS, TrainingSequence
 
 
@@ -43,9 +46,7 @@ def load_training_sequence(
     ``cfg`` holds the groups ``sequence`` (the defaults of a simulated source), ``flow``,
     ``sparse``, ``flow_pairs`` and ``cache_dir``, as in ``configs/train.yaml``.
     """
-    from flowins.jobs.evaluate import load_flow, load_sequence
-
-    rec = load_sequence(_sequence_config(source, cfg["sequence"]), quick=False, progress=progress)
+    rec = load_recording(_sequence_config(source, cfg["sequence"]), quick=False, progress=progress)
     if "imu" in cfg:  # every reading within the sensor's range, as the evaluation checks
         from flowins.ins.imu_model import imu_model
 
@@ -60,7 +61,8 @@ def load_training_sequence(
             if isinstance(flow, str):
                 raise ValueError(f"{rec.name}: {kind} flow unavailable: {flow}")
             pairs[kind] = flow
-    return TrainingSequence(rec.name, rec.imu, rec.gnss, rec.truth, rec.camera, pairs["dense"], pairs["sparse"])
+    return TrainingSequence(rec.name, rec.imu, rec.gnss, rec.truth, FlowCamera.from_sequence(rec.sequence),
+                            pairs["dense"], pairs["sparse"])
 
 
 class _Sequences(Dataset):

@@ -26,10 +26,12 @@ The parameters (units of the filter config, ``configs/filter/default.yaml``):
 """
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -200,3 +202,15 @@ class FilterParameters(nn.Module):
 
     def extra_repr(self) -> str:
         return ", ".join(f"{n}={v:.4g}" for n, v in self.values().items())
+
+
+def learned_settings(checkpoint: str, nav_cfg: NavigationConfig, cfg: Mapping[str, Any]) -> tuple[NavigationConfig, dict]:
+    """The filter config and job config with a ``train.py`` checkpoint's learned parameters
+    (noise, gates, flow noise; the dropout rate goes to the flow provider when it has one)."""
+    params = FilterParameters.from_checkpoint(checkpoint)
+    values = params.values()
+    cfg = dict(cfg)
+    if "p" in cfg["flow"]:
+        cfg["flow"] = {**cfg["flow"], "p": values["dropout_p"]}
+    logging.getLogger("flowins").info(f"learned parameters from {checkpoint}: " + ", ".join(f"{k}={v:.4g}" for k, v in values.items()))
+    return params.apply(nav_cfg, training=False), cfg

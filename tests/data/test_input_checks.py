@@ -16,7 +16,7 @@ from flowins.data.streams import GnssStream, ImuStream, PoseStream
 from flowins.geometry.camera import RigidTransform
 from flowins.ins.imu_model import ImuModel
 from flowins.ins.initialization import StillSettings, still_interval
-from flowins.jobs.evaluate import truth_extent_problem
+from flowins.evaluation.metrics import truth_extent_problem
 
 H, W = 6, 8
 CALIBRATION = """\

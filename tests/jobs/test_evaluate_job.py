@@ -93,7 +93,7 @@ def test_a_float32_filter_is_refused_with_the_reason():
     from omegaconf import OmegaConf
 
     from flowins.ins.imu_model import imu_model
-    from flowins.jobs.evaluate import navigation_config
+    from flowins.settings import navigation_config
 
     with initialize_config_dir(config_dir=CONFIGS, version_base=None):
         cfg = OmegaConf.to_container(compose("evaluate", overrides=["filter.dtype=float32"]), resolve=False)

@@ -15,7 +15,8 @@ import yaml
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from flowins.jobs.evaluate import load_flow, load_sequence
+from flowins.data.load import load_recording
+from flowins.flow.load import load_flow
 
 CONFIGS = str(Path(__file__).resolve().parents[2] / "configs")
 
@@ -43,7 +44,7 @@ def _dense_flow(folder: Path, cache: Path, capsys) -> tuple:
                                              "flow_pairs.input_scale=1.0", "progress=false"])
     cfg = OmegaConf.to_container(cfg, resolve=True)
     capsys.readouterr()
-    pairs = load_flow("dense", load_sequence(cfg["sequence"], quick=False), cfg, progress=False)
+    pairs = load_flow("dense", load_recording(cfg["sequence"], quick=False), cfg, progress=False)
     return pairs, "read from the cache" in capsys.readouterr().out
 
 

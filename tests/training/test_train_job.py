@@ -13,8 +13,9 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from flowins.ins.imu_model import imu_model
-from flowins.jobs.evaluate import navigation_config
-from flowins.jobs.train import flow_settings, parameter_sets, run
+from flowins.settings import navigation_config
+from flowins.jobs.train import run
+from flowins.settings import flow_settings, parameter_sets
 from flowins.training.data import load_training_sequence
 from flowins.training.parameters import NOISE_NAMES, FilterParameters
 from flowins.training.unroll import run_window, window_bounds, window_loss

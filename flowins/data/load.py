@@ -1,0 +1,82 @@
+"""A recording for a job: read from ``sequence.path`` or the built-in simulated walk.
+
+``load_recording(cfg["sequence"])`` is what both jobs start from: a flowins folder, EuRoC,
+ADVIO or KITTI raw read by :func:`flowins.data.read.read_sequence` (every input stream
+inside the IMU's time span, or cropped to it with ``sequence.crop=true``), or the
+simulated city walk (:func:`flowins.data.simulate.simulate`, cached).
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+import logging
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from flowins.data.fingerprint import camera_content_key
+from flowins.data.sequence import Sequence, within_imu_span
+from flowins.data.streams import GnssStream, ImuStream, PoseStream
+
+log = logging.getLogger("flowins")
+
+
+@dataclass
+class Recording:
+    """A job's input: the sequence, and what reading it changed."""
+
+    sequence: Sequence
+    #: what reading changed (a stream cropped to the IMU span), printed and kept in metrics.json
+    warnings: list[str] = dataclasses.field(default_factory=list)
+
+    @property
+    def name(self) -> str:
+        return self.sequence.name
+
+    @property
+    def imu(self) -> ImuStream:
+        return self.sequence.imu
+
+    @property
+    def gnss(self) -> GnssStream | None:
+        return self.sequence.gnss
+
+    @property
+    def truth(self) -> PoseStream | None:
+        return self.sequence.groundtruth
+
+    @functools.cached_property
+    def content_key(self) -> str:
+        """Content key of the recording's frames, calibration and tracks, the flow cache's
+        key for the recording (:func:`flowins.data.fingerprint.camera_content_key`; it
+        reads every frame file, so only once and only when flow is asked for)."""
+        return camera_content_key(self.sequence)
+
+
+def load_recording(cfg: Mapping[str, Any], *, quick: bool, progress: bool = False) -> Recording:
+    """The ``sequence`` config group's recording: ``sequence.path=DIR`` read (flowins
+    folder, EuRoC, ADVIO, KITTI raw), or the simulated city walk (cached); ``quick``: the
+    walk's short version."""
+    if cfg.get("path"):
+        from flowins.data.read import read_sequence
+
+        seq = read_sequence(cfg["path"], max_imu_gap_s=cfg["max_imu_gap_s"])
+        seq, cropped = within_imu_span(seq, crop=cfg["crop"])
+        for line in cropped:
+            log.warning("warning: %s", line)
+        return Recording(seq, cropped)
+    if cfg["kind"] != "simulated_walk":
+        raise ValueError(
+            f"sequence.kind={cfg['kind']!r} is not supported; use the built-in 'simulated_walk' "
+            "or give a recording with sequence.path=DIR"
+        )
+    from flowins.data.simulate import CameraConfig, SimulationConfig, simulate
+
+    config = SimulationConfig(
+        duration_s=float(cfg["quick_duration_s"] if quick else cfg["duration_s"]),
+        seed=int(cfg["seed"]),
+        imu_rate_hz=float(cfg["imu_rate_hz"]),
+        camera=CameraConfig(**dict(cfg["camera"])),
+        flow_every=0,
+    )
+    return Recording(simulate(config=config, progress=progress))
