@@ -69,7 +69,7 @@ def _images(width: int, height: int):
     import cv2
     import torch
 
-    from flowins.flow.reference import middlebury_pair
+    from flowins.data.reference_flow import middlebury_pair
 
     pair = middlebury_pair(1)
     a, b = (cv2.resize(x, (width, height), interpolation=cv2.INTER_AREA) for x in (pair.image1, pair.image2))
@@ -126,7 +126,7 @@ def _accuracy(provider, pair) -> tuple[float, float, float, int]:
     """EPE, share of component errors within ±1σ, median σ, number of points."""
     import cv2
 
-    from flowins.flow.reference import endpoint_error
+    from flowins.data.reference_flow import endpoint_error
 
     result = provider(pair.image1, pair.image2)
     if hasattr(result, "points"):  # sparse: ground truth at the points
@@ -146,7 +146,7 @@ def _accuracy(provider, pair) -> tuple[float, float, float, int]:
 
 def accuracy_table(names: list[str], checkpoint: str | None) -> list[str]:
     from flowins.flow.classical import DISProvider
-    from flowins.flow.reference import middlebury_pair, simulator_pair
+    from flowins.data.reference_flow import middlebury_pair, simulator_pair
 
     pairs = [middlebury_pair(), simulator_pair()]
     candidates = []

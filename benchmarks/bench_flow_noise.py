@@ -24,7 +24,7 @@ from flowins.data.synthetic import Walk, WalkConfig
 from flowins.filter.ekf import ekf_update
 from flowins.flow.pairs import run_provider
 from flowins.flow.points import grid_candidates
-from flowins.flow.reference import simulator_pair
+from flowins.data.reference_flow import simulator_pair
 from flowins.flow.spynet import SpyNetProvider
 from flowins.measurements.flow import FlowCamera, epipolar_update, flow_measurements
 from flowins.state import STATE, make_state, normalize_quaternions

@@ -1,4 +1,5 @@
-"""Constant tensors built once per dtype and device, for every run of the process.
+"""Physical constants, and constant tensors built once per dtype and device, for every run
+of the process.
 
 :func:`flowins.navigation.navigate` runs in ``torch.inference_mode`` when nothing needs a
 gradient. A constant first built there would be an inference tensor, and a later run
@@ -15,6 +16,10 @@ from typing import TypeVar
 import torch
 
 F = TypeVar("F", bound=Callable)
+
+#: standard gravity (m/s², the CGPM's conventional value); the filter and the simulator take
+#: the magnitude as a parameter, this is its default
+STANDARD_GRAVITY_MPS2 = 9.80665
 
 #: every builder decorated so far (:func:`clear_constants` empties their caches)
 _BUILDERS: list = []

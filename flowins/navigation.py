@@ -16,7 +16,7 @@ from flowins.filter.ekf import Gate
 from flowins.filter.runner import FilterTrack, run_filter
 from flowins.filter.smoother import SmoothedTrack, rts_smooth
 from flowins.flow.pairs import FlowPairs
-from flowins.geometry.geodesy import LocalTangentPlane, gnss_to_enu
+from flowins.geometry.geodesy import LocalTangentPlane
 from flowins.ins.initialization import InitialUncertainty
 from flowins.ins.mechanization import SCHEMES, STANDARD_GRAVITY_MPS2, ProcessNoise
 from flowins.measurements.flow_update import FlowFrame, FlowUpdate
@@ -192,14 +192,14 @@ def prepare_navigation(
     events = []
     enu = fixes = None
     if gnss is not None:
-        enu, _, frame = gnss_to_enu(gnss, origin=frame)
+        enu, _, frame = gnss.enu(frame)
         inflation = correlation_inflation(gnss.t_s, config.gnss_correlation_s).to(gnss.h_acc_m.dtype)
         cov = gnss_noise(gnss.h_acc_m, gnss.v_acc_m, config.gnss_noise_scale) * inflation.reshape(-1, 1, 1)
         events = gnss_fixes(gnss.t_s, enu, cov, gate=config.gnss_gate, name=gnss.name, heading=config.gnss_heading,
                             recovery=config.gnss_recovery)
     start_gnss = gnss if gnss is not None else start_gnss
     if start_gnss is not None:
-        start_enu, _, frame = gnss_to_enu(start_gnss, origin=frame)
+        start_enu, _, frame = start_gnss.enu(frame)
         sigma = torch.stack((start_gnss.h_acc_m, start_gnss.h_acc_m, start_gnss.v_acc_m), -1)
         fixes = (start_gnss.t_s, start_enu, sigma)
     start = choose_start(imu, settings=config.start, fixes=fixes, truth=truth, forward_b=forward_b,

@@ -17,7 +17,8 @@ import torch
 from torch import Tensor
 
 from flowins.data.streams import ImuStream, PoseStream
-from flowins.measurements.gnss_heading import fit_heading, rotation_2d
+from flowins.geometry.procrustes import rotation_2d
+from flowins.measurements.gnss_heading import fit_heading
 from flowins.geometry import quaternion as quat
 from flowins.ins.initialization import (
     InitialUncertainty,

@@ -34,7 +34,7 @@ from flowins.data.streams import (
     GnssStream,
     ImuStream,
     PoseStream,
-    _as_float64,
+    as_float64,
     _check_finite,
     _set,
 )
@@ -135,7 +135,7 @@ class CameraFrames:
 
     def __post_init__(self) -> None:
         name = str(self.name)
-        t_s = _as_float64(self.t_s, stream=name, array="t")
+        t_s = as_float64(self.t_s, stream=name, array="t")
         if t_s.ndim != 1 or t_s.shape[0] == 0:
             raise ValueError(f"{name}: frame timestamps have shape {tuple(t_s.shape)}; expected (N,) with N >= 1")
         _check_finite(t_s, stream=name, array="t")
@@ -260,8 +260,8 @@ class Tracks:
 
     def __post_init__(self) -> None:
         name = str(self.name)
-        t_s = _as_float64(self.t_s, stream=name, array="t")
-        uv = _as_float64(self.uv_px, stream=name, array="u,v")
+        t_s = as_float64(self.t_s, stream=name, array="t")
+        uv = as_float64(self.uv_px, stream=name, array="u,v")
         ids = torch.as_tensor(np.asarray(self.track_id)) if not isinstance(self.track_id, Tensor) else self.track_id
         if t_s.ndim != 1 or t_s.shape[0] == 0:
             raise ValueError(f"{name}: t has shape {tuple(t_s.shape)}; expected (M,) with M >= 1 rows")

@@ -30,7 +30,7 @@ _DTYPE = torch.float64
 # ---------------------------------------------------------------------------
 
 
-def _as_float64(value: Any, *, stream: str, array: str) -> Tensor:
+def as_float64(value: Any, *, stream: str, array: str) -> Tensor:
     """A float64 CPU copy of ``value`` (tensor, numpy array or nested list)."""
     if isinstance(value, Tensor):
         if value.is_complex():
@@ -143,10 +143,10 @@ class ImuStream:
         max_gap_s = float(self.max_gap_s)
         if not (np.isfinite(max_gap_s) and max_gap_s > 0):
             raise ValueError(f"{name}: max_gap_s={self.max_gap_s!r}; expected a finite number > 0 seconds")
-        t_s = _as_float64(self.t_s, stream=name, array="t_s")
+        t_s = as_float64(self.t_s, stream=name, array="t_s")
         n = _check_rows(t_s, stream=name, min_rows=2)
-        acc = _as_float64(self.acc_mps2, stream=name, array="acc_mps2")
-        gyro = _as_float64(self.gyro_rps, stream=name, array="gyro_rps")
+        acc = as_float64(self.acc_mps2, stream=name, array="acc_mps2")
+        gyro = as_float64(self.gyro_rps, stream=name, array="gyro_rps")
         _check_shape(acc, (n, 3), stream=name, array="acc_mps2")
         _check_shape(gyro, (n, 3), stream=name, array="gyro_rps")
         _check_finite(t_s, stream=name, array="t_s")
@@ -224,11 +224,11 @@ class GnssStream:
 
     def __post_init__(self) -> None:
         name = str(self.name)
-        t_s = _as_float64(self.t_s, stream=name, array="t_s")
+        t_s = as_float64(self.t_s, stream=name, array="t_s")
         g = _check_rows(t_s, stream=name, min_rows=1)
         arrays = {"t_s": t_s}
         for key in ("lat_deg", "lon_deg", "alt_m", "h_acc_m", "v_acc_m"):
-            arrays[key] = _as_float64(getattr(self, key), stream=name, array=key)
+            arrays[key] = as_float64(getattr(self, key), stream=name, array=key)
             _check_shape(arrays[key], (g,), stream=name, array=key)
         for key, x in arrays.items():
             hint = " (a missing accuracy is an error, not a default)" if key.endswith("_acc_m") else ""
@@ -253,6 +253,13 @@ class GnssStream:
     def __len__(self) -> int:
         return self.t_s.shape[0]
 
+    def enu(self, origin: Any = None) -> tuple[Tensor, Tensor, Any]:
+        """The fixes in a local ENU frame (:func:`flowins.geometry.geodesy.gnss_to_enu`):
+        ``(pos_m (G, 3), cov_m2 (G, 3, 3), origin)``; ``origin`` the first fix when None."""
+        from flowins.geometry.geodesy import gnss_to_enu
+
+        return gnss_to_enu(self.lat_deg, self.lon_deg, self.alt_m, self.h_acc_m, self.v_acc_m, origin=origin)
+
 
 @dataclass(frozen=True, eq=False)
 class PoseStream:
@@ -276,15 +283,15 @@ class PoseStream:
 
     def __post_init__(self) -> None:
         name = str(self.name)
-        t_s = _as_float64(self.t_s, stream=name, array="t_s")
+        t_s = as_float64(self.t_s, stream=name, array="t_s")
         m = _check_rows(t_s, stream=name, min_rows=1)
-        pos = _as_float64(self.pos_m, stream=name, array="pos_m")
+        pos = as_float64(self.pos_m, stream=name, array="pos_m")
         _check_shape(pos, (m, 3), stream=name, array="pos_m")
         _check_finite(t_s, stream=name, array="t_s")
         _check_finite(pos, stream=name, array="pos_m")
         quat = None
         if self.quat_wxyz is not None:
-            quat = _as_float64(self.quat_wxyz, stream=name, array="quat_wxyz")
+            quat = as_float64(self.quat_wxyz, stream=name, array="quat_wxyz")
             _check_shape(quat, (m, 4), stream=name, array="quat_wxyz")
             _check_finite(quat, stream=name, array="quat_wxyz")
             norm = torch.linalg.vector_norm(quat, dim=-1, keepdim=True)

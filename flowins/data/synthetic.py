@@ -23,7 +23,7 @@ from torch import Tensor
 from torch.func import jacfwd, vmap
 
 from flowins.geometry import quaternion as quat
-from flowins.ins.mechanization import STANDARD_GRAVITY_MPS2
+from flowins.constants import STANDARD_GRAVITY_MPS2
 
 if TYPE_CHECKING:
     from flowins.data.streams import GnssStream, ImuStream, PoseStream

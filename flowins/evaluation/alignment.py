@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 
 from flowins.geometry import quaternion
+from flowins.geometry.procrustes import planar_rotation
 
 
 class Alignment(NamedTuple):
@@ -184,10 +185,7 @@ def align_yaw(source: Tensor, target: Tensor) -> Alignment:
     if source.shape != target.shape:
         raise ValueError(f"source and target must have the same shape, got {tuple(source.shape)} and {tuple(target.shape)}")
     mu_s, mu_t = source.mean(dim=-2), target.mean(dim=-2)
-    xs, xt = source - mu_s.unsqueeze(-2), target - mu_t.unsqueeze(-2)
-    cross = (xs[..., 0] * xt[..., 1] - xs[..., 1] * xt[..., 0]).sum(-1)
-    dot = (xs[..., 0] * xt[..., 0] + xs[..., 1] * xt[..., 1]).sum(-1)
-    theta = torch.atan2(cross, dot)
+    theta = planar_rotation(source, target).theta_rad
     c, s = torch.cos(theta), torch.sin(theta)
     one, zero = torch.ones_like(c), torch.zeros_like(c)
     rotation = torch.stack((c, -s, zero, s, c, zero, zero, zero, one), -1).reshape(*c.shape, 3, 3)

@@ -251,9 +251,7 @@ def gnss_floor(
 def gnss_floor_metrics(gnss: GnssStream, truth: PoseStream, *, correlation_s: float | None = None) -> dict[str, Any]:
     """:func:`~flowins.evaluation.gnss_floor.gnss_floor` of a sequence's fixes against its truth
     (``correlation_s``: the GNSS errors' τ; estimated from them when None)."""
-    from flowins.geometry.geodesy import gnss_to_enu
-
-    enu, cov, _ = gnss_to_enu(gnss)
+    enu, cov, _ = gnss.enu()
     floor = gnss_floor(gnss.t_s, enu, cov.diagonal(dim1=-2, dim2=-1).sqrt(), truth.t_s, truth.pos_m,
                        correlation_s=correlation_s)
     return {

@@ -17,12 +17,15 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from flowins.data.streams import as_float64
+
 TUM_HEADER = "timestamp tx ty tz qx qy qz qw"
 _NUM_FIELDS = 8
 
 
-def _as_float64(x, name: str, shape_tail: tuple[int, ...]) -> Tensor:
-    x = torch.as_tensor(x).detach().to(device="cpu", dtype=torch.float64)
+def _rows(x, name: str, shape_tail: tuple[int, ...]) -> Tensor:
+    """``x`` as float64 ``(N, *shape_tail)`` (:func:`flowins.data.streams.as_float64`)."""
+    x = as_float64(x, stream="TUM track", array=name)
     if x.ndim != 1 + len(shape_tail) or tuple(x.shape[1:]) != shape_tail:
         expected = "(N" + "".join(f", {d}" for d in shape_tail) + ")"
         raise ValueError(f"{name} must have shape {expected}, got {tuple(x.shape)}")
@@ -49,9 +52,9 @@ def write_tum(
     Raises:
         ValueError: shapes disagree or a value is NaN/inf (naming argument and row).
     """
-    t = _as_float64(t_s, "t_s", ())
-    p = _as_float64(pos_m, "pos_m", (3,))
-    q = _as_float64(quat_wxyz, "quat_wxyz", (4,))
+    t = _rows(t_s, "t_s", ())
+    p = _rows(pos_m, "pos_m", (3,))
+    q = _rows(quat_wxyz, "quat_wxyz", (4,))
     if not (t.shape[0] == p.shape[0] == q.shape[0]):
         raise ValueError(
             f"t_s, pos_m and quat_wxyz must have the same number of rows, got {t.shape[0]}, {p.shape[0]}, {q.shape[0]}"

@@ -21,15 +21,12 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
 from pyproj import Transformer
 from torch import Tensor
-
-if TYPE_CHECKING:  # runtime import would tie geometry to data; only the fields are used
-    from flowins.data.streams import GnssStream
 
 __all__ = ["LocalTangentPlane", "gnss_to_enu"]
 
@@ -86,9 +83,9 @@ class LocalTangentPlane:
             )
 
     @classmethod
-    def from_first_fix(cls, gnss: GnssStream) -> LocalTangentPlane:
-        """The tangent plane at the first fix of ``gnss`` (latitude, longitude, height)."""
-        return cls(float(gnss.lat_deg[0]), float(gnss.lon_deg[0]), float(gnss.alt_m[0]))
+    def at_first(cls, lat_deg: Tensor, lon_deg: Tensor, alt_m: Tensor) -> LocalTangentPlane:
+        """The tangent plane at the first of the points ``(G,)`` (latitude, longitude, height)."""
+        return cls(float(lat_deg[0]), float(lon_deg[0]), float(alt_m[0]))
 
     def _transformer(self) -> Transformer:
         return _enu_transformer(self.origin_lat_deg, self.origin_lon_deg, self.origin_alt_m)
@@ -145,12 +142,14 @@ class LocalTangentPlane:
 
 
 def gnss_to_enu(
-    gnss: GnssStream, *, origin: LocalTangentPlane | None = None
+    lat_deg: Tensor, lon_deg: Tensor, alt_m: Tensor, h_acc_m: Tensor, v_acc_m: Tensor, *,
+    origin: LocalTangentPlane | None = None,
 ) -> tuple[Tensor, Tensor, LocalTangentPlane]:
     """GNSS fixes as ENU positions with their measurement noise.
 
     Args:
-        gnss: ``G`` fixes.
+        lat_deg, lon_deg, alt_m: ``(G,)`` the fixes (degrees, metres).
+        h_acc_m, v_acc_m: ``(G,)`` their horizontal (per axis) and vertical 1-σ (m).
         origin: tangent plane to express them in; the first fix when ``None``.
 
     Returns:
@@ -158,7 +157,7 @@ def gnss_to_enu(
         ``diag(h_acc_m², h_acc_m², v_acc_m²)`` [m²]; and the origin used.
     """
     if origin is None:
-        origin = LocalTangentPlane.from_first_fix(gnss)
-    pos = origin.to_enu(gnss.lat_deg, gnss.lon_deg, gnss.alt_m)
-    var = torch.stack((gnss.h_acc_m, gnss.h_acc_m, gnss.v_acc_m), dim=-1).to(_DTYPE) ** 2
+        origin = LocalTangentPlane.at_first(lat_deg, lon_deg, alt_m)
+    pos = origin.to_enu(lat_deg, lon_deg, alt_m)
+    var = torch.stack((h_acc_m, h_acc_m, v_acc_m), dim=-1).to(_DTYPE) ** 2
     return pos, torch.diag_embed(var), origin

@@ -286,7 +286,8 @@ def cumulative_product(q: Tensor) -> Tensor:
 # --------------------------------------------------------------------------- Jacobians
 
 
-def _skew(a: Tensor) -> Tensor:
+def skew(a: Tensor) -> Tensor:
+    """``[a]×`` ``(..., 3, 3)`` of ``a`` ``(..., 3)``: ``[a]× b = a × b``."""
     x, y, z = a.unbind(-1)
     o = torch.zeros_like(x)
     return torch.stack(
@@ -329,7 +330,7 @@ def rotate_jacobian(q: Tensor, a: Tensor) -> Tensor:
         ra[..., None, None] * eye
         + r.unsqueeze(-1) * a.unsqueeze(-2)
         - a.unsqueeze(-1) * r.unsqueeze(-2)
-        - w[..., None, None] * _skew(a)
+        - w[..., None, None] * skew(a)
     )
     J_u = torch.cat((d_w.unsqueeze(-1), d_r), dim=-1)  # (..., 3, 4)
     eye4 = torch.eye(4, dtype=q.dtype, device=q.device)

@@ -39,12 +39,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from flowins.constants import cached_constant
+from flowins.constants import STANDARD_GRAVITY_MPS2, cached_constant
 from flowins.geometry import quaternion as quat
 from flowins.state import NOISE, NOISE_DIM, State, join, split
 
-#: Standard gravity (m/s²); the magnitude is a parameter of every function here.
-STANDARD_GRAVITY_MPS2 = 9.80665
 
 
 def gravity_vector(gravity_mps2: float | Tensor, *, like: Tensor) -> Tensor:

@@ -202,7 +202,7 @@ def _camera_derivative_constants(dtype: torch.dtype, device: torch.device) -> tu
     eye = torch.eye(3, dtype=dtype, device=device)
     translation = torch.zeros(3, 3, 4, dtype=dtype, device=device)
     translation[:, :, 3] = eye
-    return _skew(eye), torch.zeros(3, 3, 1, dtype=dtype, device=device), translation
+    return quat.skew(eye), torch.zeros(3, 3, 1, dtype=dtype, device=device), translation
 
 
 def _vee(S: Tensor) -> Tensor:
@@ -215,14 +215,6 @@ def _vee(S: Tensor) -> Tensor:
 
 #: flat positions of (S₂₁, S₀₂, S₁₀) and (S₁₂, S₂₀, S₀₁) in a row-major 3 x 3 matrix
 _VEE_INDEX = (torch.tensor([7, 2, 3]), torch.tensor([5, 6, 1]))
-
-
-def _skew(v: Tensor) -> Tensor:
-    """``[v]×`` ``(..., 3, 3)`` of ``v`` ``(..., 3)``."""
-    z = torch.zeros_like(v[..., 0])
-    return torch.stack(
-        (z, -v[..., 2], v[..., 1], v[..., 2], z, -v[..., 0], -v[..., 1], v[..., 0], z), dim=-1
-    ).reshape(*v.shape[:-1], 3, 3)
 
 
 class FlowLinearisation(NamedTuple):

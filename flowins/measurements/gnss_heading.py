@@ -40,6 +40,7 @@ from torch import Tensor
 
 from flowins.filter.ekf import chi2_quantile
 from flowins.geometry import quaternion as quat
+from flowins.geometry.procrustes import planar_rotation, rotation_2d
 from flowins.state import STATE, STATE_DIM, split
 
 
@@ -110,24 +111,6 @@ class HeadingFit(NamedTuple):
     used: Tensor  # (n,) bool, fixes kept in the fit
 
 
-def _procrustes(p: Tensor, g: Tensor, w: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    W = w.sum()
-    c_p = (w.unsqueeze(-1) * p).sum(0) / W
-    c_g = (w.unsqueeze(-1) * g).sum(0) / W
-    dp, dg = p - c_p, g - c_g
-    cross = (w * (dp[:, 0] * dg[:, 1] - dp[:, 1] * dg[:, 0])).sum()
-    dot = (w * (dp * dg).sum(-1)).sum()
-    psi = torch.atan2(cross, dot)
-    info = (w * (dp * dp).sum(-1)).sum()
-    return psi, info, c_p, c_g, W
-
-
-def rotation_2d(psi: Tensor) -> Tensor:
-    """``R(ψ)`` ``(..., 2, 2)``, counter-clockwise about the vertical."""
-    c, s = torch.cos(psi), torch.sin(psi)
-    return torch.stack((torch.stack((c, -s), -1), torch.stack((s, c), -1)), -2)
-
-
 def fit_heading(filter_xy_m: Tensor, fix_xy_m: Tensor, var_m2: Tensor, *, outlier_probability: float = 0.999) -> HeadingFit:
     """Weighted 2D Procrustes fit ``fix ≈ R(ψ)(filter - c_p) + c_g`` (module docstring).
 
@@ -150,7 +133,7 @@ def fit_heading(filter_xy_m: Tensor, fix_xy_m: Tensor, var_m2: Tensor, *, outlie
     used = torch.ones(n, dtype=torch.bool)
     threshold = chi2_quantile(outlier_probability, 2)
     while True:
-        psi, info, c_p, c_g, W = _procrustes(filter_xy_m[used], fix_xy_m[used], w[used])
+        psi, c_p, c_g, info, W = planar_rotation(filter_xy_m[used], fix_xy_m[used], w[used])
         resid = fix_xy_m - c_g - (rotation_2d(psi) @ (filter_xy_m - c_p).unsqueeze(-1)).squeeze(-1)
         score = torch.where(used, (w * (resid * resid).sum(-1)).detach(), torch.zeros_like(w))
         worst = int(score.argmax())

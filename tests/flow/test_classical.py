@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from flowins.flow.classical import DISProvider, fb_residual, min_eigenvalue
-from flowins.flow.reference import endpoint_error, middlebury_pair, simulator_pair
+from flowins.data.reference_flow import endpoint_error, middlebury_pair, simulator_pair
 
 
 def textured(h: int = 120, w: int = 160, seed: int = 0) -> np.ndarray:

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from flowins.data.sequence import Tracks
-from flowins.flow.reference import middlebury_pair, simulator_pair
+from flowins.data.reference_flow import middlebury_pair, simulator_pair
 from flowins.flow.sparse import ShiTomasiLK, track_sequence
 
 

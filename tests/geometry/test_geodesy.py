@@ -129,7 +129,8 @@ def test_gnss_to_enu_positions_covariances_and_origin():
     v_acc = np.array([2.0, 3.0, 5.0, 1.0, 6.0, 3.5])
     gnss = GnssStream(np.arange(6.0), lat, lon, h, h_acc, v_acc)
 
-    pos, cov, origin = gnss_to_enu(gnss)
+    pos, cov, origin = gnss_to_enu(gnss.lat_deg, gnss.lon_deg, gnss.alt_m, gnss.h_acc_m, gnss.v_acc_m)
+    torch.testing.assert_close(gnss.enu()[0], pos, rtol=0, atol=0)  # the stream's own view of the same
     assert origin == LocalTangentPlane(lat[0], lon[0], h[0])
     assert pos.shape == (6, 3) and cov.shape == (6, 3, 3)
     np.testing.assert_allclose(pos[0].numpy(), 0.0, atol=1e-9)
@@ -138,7 +139,7 @@ def test_gnss_to_enu_positions_covariances_and_origin():
         np.testing.assert_array_equal(cov[k].numpy(), np.diag([h_acc[k] ** 2, h_acc[k] ** 2, v_acc[k] ** 2]))
 
     ltp = LocalTangentPlane(*HELSINKI)
-    pos2, _, origin2 = gnss_to_enu(gnss, origin=ltp)
+    pos2, _, origin2 = gnss.enu(ltp)
     assert origin2 is ltp
     np.testing.assert_allclose(pos2.numpy(), enu_closed_form(lat, lon, h, HELSINKI), atol=1e-6)
 

@@ -1,12 +1,10 @@
 """``python -m flowins.jobs.gnss_floor``: the GNSS floor of a recording read from disk."""
 import pytest
-import torch
 
 from flowins.data.folder import read_folder, write_folder
 from flowins.data.sequence import Sequence
 from flowins.data.synthetic import synthetic_walk_recording
 from flowins.evaluation.gnss_floor import gnss_floor
-from flowins.geometry.geodesy import gnss_to_enu
 from flowins.jobs.gnss_floor import main
 
 
@@ -28,7 +26,7 @@ def test_the_table_is_the_floor_of_the_fixes_read_back(walk_folder, capsys):
     rows = _rows(out)
     assert [row[0] for row in rows[1:]] == ["0.0", "7.5"]
     seq = read_folder(walk_folder)
-    enu, cov, _ = gnss_to_enu(seq.gnss)
+    enu, cov, _ = seq.gnss.enu()
     sigma = cov.diagonal(dim1=-2, dim2=-1).sqrt()
     estimated = gnss_floor(seq.gnss.t_s, enu, sigma, seq.groundtruth.t_s, seq.groundtruth.pos_m)
     assert rows[0][0] == f"{estimated.correlation_s:.1f}"

@@ -33,7 +33,7 @@ from flowins.data.streams import GnssStream, ImuStream, PoseStream
 from flowins.data.synthetic import ImuErrors, body_readings, corrupt_imu, increment_imu, sample_times
 from flowins.geometry import quaternion as quat
 from flowins.geometry.geodesy import LocalTangentPlane
-from flowins.ins.mechanization import STANDARD_GRAVITY_MPS2
+from flowins.constants import STANDARD_GRAVITY_MPS2
 
 #: automotive-grade MEMS (the filter's ``configs/imu/simulated_drive.yaml`` holds the same densities)
 AUTOMOTIVE_IMU = ImuErrors(

@@ -46,10 +46,10 @@ from flowins.data.synthetic import (
 from flowins.geometry import quaternion as quat
 from flowins.geometry.camera import RigidTransform
 from flowins.geometry.geodesy import LocalTangentPlane
-from flowins.ins.mechanization import STANDARD_GRAVITY_MPS2
+from flowins.constants import STANDARD_GRAVITY_MPS2
 
 #: the code that generates a simulation: part of its key
-SIMULATOR_CODE = ("flowins.data", "flowins.geometry", "flowins.ins.mechanization")
+SIMULATOR_CODE = ("flowins.data", "flowins.geometry", "flowins.ins.mechanization", "flowins.constants")
 #: the completion marker: the key and every file written, with its size and modification time
 MARKER = ".simulation-complete"
 

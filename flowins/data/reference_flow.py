@@ -1,5 +1,5 @@
-"""Reference flow pairs with exact ground truth, shared by the flow tests and
-``benchmarks/bench_flow.py`` (:class:`FlowPair`: flow ``(H, W, 2)`` from image 1 to
+"""Reference flow pairs with exact ground truth (data for checking flow providers), shared
+by the flow tests and ``benchmarks/bench_flow.py`` (:class:`FlowPair`: flow ``(H, W, 2)`` from image 1 to
 image 2 and the mask of pixels where it is known), and the end-point error.
 
 * :func:`middlebury_pair`: the Middlebury 2014 *Motorcycle* stereo pair shipped

@@ -1,0 +1,48 @@
+"""Planar Procrustes (flowins.geometry.procrustes) against a known rotation and translation."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from flowins.geometry.procrustes import planar_rotation, rotation_2d
+
+F64 = torch.float64
+
+
+@pytest.mark.parametrize("batch", [(), (1,), (3, 2)])
+def test_a_known_rotation_and_shift_are_recovered_exactly(batch):
+    gen = torch.Generator().manual_seed(0)
+    theta = torch.rand(batch, generator=gen, dtype=F64) * 6.0 - 3.0
+    source = torch.randn(*batch, 7, 2, generator=gen, dtype=F64)
+    shift = torch.randn(*batch, 2, generator=gen, dtype=F64)
+    target = (rotation_2d(theta).unsqueeze(-3) @ source.unsqueeze(-1)).squeeze(-1) + shift.unsqueeze(-2)
+    fit = planar_rotation(source, target)
+    torch.testing.assert_close(fit.theta_rad, theta, atol=1e-12, rtol=0)
+    torch.testing.assert_close(fit.centre_source, source.mean(-2))
+    torch.testing.assert_close(fit.centre_target, target.mean(-2))
+    assert fit.weight_sum.shape == batch and bool((fit.weight_sum == 7).all())
+
+
+def test_weights_leave_out_a_zero_weight_outlier_and_unit_weights_match_none():
+    gen = torch.Generator().manual_seed(1)
+    source = torch.randn(9, 2, generator=gen, dtype=F64)
+    target = (rotation_2d(torch.tensor(0.7, dtype=F64)) @ source.unsqueeze(-1)).squeeze(-1)
+    target[4] = torch.tensor([50.0, -80.0], dtype=F64)  # an outlier
+    w = torch.ones(9, dtype=F64)
+    w[4] = 0.0
+    assert math.isclose(float(planar_rotation(source, target, w).theta_rad), 0.7, abs_tol=1e-12)
+    assert not math.isclose(float(planar_rotation(source, target).theta_rad), 0.7, abs_tol=1e-3)
+    ones = planar_rotation(source, target, torch.ones(9, dtype=F64))
+    plain = planar_rotation(source, target)
+    torch.testing.assert_close(ones.theta_rad, plain.theta_rad)
+    torch.testing.assert_close(ones.spread, plain.spread)
+
+
+def test_the_spread_is_the_weighted_sum_of_squared_centred_distances():
+    source = torch.tensor([[0.0, 0.0], [2.0, 0.0], [0.0, 4.0]], dtype=F64)
+    w = torch.tensor([1.0, 2.0, 1.0], dtype=F64)
+    centre = (w.unsqueeze(-1) * source).sum(0) / w.sum()
+    expected = float((w * ((source - centre) ** 2).sum(-1)).sum())
+    assert math.isclose(float(planar_rotation(source, source, w).spread), expected, rel_tol=1e-14)
