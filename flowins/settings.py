@@ -90,6 +90,7 @@ def check_job_settings(cfg: Mapping[str, Any]) -> None:
     setting(cfg, "flow_panels", int, minimum=0)
     setting(cfg, "model.checkpoint", str | None)
     check_data_settings(cfg)
+    check_filter_settings(cfg)
     flows = {kind for name in combinations for kind in ("sparse", "dense") if methods[name][kind]}
     if "dense" in flows:
         check_target(cfg["flow"], "flow")
@@ -102,6 +103,16 @@ def check_job_settings(cfg: Mapping[str, Any]) -> None:
             setting(cfg, "sparse.sigma_px", float, minimum=1e-6)
         else:
             check_target(cfg["sparse"]["tracker"], "sparse.tracker")
+
+
+def check_filter_settings(cfg: Mapping[str, Any]) -> None:
+    """The ``filter`` group (and a named ``imu`` preset) checked before a recording is read:
+    the values are built once with placeholder IMU densities, which the preset replaces later."""
+    from flowins.ins.imu_model import imu_model
+
+    if cfg["imu"].get("name") != "auto":
+        imu_model(cfg["imu"], recording=bool(cfg["sequence"].get("path")))
+    navigation_config(cfg["filter"], ImuModel("check", 1.0, 1.0))
 
 
 def check_data_settings(cfg: Mapping[str, Any]) -> None:
@@ -200,4 +211,5 @@ def check_train_settings(cfg: Mapping[str, Any]) -> None:
                     check_value(source[name], tp, f"{key}.{name}")
     setting(cfg, "trainer.max_epochs", int | None, minimum=-1, default=None)
     check_data_settings(cfg)
+    check_filter_settings(cfg)
     check_target(cfg["flow"], "flow")

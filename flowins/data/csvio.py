@@ -1,8 +1,13 @@
-"""Small, strict readers for the comma-separated (and YAML) files of recorded datasets.
+"""Small, strict readers for the comma-separated and YAML files of recordings: the one
+CSV/YAML stack of flowins.
 
-The dataset readers (:mod:`flowins.data.euroc`, :mod:`flowins.data.advio`) share
-these helpers so that every bad file fails the same way: a ``ValueError`` that
-names the file, the 1-based line and what was expected. Nothing is skipped
+Every reader (the flowins folder format, EuRoC, ADVIO, KITTI raw, Kalibr) goes through
+these helpers, so that every bad file fails the same way: a ``ValueError`` that names the
+file, the 1-based line and what was expected. Files with a header of column names are
+read by :func:`read_table` (cells addressed by column name); headerless or ``#``-headed
+numeric files by :func:`read_rows` / :func:`read_numeric` (by position). YAML is read
+with the line of each key (:func:`load_yaml`, :func:`yaml_at`) or as a plain mapping
+(:func:`read_yaml`). Nothing is skipped
 except blank lines and comment/header lines that start with ``#``; nothing is
 reordered or clipped.
 
@@ -11,6 +16,10 @@ ground-truth files write ``", "``), and so are Windows line endings.
 """
 from __future__ import annotations
 
+import re
+from collections.abc import Iterator
+from collections.abc import Sequence as Seq
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,6 +33,16 @@ from flowins.geometry.camera import RigidTransform
 __all__ = [
     "CsvRows",
     "NumericTable",
+    "Table",
+    "lines_for",
+    "load_yaml",
+    "read_table",
+    "read_text",
+    "rows_to_lines",
+    "yaml_at",
+    "yaml_line",
+    "yaml_mapping",
+    "yaml_number_list",
     "check_increasing",
     "read_numeric",
     "read_rows",
@@ -238,3 +257,194 @@ def rigid_transform_from_matrix(matrix: Any, *, where: str, tolerance: float = 1
             "expected an orthonormal 3 x 3 block with determinant +1"
         )
     return RigidTransform.from_matrix(torch.from_numpy(M))
+
+
+# ---------------------------------------------------------------------------
+# CSV with a header of column names (cells by name; file lines in every message)
+# ---------------------------------------------------------------------------
+
+
+
+@dataclass(frozen=True)
+class Table:
+    """Cells of a CSV file: ``cells[r][c]`` (stripped strings) and the 1-based file line of row ``r``."""
+
+    file: Path
+    columns: tuple[str, ...]
+    cells: list[list[str]]
+    lines: np.ndarray  # (R,) int64
+
+    def floats(self, column: str, *, expected: str = "a number") -> np.ndarray:
+        """Column ``column`` as ``(R,)`` float64; a cell that is not a number names its line."""
+        c = self.columns.index(column)
+        text = [row[c] for row in self.cells]
+        try:
+            return np.array(text, dtype=np.float64)
+        except ValueError:
+            pass
+        for row, cell in enumerate(text):
+            try:
+                float(cell)
+            except ValueError:
+                raise ValueError(
+                    f"{self.file}: line {self.lines[row]}: column '{column}' is {cell!r}; expected {expected}"
+                ) from None
+        raise AssertionError("unreachable: numpy rejected a column that float() accepts")  # pragma: no cover
+
+    def integers(self, column: str, *, expected: str = "an integer") -> np.ndarray:
+        """Column ``column`` as ``(R,)`` int64 (plain decimal integers only)."""
+        c = self.columns.index(column)
+        out = np.empty(len(self.cells), dtype=np.int64)
+        for row, cells in enumerate(self.cells):
+            try:
+                out[row] = int(cells[c])
+            except (ValueError, OverflowError):
+                raise ValueError(
+                    f"{self.file}: line {self.lines[row]}: column '{column}' is {cells[c]!r}; expected {expected}"
+                ) from None
+        return out
+
+    def strings(self, column: str) -> list[str]:
+        c = self.columns.index(column)
+        return [row[c] for row in self.cells]
+
+    def line_of_row(self, row: int) -> int:
+        return int(self.lines[row])
+
+
+def read_text(file: Path) -> str:
+    try:
+        return file.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{file}: not UTF-8 text ({exc}); expected a CSV/YAML text file") from None
+
+
+def read_table(file: Path, columns: Seq[str], *, alternatives: Seq[Seq[str]] = ()) -> Table:
+    """Parse a CSV with a header row equal to ``columns`` (or one of ``alternatives``).
+
+    Blank lines are skipped (line numbers still count them). Every data line must
+    have as many comma-separated cells as the header.
+    """
+    accepted = [tuple(columns), *(tuple(a) for a in alternatives)]
+    lines = read_text(file).splitlines()
+    header_index = next((i for i, line in enumerate(lines) if line.strip()), None)
+    expected_text = " or ".join(repr(",".join(a)) for a in accepted)
+    if header_index is None:
+        raise ValueError(f"{file}: the file is empty; expected a header row {expected_text} and data rows")
+    found = tuple(cell.strip() for cell in lines[header_index].split(","))
+    if found not in accepted:
+        raise ValueError(
+            f"{file}: line {header_index + 1}: header is {','.join(found)!r}; expected {expected_text} "
+            "(column names, in this order)"
+        )
+    cells: list[list[str]] = []
+    numbers: list[int] = []
+    for i in range(header_index + 1, len(lines)):
+        line = lines[i]
+        if not line.strip():
+            continue
+        row = [cell.strip() for cell in line.split(",")]
+        if len(row) != len(found):
+            raise ValueError(
+                f"{file}: line {i + 1}: {len(row)} comma-separated cells; expected {len(found)} "
+                f"({','.join(found)})"
+            )
+        cells.append(row)
+        numbers.append(i + 1)
+    if not cells:
+        raise ValueError(f"{file}: no data rows after the header (line {header_index + 1}); expected at least one")
+    return Table(file=file, columns=found, cells=cells, lines=np.array(numbers, dtype=np.int64))
+
+
+_ROWS_PATTERN = re.compile(r"rows (\d+) and (\d+) \(0-based;? ?")
+_ROW_PATTERN = re.compile(r"row (\d+) \(0-based\)")
+
+
+def rows_to_lines(message: str, table: Table) -> str:
+    """Rewrite a constructor's ``row k (0-based)`` as the file's ``line N``."""
+
+    def line(k: str) -> str:
+        k_int = int(k)
+        return str(table.line_of_row(k_int)) if 0 <= k_int < len(table.lines) else f"(row {k})"
+
+    message = _ROWS_PATTERN.sub(lambda m: f"lines {line(m.group(1))} and {line(m.group(2))} (", message)
+    message = _ROW_PATTERN.sub(lambda m: f"line {line(m.group(1))}", message)
+    message = message.replace(" ()", "")
+    if str(table.file) not in message:
+        message = f"{table.file}: {message}"
+    return message
+
+
+@contextmanager
+def lines_for(table: Table) -> Iterator[None]:
+    """Re-raise a constructor's ``ValueError`` with file lines instead of 0-based rows."""
+    try:
+        yield
+    except ValueError as exc:
+        raise ValueError(rows_to_lines(str(exc), table)) from None
+
+
+# ---------------------------------------------------------------------------
+# YAML with the line of each key
+# ---------------------------------------------------------------------------
+
+
+
+
+def load_yaml(file: Path) -> tuple[Any, yaml.Node | None]:
+    text = read_text(file)
+    try:
+        return yaml.safe_load(text), yaml.compose(text, Loader=yaml.SafeLoader)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}: " if mark is not None else ""
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise ValueError(f"{file}: {where}not valid YAML ({problem})") from None
+
+
+def yaml_line(node: yaml.Node | None, *keys: str) -> int | None:
+    """1-based line of the value at ``keys`` in a composed YAML tree (or of the deepest key found)."""
+    line = None if node is None else node.start_mark.line + 1
+    for key in keys:
+        if not isinstance(node, yaml.MappingNode):
+            break
+        for k, v in node.value:
+            if isinstance(k, yaml.ScalarNode) and k.value == key:
+                node, line = v, k.start_mark.line + 1
+                break
+        else:
+            break
+    return line
+
+
+def yaml_at(file: Path, root: yaml.Node | None, *keys: str) -> str:
+    line = yaml_line(root, *keys)
+    return f"{file}: line {line}: " if line is not None else f"{file}: "
+
+
+def is_number(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def yaml_number_list(value: Any, lengths: Seq[int], *, file: Path, root: yaml.Node | None, keys: Seq[str], what: str) -> list[float]:
+    if value is None and 0 in lengths:
+        return []
+    if not isinstance(value, list) or len(value) not in lengths or not all(is_number(v) for v in value):
+        sizes = " or ".join(str(n) for n in lengths)
+        raise ValueError(
+            f"{yaml_at(file, root, *keys)}{'.'.join(keys)} is {value!r}; expected a list of {sizes} numbers ({what})"
+        )
+    return [float(v) for v in value]
+
+
+def yaml_mapping(value: Any, allowed: Seq[str], *, file: Path, root: yaml.Node | None, keys: Seq[str]) -> dict:
+    label = ".".join(keys) if keys else "the file"
+    if not isinstance(value, dict):
+        raise ValueError(f"{yaml_at(file, root, *keys)}{label} is {value!r}; expected a mapping with keys {', '.join(allowed)}")
+    unknown = [k for k in value if k not in allowed]
+    if unknown:
+        raise ValueError(
+            f"{yaml_at(file, root, *keys, str(unknown[0]))}{label} has unknown key {unknown[0]!r}; "
+            f"expected only {', '.join(allowed)}"
+        )
+    return value

@@ -42,6 +42,7 @@ from torch import Tensor
 
 from flowins.data.streams import GnssStream, PoseStream
 from flowins.evaluation.alignment import apply_alignment, umeyama
+from flowins.filter.ekf import block_nis, joseph_update, linear_predict
 from flowins.evaluation.metrics import (
     associate,
     interpolate_positions,
@@ -96,42 +97,37 @@ def offset_estimates(
     G, D = y.shape
     dt = torch.diff(t_s.to(torch.float64), prepend=t_s[:1].to(torch.float64))
     phi = torch.exp(-dt / correlation_s) if correlation_s > 0 else torch.zeros_like(dt)
-    # per axis: b with a flat prior, handled exactly as the first usable fix's value
-    b = torch.zeros(D, dtype=torch.float64)
-    z = torch.zeros(D, dtype=torch.float64)
-    P = torch.zeros(D, 2, 2, dtype=torch.float64)  # cov of (b, z) once b is known
+    # per axis a state (b, z) with a flat prior on b, handled exactly as the first fix's value;
+    # the D axes are a batch of 2-state filters with the filter core's algebra, and the
+    # gate is joint: the fix's NIS summed over its axes
+    zeros = torch.zeros(D, 1, 1, dtype=torch.float64)
+    mean = torch.zeros(D, 2, dtype=torch.float64)
+    P = torch.zeros(D, 2, 2, dtype=torch.float64)
     started = False
     offsets, sigmas, used = [], [], []
     for k in range(G):
         if started:
-            # predict: z ← φ z + w, i.e. P ← F P Fᵀ + Q with F = diag(1, φ), Q = diag(0, 1 - φ²)
-            z = phi[k] * z
-            P = P.clone()
-            P[:, 0, 1] *= phi[k]
-            P[:, 1, 0] *= phi[k]
-            P[:, 1, 1] = phi[k] ** 2 * P[:, 1, 1] + 1.0 - phi[k] ** 2
-            H = torch.stack((torch.ones(D, dtype=torch.float64), s[k]), -1)  # (D, 2)
-            innovation = y[k] - (b + s[k] * z)
-            PH = (P @ H.unsqueeze(-1)).squeeze(-1)  # (D, 2)
-            S = (H * PH).sum(-1)  # (D,)
-            accept = gate is None or float((innovation**2 / S).sum()) <= gate
+            # predict: z ← φ z + w: A = diag(1, φ), Q = diag(0, 1 - φ²)
+            A = torch.diag(torch.stack((torch.ones((), dtype=torch.float64), phi[k])))
+            Q = torch.diag(torch.stack((torch.zeros((), dtype=torch.float64), 1.0 - phi[k] ** 2)))
+            mean, P = linear_predict(mean, P, A, Q)
+            H = torch.stack((torch.ones(D, dtype=torch.float64), s[k]), -1).unsqueeze(-2)  # (D, 1, 2): y = b + s z
+            innovation = y[k].unsqueeze(-1) - (H @ mean.unsqueeze(-1)).squeeze(-1)  # (D, 1)
+            nis = block_nis(P, innovation.unsqueeze(-2), H.unsqueeze(-3), zeros.unsqueeze(-3))
+            accept = gate is None or float(nis.sum()) <= gate
             if accept:
-                K = PH / S.unsqueeze(-1)
-                b = b + K[:, 0] * innovation
-                z = z + K[:, 1] * innovation
-                P = P - K.unsqueeze(-1) * PH.unsqueeze(-2)
-                P = 0.5 * (P + P.transpose(-1, -2))
+                mean, P = joseph_update(mean, P, innovation, H, zeros)
         else:
-            # the flat prior on b: the first fix fixes b + s z; b's variance is then s², z's 1
-            # and they are perfectly anti-correlated (only their sum is known)
+            # the first fix sets b + s z; b's variance is then s², z's 1, and they are
+            # perfectly anti-correlated (only their sum is known)
             accept = True
-            b, z = y[k].clone(), torch.zeros(D, dtype=torch.float64)
+            mean = torch.stack((y[k], torch.zeros(D, dtype=torch.float64)), -1)
             P = torch.zeros(D, 2, 2, dtype=torch.float64)
             P[:, 0, 0] = s[k] ** 2
             P[:, 1, 1] = 1.0
             P[:, 0, 1] = P[:, 1, 0] = -s[k]
             started = True
-        offsets.append(b.clone())
+        offsets.append(mean[:, 0].clone())
         sigmas.append(P[:, 0, 0].clamp_min(0.0).sqrt())
         used.append(accept)
     return OracleEstimates(torch.stack(offsets), torch.stack(sigmas), torch.tensor(used))

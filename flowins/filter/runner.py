@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, NamedTuple, Protocol
 
 import torch
 from torch import Tensor
@@ -241,34 +241,13 @@ def run_filter(
         )
     dtype, device = mean0.dtype, mean0.device
     t_imu = torch.as_tensor(t_s, dtype=torch.float64)
-    t0, t_end = float(t_imu[0]), float(t_imu[-1])
+    t0 = float(t_imu[0])
     events = sorted(events, key=lambda e: e.time_s)  # stable: same-time order kept
-    for event in events:
-        if not t0 <= event.time_s <= t_end:
-            raise ValueError(
-                f"{event.name}: time {event.time_s:.6f} s is outside the IMU time span "
-                f"[{t0:.6f}, {t_end:.6f}] s; crop the stream or the IMU to overlap"
-            )
-    event_times = torch.tensor([e.time_s for e in events], dtype=torch.float64)
-    grid, sample = _step_grid(t_imu, event_times)
+    plan = _schedule(t_imu, events, output_every)
+    grid, sample, segment_ends, events_by_step = plan.grid, plan.sample, plan.segment_ends, plan.events_by_step
     dt = torch.diff(grid, prepend=t_imu[:1]).to(dtype=dtype, device=device)
     acc = torch.as_tensor(acc_mps2)[sample].to(dtype=dtype, device=device)
     gyro = torch.as_tensor(gyro_rps)[sample].to(dtype=dtype, device=device)
-
-    # node flags per step: output grid, events, the end
-    is_node = torch.zeros(grid.shape[0], dtype=torch.bool)
-    on_sample = grid == t_imu[sample]
-    is_node |= on_sample & (sample % output_every == 0)
-    event_step = torch.searchsorted(grid, event_times[event_times > t0])
-    is_node[event_step] = True
-    is_node[-1] = True
-    # a segment ends at each event step (the mean must be recomputed after updates)
-    segment_ends = sorted(set(event_step.tolist()) | {grid.shape[0] - 1})
-    events_by_step: dict[int, list[Event]] = {}
-    for event in events:
-        if event.time_s > t0:
-            step = int(torch.searchsorted(grid, torch.tensor(event.time_s, dtype=torch.float64)))
-            events_by_step.setdefault(step, []).append(event)
 
     chain = ChainBuilder()
     eye = torch.eye(STATE_DIM, dtype=dtype, device=device)
@@ -277,7 +256,7 @@ def run_filter(
         if event.time_s <= t0:
             event.apply(chain)
     propagate = propagate_batched if jacobians == "analytic" else propagate_reference
-    node_index = torch.nonzero(is_node).squeeze(-1)
+    node_index = plan.node_index
     node_t_s = grid[node_index].tolist()
     # each segment's nodes: node_index[first[i]:last[i]] (the last step of a segment is a node)
     ends = torch.tensor(segment_ends, dtype=node_index.dtype)
@@ -304,3 +283,40 @@ def run_filter(
             event.apply(chain)
         start = end + 1
     return chain.finish()
+
+
+class _Schedule(NamedTuple):
+    grid: Tensor  # (S,) the step times: the IMU samples and the event times
+    sample: Tensor  # (S,) the IMU sample each step's reading comes from
+    node_index: Tensor  # steps that are nodes: the output grid, events, the end
+    segment_ends: list[int]  # a propagation ends at each event step and at the end
+    events_by_step: dict[int, list[Event]]  # the events applied after each step (after t_s[0])
+
+
+def _schedule(t_imu: Tensor, events: Sequence[Event], output_every: int) -> _Schedule:
+    """Where the filter steps, keeps nodes and stops for events (events sorted by time,
+    each checked to lie inside the IMU's time span)."""
+    t0, t_end = float(t_imu[0]), float(t_imu[-1])
+    for event in events:
+        if not t0 <= event.time_s <= t_end:
+            raise ValueError(
+                f"{event.name}: time {event.time_s:.6f} s is outside the IMU time span "
+                f"[{t0:.6f}, {t_end:.6f}] s; crop the stream or the IMU to overlap"
+            )
+    event_times = torch.tensor([e.time_s for e in events], dtype=torch.float64)
+    grid, sample = _step_grid(t_imu, event_times)
+    # node flags per step: output grid, events, the end
+    is_node = torch.zeros(grid.shape[0], dtype=torch.bool)
+    on_sample = grid == t_imu[sample]
+    is_node |= on_sample & (sample % output_every == 0)
+    event_step = torch.searchsorted(grid, event_times[event_times > t0])
+    is_node[event_step] = True
+    is_node[-1] = True
+    # a segment ends at each event step (the mean must be recomputed after updates)
+    segment_ends = sorted(set(event_step.tolist()) | {grid.shape[0] - 1})
+    events_by_step: dict[int, list[Event]] = {}
+    for event in events:
+        if event.time_s > t0:
+            step = int(torch.searchsorted(grid, torch.tensor(event.time_s, dtype=torch.float64)))
+            events_by_step.setdefault(step, []).append(event)
+    return _Schedule(grid, sample, torch.nonzero(is_node).squeeze(-1), segment_ends, events_by_step)

@@ -164,3 +164,9 @@ def test_a_fix_before_the_imu_is_an_error_and_crop_runs_and_records_the_crop(tmp
     (note,) = metrics["input_warnings"]
     assert "gnss.csv: cropped 1 rows before and 0 after the IMU span" in note
     assert metrics["ins_gnss"]["gnss_fixes"] == len(g)  # the cropped fix is not among them
+
+
+def test_a_bad_filter_value_stops_the_job_before_the_recording_is_read(tmp_path):
+    cfg = _compose([f"sequence.path={tmp_path / 'not_read'}", f"output_dir={tmp_path / 'out'}", "filter.acc_noise=abc"])
+    with pytest.raises(ValueError, match=r"^filter\.acc_noise='abc': expected a number"):
+        run(cfg)  # the missing folder would be the error if the recording were read first

@@ -225,7 +225,6 @@ def simulate(
     t_end = float(t_imu[-1])
 
     # the world and the camera
-    from flowins.data.simulate.render import exact_flow, render
     from flowins.data.simulate.world import build_city
 
     city = build_city(walk, seed=config.seed)
@@ -244,6 +243,31 @@ def simulate(
 
     # frames and exact flow
     t_frames = torch.arange(0.0, t_end, 1.0 / config.camera.rate_hz, dtype=torch.float64)
+    files = _render_frames(city, camera, trajectory, t_frames, t_end, config, out, progress=progress)
+
+    metadata = _metadata(config, key, imu_truth, multipath)
+    sequence = Sequence(
+        ImuStream(t_imu, acc, gyro, name="simulated IMU"),
+        name=metadata["name"],
+        camera=camera,
+        imu_to_camera=imu_to_camera,
+        frames=CameraFrames(t_frames, files=tuple(files), name="simulated frames"),
+        gnss=GnssStream(t_gnss, lat, lon, alt, h_acc, v_acc, name="simulated GNSS"),
+        groundtruth=PoseStream(t_gt, walk.position(t_gt), walk.quaternion(t_gt), name="simulated ground truth"),
+        metadata=metadata,
+    )
+    write_folder(sequence, out, overwrite=True, copy_frames=False)
+    _write_truth(out, t_gnss, true_enu, multipath, t_imu, imu_truth)
+    return seal_simulation(out, key)
+
+
+def _render_frames(city: Any, camera: Any, trajectory: CameraTrajectory, t_frames: Tensor, t_end: float,
+                   config: SimulationConfig, out: Path, *, progress: bool) -> list[Path]:
+    """Render every frame into ``out/frames`` (and, every ``config.flow_every`` frames, the
+    exact flow to the next into ``out/flow``); the image files, in order. ``t_end``: the
+    last IMU time, where a motion-blurred exposure's sub-frame poses are clamped."""
+    from flowins.data.simulate.render import exact_flow, render
+
     frame_dir = out / "frames"
     frame_dir.mkdir(exist_ok=True)
     flow_dir = out / "flow"
@@ -281,8 +305,12 @@ def simulate(
                 t1=t,
             )
         previous = (frame, pose)
+    return files
 
-    metadata: dict[str, Any] = {
+
+def _metadata(config: SimulationConfig, key: str, imu_truth: dict[str, Tensor], multipath: Tensor) -> dict[str, Any]:
+    """The simulation's ``metadata.yaml``: its settings, frames, IMU and GNSS truths, name."""
+    return {
         "source": "flowins simulator",
         "imu": "simulated_walk",  # the IMU preset (configs/imu) the filter uses on it by default
         "simulation": {"key": key, "config": config.as_plain()},
@@ -302,19 +330,13 @@ def simulate(
             if config.flow_every
             else "not written"
         ),
+        "name": f"simulated city walk (seed {config.seed})",  # the folder's name is the cache key
     }
-    metadata["name"] = f"simulated city walk (seed {config.seed})"  # the folder's name is the cache key
-    sequence = Sequence(
-        ImuStream(t_imu, acc, gyro, name="simulated IMU"),
-        name=metadata["name"],
-        camera=camera,
-        imu_to_camera=imu_to_camera,
-        frames=CameraFrames(t_frames, files=tuple(files), name="simulated frames"),
-        gnss=GnssStream(t_gnss, lat, lon, alt, h_acc, v_acc, name="simulated GNSS"),
-        groundtruth=PoseStream(t_gt, walk.position(t_gt), walk.quaternion(t_gt), name="simulated ground truth"),
-        metadata=metadata,
-    )
-    write_folder(sequence, out, overwrite=True, copy_frames=False)
+
+
+def _write_truth(out: Path, t_gnss: Tensor, true_enu: Tensor, multipath: Tensor, t_imu: Tensor,
+                 imu_truth: dict[str, Tensor]) -> None:
+    """``out/truth``: the fixes' true positions and multipath flags, the IMU's true biases."""
     truth_dir = out / "truth"
     truth_dir.mkdir(exist_ok=True)
     np.savetxt(
@@ -327,7 +349,6 @@ def simulate(
         torch.cat((t_imu.unsqueeze(-1), imu_truth["b_a"], imu_truth["b_w"]), -1).numpy(),
         delimiter=",", header="t,bax,bay,baz,bwx,bwy,bwz", comments="", fmt="%.17g",
     )
-    return seal_simulation(out, key)
 
 
 def exposure_gain(camera: CameraConfig, t_s: float) -> float:

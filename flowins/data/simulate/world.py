@@ -32,7 +32,7 @@ viewer, so brightness constancy holds exactly up to sampling.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -407,6 +407,67 @@ def _ground(walk: Walk, sign: float, config: CityConfig, gen: torch.Generator) -
     return torch.from_numpy(np.ascontiguousarray(lum)), torch.tensor(lo, dtype=torch.float64)
 
 
+@dataclass
+class _Boxes:
+    """The city's boxes as they are built: static ones first (parked cars), then movers."""
+
+    half: list = field(default_factory=list)  # (half length, half width, half height) m
+    xy: list = field(default_factory=list)  # static boxes' centres
+    yaw: list = field(default_factory=list)
+    kind: list = field(default_factory=list)
+    rgb: list = field(default_factory=list)
+    mover_offset: list = field(default_factory=list)  # movers: the offset curve they follow, m
+    mover_s0: list = field(default_factory=list)  # their phase at t = 0, rad
+    mover_rate: list = field(default_factory=list)  # and its rate, rad/s
+
+
+def _park_cars(boxes: _Boxes, builder: _Builder, walk: Walk, sign: float, config: CityConfig) -> None:
+    """Parked cars along both curbs (static boxes)."""
+    for offset in (config.curb_offset_m + 1.1, config.far_curb_offset_m - 1.1):
+        _, curb_xy, arc = _offset_curve(walk, offset, sign)
+        position = builder.uniform(0.0, 10.0)
+        while position < arc[-1] - 6.0:
+            length = builder.uniform(4.1, 4.8)
+            centre = position + 0.5 * length
+            p0, p1 = _at_arc(curb_xy, arc, np.array([centre - 0.5, centre + 0.5]))
+            yaw = math.atan2(p1[1] - p0[1], p1[0] - p0[0]) + (math.pi if builder.uniform(0, 1) < 0.3 else 0.0)
+            boxes.half.append((0.5 * length, 0.5 * builder.uniform(1.7, 1.9), 0.5 * builder.uniform(1.4, 1.65)))
+            boxes.xy.append(0.5 * (p0 + p1))
+            boxes.yaw.append(yaw)
+            boxes.kind.append(_CAR)
+            boxes.rgb.append(_CAR_COLOURS[builder.integer(0, len(_CAR_COLOURS) - 1)])
+            position += length + builder.uniform(*config.parked_gap_m)
+
+
+def _add_movers(boxes: _Boxes, builder: _Builder, walk: Walk, sign: float, config: CityConfig,
+                gen: torch.Generator) -> None:
+    """Moving boxes: cars in the two lanes around the road's centre, pedestrians on the sidewalks."""
+    centre = 0.5 * (config.curb_offset_m + config.far_curb_offset_m)
+    lane_speed = (builder.uniform(*config.car_speed_mps), builder.uniform(*config.car_speed_mps))
+    for i in range(config.n_moving_cars):
+        lane = i % 2  # right-hand traffic: forward (+s) on the outer lane
+        offset = centre + (1.8 if lane == 0 else -1.8)
+        perimeter = _offset_curve(walk, offset, sign, 2001)[2][-1]
+        boxes.mover_offset.append(offset)
+        boxes.mover_s0.append(2 * math.pi * (i + builder.uniform(0.0, 0.5)) / config.n_moving_cars)
+        boxes.mover_rate.append((1 if lane == 0 else -1) * 2 * math.pi * lane_speed[lane] / perimeter)
+        boxes.half.append((0.5 * builder.uniform(4.1, 4.8), 0.5 * builder.uniform(1.7, 1.9), 0.5 * builder.uniform(1.4, 1.65)))
+        boxes.kind.append(_CAR)
+        boxes.rgb.append(_CAR_COLOURS[builder.integer(0, len(_CAR_COLOURS) - 1)])
+    sidewalks = ((config.inner_offset_m + 1.0, -1.0), (1.0, config.curb_offset_m - 0.4), (config.far_curb_offset_m + 0.5, config.outer_offset_m - 1.0))
+    for i in range(config.n_pedestrians):
+        lo, hi = sidewalks[i % len(sidewalks)]
+        offset = builder.uniform(lo, hi)
+        perimeter = _offset_curve(walk, offset, sign, 2001)[2][-1]
+        direction = 1 if builder.uniform(0, 1) < 0.5 else -1
+        boxes.mover_offset.append(offset)
+        boxes.mover_s0.append(builder.uniform(0, 2 * math.pi))
+        boxes.mover_rate.append(direction * 2 * math.pi * builder.uniform(*config.pedestrian_speed_mps) / perimeter)
+        boxes.half.append((0.25, 0.25, 0.5 * builder.uniform(1.6, 1.9)))
+        boxes.kind.append(_PEDESTRIAN)
+        boxes.rgb.append(tuple(torch.rand(3, generator=gen).mul(0.7).add(0.1).tolist()))
+
+
 def build_city(walk: Walk, *, seed: int = 0, config: CityConfig = CityConfig()) -> City:
     """The city around ``walk``, deterministic in ``seed`` (a ``torch.Generator``)."""
     gen = torch.Generator().manual_seed(seed)
@@ -417,49 +478,11 @@ def build_city(walk: Walk, *, seed: int = 0, config: CityConfig = CityConfig()) 
     a, b, n, height, s0, columns, building = zip(*builder.quads)
     base, window, spacing, size, sill, door_rate, brick = zip(*builder.styles)
 
-    # parked cars along both curbs (static boxes)
-    half, xy_list, yaw_list, kind, rgb = [], [], [], [], []
-    for offset in (config.curb_offset_m + 1.1, config.far_curb_offset_m - 1.1):
-        _, curb_xy, arc = _offset_curve(walk, offset, sign)
-        position = builder.uniform(0.0, 10.0)
-        while position < arc[-1] - 6.0:
-            length = builder.uniform(4.1, 4.8)
-            centre = position + 0.5 * length
-            p0, p1 = _at_arc(curb_xy, arc, np.array([centre - 0.5, centre + 0.5]))
-            yaw = math.atan2(p1[1] - p0[1], p1[0] - p0[0]) + (math.pi if builder.uniform(0, 1) < 0.3 else 0.0)
-            half.append((0.5 * length, 0.5 * builder.uniform(1.7, 1.9), 0.5 * builder.uniform(1.4, 1.65)))
-            xy_list.append(0.5 * (p0 + p1))
-            yaw_list.append(yaw)
-            kind.append(_CAR)
-            rgb.append(_CAR_COLOURS[builder.integer(0, len(_CAR_COLOURS) - 1)])
-            position += length + builder.uniform(*config.parked_gap_m)
-
-    # movers: cars in the two lanes around the road's centre, pedestrians on the sidewalks
-    centre = 0.5 * (config.curb_offset_m + config.far_curb_offset_m)
-    mover_offset, mover_s0, mover_rate = [], [], []
-    lane_speed = (builder.uniform(*config.car_speed_mps), builder.uniform(*config.car_speed_mps))
-    for i in range(config.n_moving_cars):
-        lane = i % 2  # right-hand traffic: forward (+s) on the outer lane
-        offset = centre + (1.8 if lane == 0 else -1.8)
-        perimeter = _offset_curve(walk, offset, sign, 2001)[2][-1]
-        mover_offset.append(offset)
-        mover_s0.append(2 * math.pi * (i + builder.uniform(0.0, 0.5)) / config.n_moving_cars)
-        mover_rate.append((1 if lane == 0 else -1) * 2 * math.pi * lane_speed[lane] / perimeter)
-        half.append((0.5 * builder.uniform(4.1, 4.8), 0.5 * builder.uniform(1.7, 1.9), 0.5 * builder.uniform(1.4, 1.65)))
-        kind.append(_CAR)
-        rgb.append(_CAR_COLOURS[builder.integer(0, len(_CAR_COLOURS) - 1)])
-    sidewalks = ((config.inner_offset_m + 1.0, -1.0), (1.0, config.curb_offset_m - 0.4), (config.far_curb_offset_m + 0.5, config.outer_offset_m - 1.0))
-    for i in range(config.n_pedestrians):
-        lo, hi = sidewalks[i % len(sidewalks)]
-        offset = builder.uniform(lo, hi)
-        perimeter = _offset_curve(walk, offset, sign, 2001)[2][-1]
-        direction = 1 if builder.uniform(0, 1) < 0.5 else -1
-        mover_offset.append(offset)
-        mover_s0.append(builder.uniform(0, 2 * math.pi))
-        mover_rate.append(direction * 2 * math.pi * builder.uniform(*config.pedestrian_speed_mps) / perimeter)
-        half.append((0.25, 0.25, 0.5 * builder.uniform(1.6, 1.9)))
-        kind.append(_PEDESTRIAN)
-        rgb.append(tuple(torch.rand(3, generator=gen).mul(0.7).add(0.1).tolist()))
+    boxes = _Boxes()
+    _park_cars(boxes, builder, walk, sign, config)
+    _add_movers(boxes, builder, walk, sign, config, gen)
+    half, xy_list, yaw_list, kind, rgb = boxes.half, boxes.xy, boxes.yaw, boxes.kind, boxes.rgb
+    mover_offset, mover_s0, mover_rate = boxes.mover_offset, boxes.mover_s0, boxes.mover_rate
     n_static = len(xy_list)
     n_movers = len(mover_s0)
     xy_list += [np.zeros(2)] * n_movers
