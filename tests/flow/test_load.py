@@ -1,4 +1,4 @@
-"""flowins.flow.load: a recording's flow pairs, computed once and cached by content."""
+"""flowins.flow.load: the flow cache follows the recording's contents: changed frames, images or calibration
 are recomputed, unchanged contents are read back, and what is read back equals what an
 empty cache computes."""
 from __future__ import annotations
