@@ -3,6 +3,7 @@ are recomputed, unchanged contents are read back, and what is read back equals w
 empty cache computes."""
 from __future__ import annotations
 
+import logging
 import os
 import shutil
 from pathlib import Path
@@ -37,15 +38,16 @@ def _copy(src: Path, dst: Path) -> Path:
     return dst
 
 
-def _dense_flow(folder: Path, cache: Path, capsys) -> tuple:
+def _dense_flow(folder: Path, cache: Path, caplog) -> tuple:
     """``(pairs, read from the cache?)`` of ``evaluate.py``'s dense flow (DIS) on ``folder``."""
     with initialize_config_dir(config_dir=CONFIGS, version_base=None):
         cfg = compose("evaluate", overrides=[f"sequence.path={folder}", f"cache_dir={cache}", "output_dir=unused", "flow=dis",
                                              "flow_pairs.input_scale=1.0", "progress=false"])
     cfg = OmegaConf.to_container(cfg, resolve=True)
-    capsys.readouterr()
-    pairs = load_flow("dense", load_recording(cfg["sequence"], quick=False), cfg, progress=False)
-    return pairs, "read from the cache" in capsys.readouterr().out
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="flowins"):
+        pairs = load_flow("dense", load_recording(cfg["sequence"], quick=False), cfg, progress=False)
+    return pairs, "read from the cache" in caplog.text
 
 
 def _same(a, b) -> bool:
@@ -81,36 +83,36 @@ def _change_calibration(folder: Path) -> None:
 @pytest.mark.parametrize("change, flow_changes", [(_reverse_frames, True), (_touch_up_one_image, True),
                                                   (_change_calibration, False)],
                          ids=["frames reordered", "one image changed", "calibration changed"])
-def test_a_changed_recording_is_recomputed(recording, tmp_path, capsys, change, flow_changes):
+def test_a_changed_recording_is_recomputed(recording, tmp_path, caplog, change, flow_changes):
     cache = tmp_path / "cache"
-    original, cached = _dense_flow(_copy(recording, tmp_path / "rec"), cache, capsys)
+    original, cached = _dense_flow(_copy(recording, tmp_path / "rec"), cache, caplog)
     assert not cached
     change(tmp_path / "rec")
-    changed, cached = _dense_flow(tmp_path / "rec", cache, capsys)
+    changed, cached = _dense_flow(tmp_path / "rec", cache, caplog)
     assert not cached
     assert len(list((cache / "flow").glob("dense-*.npz"))) == 2
-    fresh, _ = _dense_flow(tmp_path / "rec", tmp_path / "empty-cache", capsys)
+    fresh, _ = _dense_flow(tmp_path / "rec", tmp_path / "empty-cache", caplog)
     assert _same(changed, fresh)  # what the filter gets is what an empty cache computes
     assert _same(changed, original) != flow_changes
 
 
-def test_unchanged_contents_are_read_back_wherever_they_lie(recording, tmp_path, capsys):
+def test_unchanged_contents_are_read_back_wherever_they_lie(recording, tmp_path, caplog):
     cache = tmp_path / "cache"
-    first, cached = _dense_flow(_copy(recording, tmp_path / "rec"), cache, capsys)
+    first, cached = _dense_flow(_copy(recording, tmp_path / "rec"), cache, caplog)
     assert not cached
-    again, cached = _dense_flow(tmp_path / "rec", cache, capsys)
+    again, cached = _dense_flow(tmp_path / "rec", cache, caplog)
     assert cached and _same(first, again)
-    moved, cached = _dense_flow(_copy(tmp_path / "rec", tmp_path / "renamed copy"), cache, capsys)
+    moved, cached = _dense_flow(_copy(tmp_path / "rec", tmp_path / "renamed copy"), cache, caplog)
     assert cached and _same(first, moved)
     assert len(list((cache / "flow").glob("dense-*.npz"))) == 1
 
 
-def test_a_corrupted_image_is_an_error_even_with_a_warm_cache(recording, tmp_path, capsys):
+def test_a_corrupted_image_is_an_error_even_with_a_warm_cache(recording, tmp_path, caplog):
     cache = tmp_path / "cache"
-    _dense_flow(_copy(recording, tmp_path / "rec"), cache, capsys)
+    _dense_flow(_copy(recording, tmp_path / "rec"), cache, caplog)
     path = tmp_path / "rec" / "frames" / "000020.png"
     data = bytearray(path.read_bytes())
     data[len(data) // 2 :] = bytes(len(data) - len(data) // 2)  # the second half zeroed
     path.write_bytes(bytes(data))
     with pytest.raises(ValueError, match=r"000020\.png"):
-        _dense_flow(tmp_path / "rec", cache, capsys)
+        _dense_flow(tmp_path / "rec", cache, caplog)
