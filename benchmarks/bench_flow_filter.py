@@ -16,6 +16,7 @@ Reads the default simulated walk and its dense flow pairs (both cached by
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import statistics
 import time
@@ -66,30 +67,40 @@ STAGES = (
 )
 
 
-def breakdown(imu, gnss, pairs, camera, config) -> None:
-    """Wall time per stage, per flow frame: each stage's function is wrapped in a timer
-    where its caller looks it up (the wrappers add a few microseconds per call)."""
+@contextlib.contextmanager
+def stages_wrapped(stack: list[str], spent: dict[str, float]):
+    """Wrap each stage's function where its caller looks it up: while it runs its name is on
+    ``stack`` and its wall time adds to ``spent`` (the wrappers add a few microseconds per call)."""
     import importlib
 
-    spent: dict[str, float] = {name: 0.0 for _, name in STAGES}
     saved = []
     for module_name, name in STAGES:
         module = importlib.import_module(module_name)
         original = getattr(module, name)
         saved.append((module, name, original))
 
-        def timed(*a, _f=original, _name=name, **k):
+        def wrapped(*a, _f=original, _name=name, **k):
+            stack.append(_name)
             t0 = time.perf_counter()
-            out = _f(*a, **k)
-            spent[_name] += time.perf_counter() - t0
-            return out
+            try:
+                return _f(*a, **k)
+            finally:
+                spent[_name] = spent.get(_name, 0.0) + time.perf_counter() - t0
+                stack.pop()
 
-        setattr(module, name, timed)
+        setattr(module, name, wrapped)
     try:
-        total, _ = run(imu, gnss, pairs, camera, config)
+        yield
     finally:
         for module, name, original in saved:
             setattr(module, name, original)
+
+
+def breakdown(imu, gnss, pairs, camera, config) -> None:
+    """Wall time per stage, per flow frame."""
+    spent: dict[str, float] = {name: 0.0 for _, name in STAGES}
+    with stages_wrapped([], spent):
+        total, _ = run(imu, gnss, pairs, camera, config)
     n = len(pairs)
     print(f"breakdown over {n} frames: {1e3 * total / n:.2f} ms per frame in all")
     for _, name in STAGES:
@@ -107,21 +118,27 @@ VIEW_OPS = frozenset({
 
 
 def count_ops(imu, gnss, pairs, camera, config) -> None:
-    """PyTorch operations per flow frame (dispatcher calls, views apart): what the
-    per-operation overhead multiplies."""
+    """PyTorch operations per flow frame (dispatcher calls, views apart), in all and per
+    stage (the innermost stage running): what the per-operation overhead multiplies."""
     from torch.utils._python_dispatch import TorchDispatchMode
 
-    counts = {"operations": 0, "views": 0}
+    stack: list[str] = []
+    counts: dict[str, dict[str, int]] = {}
 
     class Count(TorchDispatchMode):
         def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-            counts["views" if str(func) in VIEW_OPS else "operations"] += 1
+            where = counts.setdefault(stack[-1] if stack else "the rest", {"operations": 0, "views": 0})
+            where["views" if str(func) in VIEW_OPS else "operations"] += 1
             return func(*args, **(kwargs or {}))
 
-    with Count(), torch.inference_mode():
+    with stages_wrapped(stack, {}), Count(), torch.inference_mode():
         navigate(imu, gnss, config=config, flow=pairs, camera=camera)
     n = len(pairs)
-    print(f"per frame over {n} frames: {counts['operations'] / n:.0f} operations and {counts['views'] / n:.0f} views")
+    ops, views = (sum(c[k] for c in counts.values()) for k in ("operations", "views"))
+    print(f"per frame over {n} frames: {ops / n:.0f} operations and {views / n:.0f} views")
+    for name in [name for _, name in STAGES] + ["the rest"]:
+        c = counts.get(name, {"operations": 0, "views": 0})
+        print(f"  {name:18s} {c['operations'] / n:5.0f} operations {c['views'] / n:5.0f} views")
 
 
 def main() -> None:
