@@ -30,27 +30,18 @@ class BelowError(logging.Filter):
         return record.levelno < logging.ERROR
 
 
-class _Stdout(logging.StreamHandler):
-    """A handler that writes to whatever ``sys.stdout`` (below ERROR) or ``sys.stderr``
-    (ERROR and above) is when a record comes."""
+class _Console(logging.Handler):
+    """Writes each record as a plain line to the ``sys.stdout`` (below ERROR) or ``sys.stderr``
+    (ERROR and above) of the moment it comes (a test's captured streams included)."""
 
     def __init__(self) -> None:
         super().__init__()
         self.setFormatter(logging.Formatter("%(message)s"))
-        self._record: logging.LogRecord | None = None
 
     def emit(self, record: logging.LogRecord) -> None:
-        self._record = record
-        super().emit(record)
-
-    @property
-    def stream(self):  # type: ignore[override]
-        error = self._record is not None and self._record.levelno >= logging.ERROR
-        return sys.stderr if error else sys.stdout
-
-    @stream.setter
-    def stream(self, value) -> None:
-        pass
+        stream = sys.stderr if record.levelno >= logging.ERROR else sys.stdout
+        stream.write(self.format(record) + "\n")
+        stream.flush()
 
 
 def console_logging() -> None:
@@ -59,8 +50,8 @@ def console_logging() -> None:
     already sends them to the console and to ``<output_dir>/<job>.log``."""
     log.setLevel(logging.INFO)
     configured = any(type(h) in (logging.StreamHandler, logging.FileHandler) for h in logging.getLogger().handlers)
-    if not configured and not any(isinstance(h, _Stdout) for h in log.handlers):
-        log.addHandler(_Stdout())
+    if not configured and not any(isinstance(h, _Console) for h in log.handlers):
+        log.addHandler(_Console())
 
 
 def report(error: BaseException) -> int:

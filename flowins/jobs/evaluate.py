@@ -48,7 +48,9 @@ def run(cfg: Mapping[str, Any]) -> list[Row]:
     rec = _load(cfg)
     nav_cfg, cfg = _filter_config(cfg, rec)
     flows = _flows(cfg, rec)
-    unscored = truth_extent_problem(rec.truth)
+    unscored = truth_extent_problem(rec.truth)  # a ground truth that can't score a track, or None
+    if unscored:
+        log.warning("warning: %s", unscored)
     rows, metrics = [], {}
     for name in cfg["combinations"]:
         row, metrics[name] = _combination(name, cfg, rec, nav_cfg, flows, out, unscored)
@@ -73,9 +75,6 @@ def _load(cfg: Mapping[str, Any]) -> Recording:
     log.info(f"sequence: {rec.name}, {rec.imu.duration_s:.0f} s, {len(rec.imu)} IMU samples, {n_frames} camera frames, "
              f"{n_gnss} GNSS fixes, ground truth: {'yes' if rec.truth is not None else 'no'} "
              f"({time.perf_counter() - t0:.1f} s to load)")
-    unscored = truth_extent_problem(rec.truth)
-    if unscored:
-        log.warning("warning: %s", unscored)
     return rec
 
 
@@ -129,7 +128,7 @@ def _combination(name: str, cfg: Mapping[str, Any], rec: Recording, nav_cfg: Nav
     result = navigate(rec.imu, rec.gnss if sources[0] else None, config=nav_cfg, flow=flow,
                       camera=FlowCamera.from_sequence(seq) if flow is not None else None, truth=rec.truth,
                       forward_b=forward_b, start_gnss=rec.gnss, progress=cfg["progress"])
-    m = _export(out, name, result, rec, cfg["plots"] and unscored is None)
+    m = _export(out, name, result, rec, plots=cfg["plots"], score=rec.truth is not None and unscored is None)
     if flow is not None:
         m.update(flow_statistics(result, flow))
     m["seconds"] = time.perf_counter() - t1
@@ -144,11 +143,12 @@ def _combination(name: str, cfg: Mapping[str, Any], rec: Recording, nav_cfg: Nav
     return Row(name, sources, m["filter_rmse_m"], m["smoother_rmse_m"], note, seconds=m["seconds"]), m
 
 
-def _export(out: Path, name: str, result: NavigationResult, rec: Recording, plots: bool) -> dict[str, Any]:
-    """Write the TUM tracks (and the figure); the row's metrics."""
+def _export(out: Path, name: str, result: NavigationResult, rec: Recording, *, plots: bool, score: bool
+            ) -> dict[str, Any]:
+    """Write the TUM tracks (and, with ``plots`` and a ground truth that can ``score`` them, the
+    figure); the row's metrics."""
     metrics: dict[str, Any] = {}
     tracks = {}
-    score = rec.truth is not None and truth_extent_problem(rec.truth) is None
     # the filter's nodes before a heading alignment are re-expressed in the aligned frame
     # (FilterTrack.in_final_frame): one frame per track, as the smoother's
     for kind, track in (("filter", result.filter.in_final_frame()), ("smoother", result.smoother)):
