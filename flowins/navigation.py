@@ -13,7 +13,7 @@ from torch import Tensor
 
 from flowins.data.streams import GnssStream, ImuStream, PoseStream
 from flowins.filter.ekf import Gate
-from flowins.filter.runner import FilterTrack, run_filter
+from flowins.filter.runner import FilterInput, FilterTrack, run_filters
 from flowins.filter.smoother import SmoothedTrack, rts_smooth
 from flowins.flow.pairs import FlowPairs
 from flowins.geometry.geodesy import LocalTangentPlane
@@ -286,30 +286,57 @@ def carries_gradient(*objects) -> bool:
 
 
 def _navigate(imu, gnss, *, config, frame, flow, camera, truth, forward_b, start_gnss, progress) -> NavigationResult:
-    setup = prepare_navigation(imu, gnss, config=config, frame=frame, flow=flow, camera=camera, truth=truth,
-                               forward_b=forward_b, start_gnss=start_gnss)
-    first = setup.start.index
-    track = run_filter(
-        t_s=imu.t_s[first:],
-        acc_mps2=imu.acc_mps2[first:],
-        gyro_rps=imu.gyro_rps[first:],
-        mean0=setup.mean0,
-        cov0=setup.cov0,
-        events=setup.events,
-        progress=progress,
-        **config.filter_settings(),
-    )
-    return NavigationResult(
-        filter=track,
-        smoother=rts_smooth(track),
-        frame=setup.frame,
-        gnss_t_s=None if gnss is None else gnss.t_s,
-        gnss_enu_m=setup.gnss_enu_m,
-        gnss_h_acc_m=None if gnss is None else gnss.h_acc_m,
-        flow_pairs_outside=setup.flow_pairs_outside,
-        start=setup.start,
-        gnss_before_start=setup.gnss_before_start,
-    )
+    run = NavigationRun(imu, gnss, frame=frame, flow=flow, camera=camera, truth=truth, forward_b=forward_b,
+                        start_gnss=start_gnss)
+    return _navigate_batch([run], config=config, progress=progress)[0]
+
+
+@dataclass(frozen=True)
+class NavigationRun:
+    """One recording's inputs to :func:`navigate_batch` (the arguments of :func:`navigate`)."""
+
+    imu: ImuStream
+    gnss: GnssStream | None = None
+    frame: LocalTangentPlane | None = None
+    flow: Any = None
+    camera: Any = None
+    truth: PoseStream | None = None
+    forward_b: Tensor | None = None
+    start_gnss: GnssStream | None = None
+
+
+def navigate_batch(runs: list[NavigationRun], *, config: NavigationConfig = NavigationConfig(),
+                   progress: bool = False) -> list[NavigationResult]:
+    """:func:`navigate` on several recordings in one batched filter pass
+    (:func:`~flowins.filter.runner.run_filters`); each result equals its recording's
+    :func:`navigate` up to rounding. One ``config`` serves every run."""
+    with torch.inference_mode(not carries_gradient(runs, config)):
+        return _navigate_batch(runs, config=config, progress=progress)
+
+
+def _navigate_batch(runs: list[NavigationRun], *, config: NavigationConfig, progress: bool) -> list[NavigationResult]:
+    setups = [prepare_navigation(run.imu, run.gnss, config=config, frame=run.frame, flow=run.flow, camera=run.camera,
+                                 truth=run.truth, forward_b=run.forward_b, start_gnss=run.start_gnss) for run in runs]
+    inputs = []
+    for run, setup in zip(runs, setups):
+        first = setup.start.index
+        inputs.append(FilterInput(run.imu.t_s[first:], run.imu.acc_mps2[first:], run.imu.gyro_rps[first:],
+                                  setup.mean0, setup.cov0, setup.events))
+    tracks = run_filters(inputs, progress=progress, **config.filter_settings())
+    return [
+        NavigationResult(
+            filter=track,
+            smoother=rts_smooth(track),
+            frame=setup.frame,
+            gnss_t_s=None if run.gnss is None else run.gnss.t_s,
+            gnss_enu_m=setup.gnss_enu_m,
+            gnss_h_acc_m=None if run.gnss is None else run.gnss.h_acc_m,
+            flow_pairs_outside=setup.flow_pairs_outside,
+            start=setup.start,
+            gnss_before_start=setup.gnss_before_start,
+        )
+        for run, setup, track in zip(runs, setups, tracks)
+    ]
 
 
 def flow_statistics(result: NavigationResult, pairs: FlowPairs) -> dict[str, Any]:

@@ -24,7 +24,7 @@ from torch import Tensor
 
 from flowins.constants import cached_constant
 from flowins.filter.ekf import ekf_update, linear_predict
-from flowins.filter.runner import ChainBuilder
+from flowins.filter.runner import BatchChain, ChainBuilder
 from flowins.state import CORE_DIM, STATE, STATE_DIM, normalize_quaternions, symmetrize
 
 
@@ -146,12 +146,26 @@ class PoseAugmentation:
             raise ValueError(f"PoseAugmentation.mode must be 'paper' or 'limit', got {self.mode!r}")
 
     def apply(self, chain: ChainBuilder) -> None:
-        mean = chain.mean
-        if self.mode == "paper":
-            A, Q = forgetting_matrices(self.sigma_p0, self.sigma_q0, dtype=mean.dtype, device=mean.device)
-            chain.linear_predict(A, Q)
-            chain.update(augment_pose(chain.mean, chain.cov, nugget_var=self.nugget_var))
+        augment_pose_rows(chain._batch, [chain._row], sigma_p0=self.sigma_p0, sigma_q0=self.sigma_q0,
+                          nugget_var=self.nugget_var, mode=self.mode)
+
+
+def augment_pose_rows(chain: BatchChain, rows: list[int], *, sigma_p0: float | Tensor = 1e3,
+                      sigma_q0: float | Tensor = 1e2, nugget_var: float | Tensor = 1e-9, mode: str = "paper") -> None:
+    """:class:`PoseAugmentation` on the rows ``rows`` of ``chain`` at once."""
+    like = chain.mean
+    if mode == "paper":
+        A, Q = forgetting_matrices(sigma_p0, sigma_q0, dtype=like.dtype, device=like.device)
+        chain.linear_predict_rows(rows, A.unsqueeze(0), Q.unsqueeze(0))
+        if rows == list(range(chain.rows)):
+            mean, cov = chain.mean, chain.cov
         else:
-            # one linear step, recorded as such so the smoother sees its transition
-            T, Q = copy_matrices(self.nugget_var, dtype=mean.dtype, device=mean.device)
-            chain.linear_predict(T, Q)
+            index = torch.tensor(rows, device=like.device)
+            mean, cov = chain.mean[index], chain.cov[index]
+        chain.update_rows(rows, *augment_pose(mean, cov, nugget_var=nugget_var))
+    elif mode == "limit":
+        # one linear step, recorded as such so the smoother sees its transition
+        T, Q = copy_matrices(nugget_var, dtype=like.dtype, device=like.device)
+        chain.linear_predict_rows(rows, T.unsqueeze(0), Q.unsqueeze(0))
+    else:
+        raise ValueError(f"pose augmentation mode must be 'paper' or 'limit', got {mode!r}")

@@ -18,6 +18,7 @@ step Jacobians in between), which the RTS smoother needs.
 from __future__ import annotations
 
 import itertools
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import torch
@@ -25,6 +26,7 @@ from torch import Tensor
 
 from flowins.filter.ekf import dynamics_jacobians
 from flowins.geometry import quaternion as quat
+from flowins.constants import cached_constant
 from flowins.ins.jacobians import (
     StepPieces,
     core_jacobians_from_pieces,
@@ -38,55 +40,80 @@ from flowins.ins.mechanization import (
     gravity_vector,
     mechanize,
 )
-from flowins.state import NOISE_DIM, STATE_DIM, State, join, split, symmetrize
+from flowins.state import CORE_DIM, NOISE_DIM, STATE_DIM, State, join, split, symmetrize
 
 
 class Propagated(NamedTuple):
-    mean: Tensor  # (m, 26) state at each node
-    cov: Tensor  # (m, 26, 26)
-    transition: Tensor  # (m, 26, 26) Φ_j from the previous node (or the start) to node j
+    mean: Tensor  # (..., m, 26) state at each node
+    cov: Tensor  # (..., m, 26, 26)
+    transition: Tensor  # (..., m, 26, 26) Φ_j from the previous node (or the start) to node j
 
 
 def _run_pieces(
     x0: Tensor, acc_mps2: Tensor, gyro_rps: Tensor, dt_s: Tensor, gravity_mps2: float | Tensor, scheme: str
 ) -> tuple[Tensor, StepPieces]:
-    """Noise-free states after each of ``K`` steps ``(K, 26)`` and the steps' :class:`StepPieces`.
+    """Noise-free states after each of ``K`` steps ``(..., K, 26)`` from ``x0`` ``(..., 26)``
+    and the steps' :class:`StepPieces`.
 
     With the noise at zero the biases and scale are constant over the run, so
     ``q_k = q_0 ⊙ 𝒬_1 ⊙ ... ⊙ 𝒬_k`` is a prefix product and ``v``, ``p`` are
-    cumulative sums; the pieces (rotation increments, ``C(q_rot)``) are the ones the
-    closed-form Jacobians reuse.
+    cumulative sums; the pieces (rotation increments and their Jacobians, ``C(q_rot)``)
+    are the ones the closed-form Jacobians reuse.
     """
     s = split(x0)
-    dt = dt_s.unsqueeze(-1)
-    theta = (gyro_rps - s.b_w) * dt
-    E, E_rot = rotation_increments(theta, scheme)
-    q = quat.multiply(s.q, quat.cumulative_product(E))
-    q_before = torch.cat((s.q.unsqueeze(0), q[:-1]), dim=0)
-    q_rot = q if scheme == "paper" else quat.multiply(q_before, E_rot)
+    dt = dt_s.unsqueeze(-1)  # (..., K, 1)
+    theta = (gyro_rps - s.b_w.unsqueeze(-2)) * dt
+    E, E_rot, dE, R_E = rotation_increments(theta, scheme)
+    # q_k = q_{k-1} ⊙ 𝒬_k = R(𝒬_k) q_{k-1}: prefix products of the right-product matrices
+    q = (_prefix_products(R_E[..., 0, :, :]) @ s.q.unsqueeze(-2).unsqueeze(-1)).squeeze(-1)  # (..., K, 4)
+    q_before = torch.cat((s.q.unsqueeze(-2), q[..., :-1, :]), dim=-2)
+    q_rot = q if scheme == "paper" else (R_E[..., 1, :, :] @ q_before.unsqueeze(-1)).squeeze(-1)
     C = quat.to_matrix(q_rot)
-    acc_unbiased = acc_mps2 - s.b_a
-    a = s.T_a * acc_unbiased
-    acc_world = (C @ a.unsqueeze(-1)).squeeze(-1) - gravity_vector(gravity_mps2, like=x0)
-    v = s.v + torch.cumsum(acc_world * dt, dim=0)
-    v_before = torch.cat((s.v.unsqueeze(0), v[:-1]), dim=0)
+    acc_unbiased = acc_mps2 - s.b_a.unsqueeze(-2)
+    T_a = s.T_a.unsqueeze(-2).expand_as(acc_unbiased)
+    a = T_a * acc_unbiased
+    acc_world = (C @ a.unsqueeze(-1)).squeeze(-1) - _gravity(gravity_mps2, x0)
+    v_all = torch.cumsum(torch.cat((s.v.unsqueeze(-2), acc_world * dt), dim=-2), dim=-2)  # v_0 .. v_K
+    v_before, v = v_all[..., :-1, :], v_all[..., 1:, :]
     v_step = v_before if scheme == "paper" else 0.5 * (v_before + v)
-    p = s.p + torch.cumsum(v_step * dt, dim=0)
-    K = dt_s.shape[0]
+    p = torch.cumsum(torch.cat((s.p.unsqueeze(-2), v_step * dt), dim=-2), dim=-2)[..., 1:, :]
+    shape = acc_unbiased.shape[:-1]
     means = join(
         State(
             p=p,
             v=v,
             q=q,
-            b_a=s.b_a.expand(K, 3),
-            b_w=s.b_w.expand(K, 3),
-            T_a=s.T_a.expand(K, 3),
-            p_prev=s.p_prev.expand(K, 3),
-            q_prev=s.q_prev.expand(K, 4),
+            b_a=s.b_a.unsqueeze(-2).expand(*shape, 3),
+            b_w=s.b_w.unsqueeze(-2).expand(*shape, 3),
+            T_a=T_a,
+            p_prev=s.p_prev.unsqueeze(-2).expand(*shape, 3),
+            q_prev=s.q_prev.unsqueeze(-2).expand(*shape, 4),
         )
     )
-    pieces = StepPieces(q_before, theta, E, E_rot, q_rot, C, acc_unbiased, a, s.T_a.expand(K, 3), dt)
-    return means, pieces
+    return means, StepPieces(q_before, theta, E, E_rot, dE, R_E, q_rot, C, acc_unbiased, a, T_a, dt)
+
+
+def _prefix_products(M: Tensor) -> Tensor:
+    """``M_k ⋯ M_1`` for ``M`` ``(..., K, D, D)`` (inclusive prefix products, later factors on
+    the left; a log-depth scan)."""
+    K = M.shape[-3]
+    shift = 1
+    while shift < K:
+        M = torch.cat((M[..., :shift, :, :], M[..., shift:, :, :] @ M[..., :-shift, :, :]), dim=-3)
+        shift *= 2
+    return M
+
+
+def _gravity(gravity_mps2: float | Tensor, like: Tensor) -> Tensor:
+    """``(0, 0, g0)`` (built once per value, dtype and device for a plain number)."""
+    if isinstance(gravity_mps2, Tensor):
+        return gravity_vector(gravity_mps2, like=like)
+    return _cached_gravity(float(gravity_mps2), like.dtype, like.device)
+
+
+@cached_constant
+def _cached_gravity(gravity_mps2: float, dtype: torch.dtype, device: torch.device) -> Tensor:
+    return gravity_vector(gravity_mps2, like=torch.zeros((), dtype=dtype, device=device))
 
 
 def propagate_mean(
@@ -97,7 +124,7 @@ def propagate_mean(
     gravity_mps2: float | Tensor,
     scheme: str = "midpoint",
 ) -> Tensor:
-    """States after each of ``K`` steps ``(K, 26)`` from ``x0`` ``(26,)``, noise-free.
+    """States after each of ``K`` steps ``(..., K, 26)`` from ``x0`` ``(..., 26)``, noise-free.
 
     Equal to ``K`` sequential :func:`mechanize` calls, computed with a log-depth
     quaternion scan and cumulative sums.
@@ -111,59 +138,81 @@ def _compose(later: tuple[Tensor, Tensor], earlier: tuple[Tensor, Tensor]) -> tu
     return F2 @ F1, F2 @ S1 @ F2.transpose(-1, -2) + S2
 
 
-def _compose_pairs(F: Tensor, S: Tensor) -> tuple[Tensor, Tensor]:
-    """Reduce ``(n, L, D, D)`` step transitions/noises to ``(n, D, D)`` by pairwise composition.
+def _interval_compose(F: Tensor, W: Tensor) -> tuple[Tensor, Tensor]:
+    """Transition and noise over intervals of ``L`` steps ``(..., L, D, D)`` -> ``(..., D, D)``:
+    ``Φ = F_L ⋯ F_1`` and ``S = Σ_k T_k W_k T_kᵀ`` with the suffix products
+    ``T_k = F_L ⋯ F_{k+1}`` (a log-depth scan over the interval)."""
+    T = _suffix_products(F)  # T_k = F_L ⋯ F_k, maps the state before step k to the end
+    T_after = torch.cat((T[..., 1:, :, :], _eye_like(F)), dim=-3)  # F_L ⋯ F_{k+1}
+    return T[..., 0, :, :], (T_after @ W @ T_after.transpose(-1, -2)).sum(-3)
 
-    A level of odd length sets its last (latest) element aside instead of padding
-    the whole level; the set-aside elements are applied after the tree, latest last.
-    """
-    aside = []
-    while F.shape[1] > 1:
-        if F.shape[1] % 2:
-            aside.append((F[:, -1], S[:, -1]))
-            F, S = F[:, :-1], S[:, :-1]
-        F, S = _compose((F[:, 1::2], S[:, 1::2]), (F[:, 0::2], S[:, 0::2]))
-    out = (F[:, 0], S[:, 0])
-    for later in reversed(aside):  # set aside at a deeper level = earlier in time
-        out = _compose(later, out)
-    return out
+
+def _suffix_products(F: Tensor) -> Tensor:
+    """``T_k = F_{L-1} ⋯ F_k`` for ``F`` ``(..., L, D, D)`` (inclusive suffix products, log depth)."""
+    L = F.shape[-3]
+    shift = 1
+    while shift < L:
+        F = torch.cat((F[..., shift:, :, :] @ F[..., :-shift, :, :], F[..., L - shift:, :, :]), dim=-3)
+        shift *= 2
+    return F
+
+
+def _eye_like(F: Tensor) -> Tensor:
+    """An identity ``(..., 1, D, D)`` matching ``F`` ``(..., L, D, D)``."""
+    return _identity_step(F.dtype, F.device)[0].expand(*F.shape[:-3], 1, *F.shape[-2:])
 
 
 def _prefix_compose(F: Tensor, S: Tensor) -> tuple[Tensor, Tensor]:
-    """Inclusive prefix compositions of ``m`` steps ``(m, D, D)`` (a log-depth scan):
+    """Inclusive prefix compositions of ``m`` steps ``(..., m, D, D)`` (a log-depth scan):
     entry ``j`` maps the start to after step ``j``."""
     shift = 1
-    m = F.shape[0]
+    m = F.shape[-3]
     while shift < m:
-        F_new, S_new = _compose((F[shift:], S[shift:]), (F[:-shift], S[:-shift]))
-        F, S = torch.cat((F[:shift], F_new), dim=0), torch.cat((S[:shift], S_new), dim=0)
+        F_new, S_new = _compose((F[..., shift:, :, :], S[..., shift:, :, :]), (F[..., :-shift, :, :], S[..., :-shift, :, :]))
+        F = torch.cat((F[..., :shift, :, :], F_new), dim=-3)
+        S = torch.cat((S[..., :shift, :, :], S_new), dim=-3)
         shift *= 2
     return F, S
 
 
-def _group_steps(F: Tensor, W: Tensor, node_steps: list[int]) -> tuple[Tensor, Tensor]:
-    """The steps' transitions and noises ``(K, D, D)`` grouped into node intervals ``(m, L, D, D)``.
+class NodePlan(NamedTuple):
+    """Where a batch of runs reports nodes (:func:`plan_nodes`)."""
 
-    Equal intervals are a free view; otherwise short intervals are padded with
-    identity transitions and zero noise (one gather of each, its index built from the
-    node steps as Python integers: fewer small tensor operations).
+    group: Tensor  # (B, m, L) step of each node interval's slots, B K for an identity padding slot
+    node_step: Tensor  # (B, m) the step after which each node lies, -1 for a padding node (the start)
+    real: list[list[bool]]  # (B, m) whether each node is one of the row's own nodes
+
+
+def plan_nodes(node_steps: Sequence[Sequence[int]], num_steps: int, *, device=None) -> NodePlan:
+    """The node intervals of ``B`` rows of ``K = num_steps`` steps, padded to one shape.
+
+    Row ``b`` reports its nodes after the steps ``node_steps[b]`` (strictly increasing,
+    the last ``K - 1``; empty for a row with nothing to report). Rows with fewer than
+    ``m`` nodes get padding nodes first (no steps: the start state, an identity
+    transition); every interval is padded to ``L`` slots, the longest interval, with
+    identity steps after its own.
     """
-    K = F.shape[0]
-    m = len(node_steps)
-    starts = [0] + [step + 1 for step in node_steps[:-1]]
-    lengths = [step - start + 1 for step, start in zip(node_steps, starts)]
-    if K % m == 0 and all(length == K // m for length in lengths):
-        return F.reshape(m, K // m, *F.shape[1:]), W.reshape(m, K // m, *W.shape[1:])
-    L = max(lengths)
-    index = torch.tensor([[start + o if o < length else K for o in range(L)] for start, length in zip(starts, lengths)],
-                         device=F.device)
-    eye = torch.eye(F.shape[-1], dtype=F.dtype, device=F.device).unsqueeze(0)
-    return torch.cat((F, eye))[index], torch.cat((W, torch.zeros_like(eye)))[index]
+    rows = [_check_nodes(steps, num_steps, allow_empty=True) for steps in node_steps]
+    m = max(len(steps) for steps in rows)
+    intervals, node_step, real = [], [], []
+    for steps in rows:
+        pad = m - len(steps)
+        starts = [0] + [step + 1 for step in steps[:-1]]
+        intervals.append([[]] * pad + [list(range(start, step + 1)) for start, step in zip(starts, steps)])
+        node_step.append([-1] * pad + list(steps))
+        real.append([False] * pad + [True] * len(steps))
+    L = max(1, max(len(i) for row in intervals for i in row))
+    sentinel = len(rows) * num_steps
+    group = [[[b * num_steps + k for k in i] + [sentinel] * (L - len(i)) for i in row] for b, row in enumerate(intervals)]
+    return NodePlan(torch.tensor(group, device=device), torch.tensor(node_step, device=device), real)
 
 
-def _check_nodes(node_steps: Tensor, num_steps: int) -> list[int]:
-    """The node steps as Python integers, checked: strictly increasing, ending with the last step."""
-    steps = node_steps.tolist()
+def _check_nodes(node_steps: Sequence[int] | Tensor, num_steps: int, *, allow_empty: bool = False) -> list[int]:
+    """The node steps as Python integers, checked: strictly increasing, ending with the last
+    step (or, with ``allow_empty``, none at all)."""
+    steps = node_steps.tolist() if isinstance(node_steps, Tensor) else list(node_steps)
+    if not steps and allow_empty:
+        return steps
     if not steps or steps[-1] != num_steps - 1:
         raise ValueError("node_steps must end with the last step index")
     if steps[0] < 0 or any(b <= a for a, b in itertools.pairwise(steps)):
@@ -177,30 +226,63 @@ def propagate_batched(
     acc_mps2: Tensor,
     gyro_rps: Tensor,
     dt_s: Tensor,
-    node_steps: Tensor,
+    node_steps: Tensor | NodePlan,
     *,
-    noise: ProcessNoise,
+    noise: ProcessNoise | Sequence[ProcessNoise],
     gravity_mps2: float | Tensor,
     scheme: str = "midpoint",
 ) -> Propagated:
-    """Fast path: propagate ``(x0, P0)`` over ``K`` steps, reporting at ``node_steps``.
+    """Fast path: propagate ``(x0, P0)`` over ``K`` steps, reporting at the nodes.
 
     Args:
-        x0 ``(26,)``, P0 ``(26, 26)``; acc/gyro ``(K, 3)``, dt ``(K,)``.
-        node_steps: increasing step indices ``(m,)`` after which a node is reported;
-            the last must be ``K - 1``.
+        x0 ``(26,)``, P0 ``(26, 26)``; acc/gyro ``(K, 3)``, dt ``(K,)``; node_steps:
+            increasing step indices ``(m,)`` after which a node is reported, the last
+            ``K - 1``. Or a batch of ``B`` runs: x0 ``(B, 26)``, P0 ``(B, 26, 26)``,
+            acc/gyro ``(B, K, 3)``, dt ``(B, K)`` and node_steps a :class:`NodePlan`
+            (:func:`plan_nodes`); a row's steps with ``Δt = 0`` are identities (padding).
+        noise: one for all rows, or one per row.
+    Returns: ``(m, ...)`` outputs, or ``(B, m, ...)`` with each row's padding nodes first.
     """
-    K = dt_s.shape[0]
-    steps = _check_nodes(node_steps, K)
-    means, pieces = _run_pieces(x0, acc_mps2, gyro_rps, dt_s, gravity_mps2, scheme)
-    F, G = core_jacobians_from_pieces(pieces, scheme)  # (K, 19, 19), (K, 19, 15)
-    W = (G * noise.variances(dt_s).unsqueeze(-2)) @ G.transpose(-1, -2)
-    Phi_core, S_core = _compose_pairs(*_group_steps(F, W, steps))  # over (m, L, 19, 19)
-    Phi, S = embed_core(Phi_core)[0], pad_core(S_core)
+    if not isinstance(node_steps, NodePlan):
+        _check_nodes(node_steps, dt_s.shape[-1])
+        plan = plan_nodes([node_steps], dt_s.shape[-1], device=dt_s.device)
+        out = propagate_batched(x0.unsqueeze(0), P0.unsqueeze(0), acc_mps2.unsqueeze(0), gyro_rps.unsqueeze(0),
+                                dt_s.unsqueeze(0), plan, noise=noise, gravity_mps2=gravity_mps2, scheme=scheme)
+        return Propagated(*(t[0] for t in out))
+    plan = node_steps
+    B, K = dt_s.shape
+    means, pieces = _run_pieces(x0, acc_mps2, gyro_rps, dt_s, gravity_mps2, scheme)  # (B, K, 26)
+    F, G = core_jacobians_from_pieces(pieces, scheme)  # (B, K, 19, 19), (B, K, 19, 15)
+    W = (G * _variances(noise, dt_s).unsqueeze(-2)) @ G.transpose(-1, -2)
+    eye, zero = _identity_step(F.dtype, F.device)
+    group = plan.group.reshape(-1)
+    F_nodes = torch.cat((F.reshape(B * K, CORE_DIM, CORE_DIM), eye))[group]  # (B m L, 19, 19)
+    W_nodes = torch.cat((W.reshape(B * K, CORE_DIM, CORE_DIM), zero))[group]
+    Phi_core, S_core = _interval_compose(F_nodes.unflatten(0, plan.group.shape), W_nodes.unflatten(0, plan.group.shape))
+    Phi, S = embed_core(Phi_core)[0], pad_core(S_core)  # (B, m, 26, 26)
     # covariance at every node at once: P_j = Φ_{0→j} P0 Φ_{0→j}ᵀ + S_{0→j}
     Phi_pre, S_pre = _prefix_compose(Phi, S)
-    covs = symmetrize(Phi_pre @ P0 @ Phi_pre.transpose(-1, -2) + S_pre)
-    return Propagated(means[node_steps], covs, Phi)
+    covs = symmetrize(Phi_pre @ P0.unsqueeze(-3) @ Phi_pre.transpose(-1, -2) + S_pre)
+    # node means: the state after each node's step, the start for a padding node (step -1)
+    node_mean = torch.cat((x0.unsqueeze(-2), means), dim=-2).gather(
+        -2, (plan.node_step + 1).unsqueeze(-1).expand(*plan.node_step.shape, STATE_DIM))
+    return Propagated(node_mean, covs, Phi)
+
+
+def _variances(noise: ProcessNoise | Sequence[ProcessNoise], dt_s: Tensor) -> Tensor:
+    """The steps' noise variances ``(B, K, 15)`` for one noise model or one per row."""
+    if isinstance(noise, ProcessNoise):
+        return noise.variances(dt_s)
+    if all(n is noise[0] for n in noise):
+        return noise[0].variances(dt_s)
+    return torch.stack([n.variances(dt) for n, dt in zip(noise, dt_s.unbind(0))])
+
+
+@cached_constant
+def _identity_step(dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
+    """The padding step: identity transition ``(1, 19, 19)`` and zero noise."""
+    eye = torch.eye(CORE_DIM, dtype=dtype, device=device).unsqueeze(0)
+    return eye, torch.zeros_like(eye)
 
 
 def propagate_reference(

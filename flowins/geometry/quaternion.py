@@ -98,33 +98,28 @@ def normalize(q: Tensor) -> Tensor:
 
 
 def left_matrix(q: Tensor) -> Tensor:
-    """``L(q)`` with ``q ⊙ p = L(q) @ p``; shape ``(..., 4, 4)``."""
+    """``L(q)`` with ``q ⊙ p = L(q) @ p``; shape ``(..., 4, 4)`` (one product with the
+    structure constants)."""
     _check(q)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        (
-            torch.stack((w, -x, -y, -z), -1),
-            torch.stack((x, w, -z, y), -1),
-            torch.stack((y, z, w, -x), -1),
-            torch.stack((z, -y, x, w), -1),
-        ),
-        dim=-2,
-    )
+    left, _ = _product_matrices(q.dtype, q.device)
+    return (q @ left).reshape(*q.shape[:-1], 4, 4)
 
 
 def right_matrix(q: Tensor) -> Tensor:
     """``R(q)`` with ``p ⊙ q = R(q) @ p``; shape ``(..., 4, 4)``."""
     _check(q)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        (
-            torch.stack((w, -x, -y, -z), -1),
-            torch.stack((x, w, z, -y), -1),
-            torch.stack((y, -z, w, x), -1),
-            torch.stack((z, y, -x, w), -1),
-        ),
-        dim=-2,
-    )
+    _, right = _product_matrices(q.dtype, q.device)
+    return (q @ right).reshape(*q.shape[:-1], 4, 4)
+
+
+@cached_constant
+def _product_matrices(dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
+    """``(4, 16)`` maps of ``a`` to the flattened ``L(a)`` and of ``b`` to ``R(b)``: with the
+    product constants ``(a ⊙ b)_i = Σ_jk a_j b_k P[4j + k, i]``, ``L(a)_ik = Σ_j a_j P[4j + k, i]``
+    and ``R(b)_ij = Σ_k b_k P[4j + k, i]``."""
+    product, _ = _constants(dtype, device)
+    P = product.reshape(4, 4, 4)  # [j, k, i]
+    return P.permute(0, 2, 1).reshape(4, 16), P.permute(1, 2, 0).reshape(4, 16)
 
 
 def to_matrix(q: Tensor) -> Tensor:
@@ -199,16 +194,21 @@ def from_matrix(R: Tensor) -> Tensor:
     return normalize(q)
 
 
-def _half_angle_terms(theta_sq: Tensor) -> tuple[Tensor, Tensor]:
-    """``(cos(θ/2), sin(θ/2)/θ)`` from ``θ²``, finite with finite gradient at 0."""
+def _half_angle_terms(theta_sq: Tensor, *, derivative: bool = False) -> tuple[Tensor, ...]:
+    """``(cos(r/2), sin(r/2)/r)`` from ``r² = θ²``, and with ``derivative``
+    ``k = (r cos(r/2)/2 - sin(r/2))/r³`` (so that ``∂(sθ)/∂θ = s I + k θθᵀ``); below
+    ``r² = 10⁻⁶`` their Taylor series, so values and gradients are finite at 0."""
     small = theta_sq < _SMALL_ANGLE_SQ
-    safe_sq = torch.where(small, torch.ones_like(theta_sq), theta_sq)
-    theta = torch.sqrt(safe_sq)
-    cos_exact = torch.cos(0.5 * theta)
-    sinc_exact = torch.sin(0.5 * theta) / theta
-    cos_taylor = 1.0 - theta_sq / 8.0 + theta_sq * theta_sq / 384.0
-    sinc_taylor = 0.5 - theta_sq / 48.0 + theta_sq * theta_sq / 3840.0
-    return torch.where(small, cos_taylor, cos_exact), torch.where(small, sinc_taylor, sinc_exact)
+    safe_sq = torch.where(small, 1.0, theta_sq)
+    r = torch.sqrt(safe_sq)
+    half = 0.5 * r
+    cos, sin = torch.cos(half), torch.sin(half)
+    c = torch.where(small, 1.0 - theta_sq / 8.0 + theta_sq * theta_sq / 384.0, cos)
+    s = torch.where(small, 0.5 - theta_sq / 48.0 + theta_sq * theta_sq / 3840.0, sin / r)
+    if not derivative:
+        return c, s
+    k = torch.where(small, theta_sq / 960.0 - 1.0 / 24.0, (half * cos - sin) / (safe_sq * r))
+    return c, s, k
 
 
 def from_rotation_vector(rotvec: Tensor) -> Tensor:
@@ -296,43 +296,50 @@ def skew(a: Tensor) -> Tensor:
 
 
 def rotation_vector_jacobian(theta: Tensor) -> Tensor:
-    """``∂𝒬{θ}/∂θ`` ``(..., 4, 3)``, branch-free and finite at ``θ = 0``.
+    """``∂𝒬{θ}/∂θ`` ``(..., 4, 3)``, branch-free and finite at ``θ = 0``
+    (:func:`from_rotation_vector_with_jacobian`)."""
+    return from_rotation_vector_with_jacobian(theta)[1]
 
-    With ``r = |θ|``, ``s = sin(r/2)/r`` and ``k = (r cos(r/2)/2 - sin(r/2))/r³``:
-    ``∂cos(r/2)/∂θ = -(s/2) θᵀ`` and ``∂(sθ)/∂θ = s I + k θθᵀ``.
+
+def from_rotation_vector_with_jacobian(theta: Tensor) -> tuple[Tensor, Tensor]:
+    """``𝒬{θ}`` ``(..., 4)`` and ``∂𝒬{θ}/∂θ`` ``(..., 4, 3)`` from shared terms.
+
+    With ``r = |θ|``, ``c = cos(r/2)``, ``s = sin(r/2)/r`` and
+    ``k = (r cos(r/2)/2 - sin(r/2))/r³``: ``𝒬{θ} = (c, s θ)``, ``∂c/∂θ = -(s/2) θᵀ`` and
+    ``∂(sθ)/∂θ = s I + k θθᵀ``; branch-free and finite at ``θ = 0``.
     """
-    r_sq = (theta * theta).sum(-1)
-    small = r_sq < _SMALL_ANGLE_SQ
-    safe_sq = torch.where(small, torch.ones_like(r_sq), r_sq)
-    r = torch.sqrt(safe_sq)
-    half = 0.5 * r
-    s = torch.where(small, 0.5 - r_sq / 48.0 + r_sq * r_sq / 3840.0, torch.sin(half) / r)
-    k = torch.where(
-        small,
-        -1.0 / 24.0 + r_sq / 960.0,
-        (r * torch.cos(half) * 0.5 - torch.sin(half)) / (safe_sq * r),
-    )
-    top = (-0.5 * s).unsqueeze(-1) * theta  # (..., 3)
-    eye = torch.eye(3, dtype=theta.dtype, device=theta.device)
-    bottom = s[..., None, None] * eye + k[..., None, None] * theta.unsqueeze(-1) * theta.unsqueeze(-2)
-    return torch.cat((top.unsqueeze(-2), bottom), dim=-2)
+    if theta.shape[-1] != 3:
+        raise ValueError(f"rotation vector must have last dimension 3, got shape {tuple(theta.shape)}")
+    c, s, k = _half_angle_terms((theta * theta).sum(-1), derivative=True)
+    s1 = s.unsqueeze(-1)
+    E = torch.cat((c.unsqueeze(-1), s1 * theta), dim=-1)
+    bottom = torch.diag_embed(s1.expand(*s.shape, 3)) + k[..., None, None] * (theta.unsqueeze(-1) * theta.unsqueeze(-2))
+    return E, torch.cat((((-0.5 * s1) * theta).unsqueeze(-2), bottom), dim=-2)
 
 
 def rotate_jacobian(q: Tensor, a: Tensor) -> Tensor:
-    """``∂(C(q/|q|) a)/∂q`` ``(..., 3, 4)`` for a (not necessarily unit) quaternion ``q``."""
-    n = torch.linalg.vector_norm(q, dim=-1, keepdim=True)
-    u = q / n
-    w, r = u[..., 0], u[..., 1:]
-    ra = (r * a).sum(-1)
-    d_w = 2.0 * (w.unsqueeze(-1) * a + torch.linalg.cross(r, a))
-    eye = torch.eye(3, dtype=q.dtype, device=q.device)
-    d_r = 2.0 * (
-        ra[..., None, None] * eye
-        + r.unsqueeze(-1) * a.unsqueeze(-2)
-        - a.unsqueeze(-1) * r.unsqueeze(-2)
-        - w[..., None, None] * skew(a)
-    )
-    J_u = torch.cat((d_w.unsqueeze(-1), d_r), dim=-1)  # (..., 3, 4)
-    eye4 = torch.eye(4, dtype=q.dtype, device=q.device)
-    projector = (eye4 - u.unsqueeze(-1) * u.unsqueeze(-2)) / n.unsqueeze(-1)
-    return J_u @ projector
+    """``∂(C(q/|q|) a)/∂q`` ``(..., 3, 4)`` for a (not necessarily unit) quaternion ``q``.
+
+    ``C(q) a = M(q qᵀ) a`` is quadratic in ``q``; with ``N(q, a)`` ``(..., 3, 4)`` its
+    derivative ``∂(M(q qᵀ) a)/∂q`` (bilinear in ``q`` and ``a``: one product of the
+    outer product ``q aᵀ`` with constants), the normalisation gives
+    ``(N - N q qᵀ / |q|²) / |q|²``.
+    """
+    N = (_outer_qa(q, a) @ _rotate_derivative_constants(q.dtype, q.device)).reshape(*q.shape[:-1], 3, 4)
+    norm_sq = (q * q).sum(-1)[..., None, None]
+    return (N - (N @ q.unsqueeze(-1)) * q.unsqueeze(-2) / norm_sq) / norm_sq
+
+
+def _outer_qa(q: Tensor, a: Tensor) -> Tensor:
+    batch = torch.broadcast_shapes(q.shape[:-1], a.shape[:-1])
+    return (q.unsqueeze(-1) * a.unsqueeze(-2)).reshape(*batch, 12)
+
+
+@cached_constant
+def _rotate_derivative_constants(dtype: torch.dtype, device: torch.device) -> Tensor:
+    """``(12, 12)``: row ``3j + l`` (``q_j a_l``), column ``4k + i``: ``∂(C(q) a)_k/∂q_i`` per
+    ``q_j a_l``, i.e. ``M[4i + j, 3k + l] + M[4j + i, 3k + l]`` with ``M`` the rotation constants."""
+    _, rot = _constants(torch.float64, torch.device("cpu"))
+    M = rot.reshape(4, 4, 3, 3)  # [i, j, k, l]
+    sym = M + M.transpose(0, 1)
+    return sym.permute(1, 3, 2, 0).reshape(12, 12).to(dtype=dtype, device=device)

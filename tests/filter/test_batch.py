@@ -1,0 +1,106 @@
+"""Batched filtering: B runs in one pass equal each run alone (float64, 1e-10)."""
+import pytest
+import torch
+
+from flowins.data.synthetic import ImuErrors, Walk, WalkConfig, corrupt_imu, gnss_track, sample_times
+from flowins.filter.augmentation import PoseAugmentation
+from flowins.filter.ekf import Gate
+from flowins.filter.runner import BatchChain, FilterInput, run_filter, run_filters
+from flowins.filter.smoother import rts_smooth
+from flowins.geometry import quaternion as quat
+from flowins.ins.initialization import stationary_initialization
+from flowins.ins.mechanization import ProcessNoise
+from flowins.measurements.gnss import GnssRecovery, gnss_fixes, gnss_noise
+from flowins.measurements.zero_velocity import ZeroVelocity
+from flowins.state import STATE_DIM
+
+F64 = torch.float64
+NOISE = ProcessNoise(acc_bias_walk=1e-4, gyro_bias_walk=1e-5)
+
+
+def _run(seed: int, duration_s: float, rate_hz: float, gnss_every_s: float, *, augment_s: float | None = None,
+         noise: ProcessNoise | None = None, gate: float = 0.99) -> FilterInput:
+    """A walk's noisy IMU at ``rate_hz``, GNSS fixes between samples, a zero velocity at the
+    start and pose augmentations: a run whose events fall at its own times."""
+    gen = torch.Generator().manual_seed(seed)
+    walk = Walk(WalkConfig(duration_s=duration_s, stationary_s=0.5, ramp_s=1.0))
+    t = sample_times(duration_s, rate_hz, 0.1, gen)
+    f_true, w_true = walk.imu(t)
+    acc, gyro, _ = corrupt_imu(t, f_true, w_true, ImuErrors(), gen)
+    yaw = float(quat.to_euler(walk.quaternion(t[0]))[2])
+    mean0, cov0 = stationary_initialization(t_s=t, acc_mps2=acc, gyro_rps=gyro, duration_s=0.45, yaw_rad=yaw,
+                                            position_m=walk.position(t[0]))
+    t_gnss = torch.arange(0.37 + 0.1 * seed, float(t[-1]), gnss_every_s, dtype=F64)
+    _, z, h_acc, v_acc = gnss_track(walk, t_gnss, gen, min_acc_m=1.0, max_acc_m=3.0)
+    events = gnss_fixes(t_gnss, z, gnss_noise(h_acc, v_acc), gate=Gate(probability=gate),
+                        recovery=GnssRecovery(after_rejections=1))
+    events += [ZeroVelocity(float(t[0]), 0.02), ZeroVelocity(0.3, 0.02)]
+    if augment_s is not None:
+        events += [PoseAugmentation(float(s), mode="limit") for s in torch.arange(0.2, float(t[-1]), augment_s)]
+        events += [PoseAugmentation(float(t[-1]) - 0.013, mode="paper")]
+    return FilterInput(t, acc, gyro, mean0, cov0, events, noise)
+
+
+def _assert_same(batched, alone):
+    assert torch.equal(batched.t_s, alone.t_s)
+    assert len(batched.log) == len(alone.log)
+    for a, b in zip(batched.log, alone.log):
+        assert a.keys() == b.keys() and a["t_s"] == b["t_s"]
+    for name in ("node_mean", "pred_mean", "transition", "node_cov", "pred_cov"):
+        x, y = getattr(batched, name), getattr(alone, name)
+        assert x.shape == y.shape, name
+        scale = max(1.0, float(y.abs().max()))
+        torch.testing.assert_close(x, y, rtol=0, atol=1e-10 * scale, msg=name)
+
+
+def test_unequal_runs_in_one_batch_equal_each_run_alone():
+    runs = [
+        _run(0, 6.0, 100.0, 1.0, augment_s=0.25),
+        _run(1, 3.5, 200.0, 0.7, gate=0.2),  # shorter, faster IMU, other fix times, no augmentation, resets
+        _run(2, 5.0, 50.0, 0.45, augment_s=0.4, noise=ProcessNoise(acc_noise=1e-2)),  # its own noise
+    ]
+    batched = run_filters(runs, noise=NOISE)
+    assert any(e.get("kind") == "gnss_reset" for e in batched[1].log)  # a prediction on one row only
+    for run, track in zip(runs, batched):
+        alone = run_filter(t_s=run.t_s, acc_mps2=run.acc_mps2, gyro_rps=run.gyro_rps, mean0=run.mean0,
+                           cov0=run.cov0, noise=run.noise or NOISE, events=run.events)
+        _assert_same(track, alone)
+        # the smoother solves with predicted covariances made nearly singular by the pose copy's
+        # nugget: it magnifies rounding-level differences of the filter (1e-14) about 10⁵-fold
+        smoothed, smoothed_alone = rts_smooth(track), rts_smooth(alone)
+        torch.testing.assert_close(smoothed.mean, smoothed_alone.mean, rtol=0, atol=1e-8)
+
+
+def test_a_batch_of_one_and_the_order_of_runs_do_not_matter():
+    runs = [_run(3, 3.0, 100.0, 0.5, augment_s=0.3), _run(4, 4.0, 100.0, 0.8)]
+    forward = run_filters(runs, noise=NOISE)
+    backward = run_filters(runs[::-1], noise=NOISE)[::-1]
+    for a, b in zip(forward, backward):
+        _assert_same(a, b)
+
+
+def test_runs_of_different_dtypes_are_refused():
+    run = _run(5, 2.0, 100.0, 0.5)
+    other = FilterInput(run.t_s, run.acc_mps2, run.gyro_rps, run.mean0.float(), run.cov0.float())
+    with pytest.raises(ValueError, match="one dtype"):
+        run_filters([run, other], noise=NOISE)
+
+
+def test_a_prediction_on_some_rows_moves_the_others_newest_node():
+    """An event's linear prediction on row 0 only: row 1's node stays the same node (its
+    prediction, transition and filtered Gaussian), and row 1's next update lands on it."""
+    gen = torch.Generator().manual_seed(0)
+    chain = BatchChain(2)
+    mean = torch.randn(2, 1, STATE_DIM, generator=gen, dtype=F64)
+    cov = torch.eye(STATE_DIM, dtype=F64).expand(2, 1, STATE_DIM, STATE_DIM) * 2.0
+    chain.add_nodes([[0.0], [0.0]], torch.eye(STATE_DIM, dtype=F64).expand(2, 1, STATE_DIM, STATE_DIM), mean, cov)
+    A = 0.5 * torch.eye(STATE_DIM, dtype=F64)
+    chain.linear_predict_rows([0], A.unsqueeze(0), torch.eye(STATE_DIM, dtype=F64).unsqueeze(0))
+    new_mean = torch.zeros(1, STATE_DIM, dtype=F64)
+    chain.update_rows([1], new_mean, torch.eye(STATE_DIM, dtype=F64).unsqueeze(0))
+    first, second = chain.finish()
+    assert first.t_s.tolist() == [0.0, 0.0] and second.t_s.tolist() == [0.0]
+    torch.testing.assert_close(first.node_mean[1], 0.5 * mean[0, 0], rtol=0, atol=0)
+    torch.testing.assert_close(first.node_cov[1], 0.5 * torch.eye(STATE_DIM, dtype=F64) + torch.eye(STATE_DIM, dtype=F64))
+    assert torch.equal(first.transition[1], A)
+    assert torch.equal(second.node_mean[0], new_mean[0]) and torch.equal(second.pred_mean[0], mean[1, 0])
