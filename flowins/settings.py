@@ -131,6 +131,16 @@ def check_data_settings(cfg: Mapping[str, Any]) -> None:
         setting(cfg, "sequence.quick_duration_s", float, minimum=1.0)
         setting(cfg, "sequence.seed", int)
         setting(cfg, "sequence.imu_rate_hz", float, minimum=1.0)
+    seeds = cfg["sequence"].get("seeds")
+    if seeds is not None:
+        if cfg["sequence"].get("path"):
+            raise ValueError("sequence.seeds: simulated walks only; a recording (sequence.path) has no seed")
+        if isinstance(seeds, (str, bytes)) or not hasattr(seeds, "__len__") or not len(seeds):
+            raise ValueError(f"sequence.seeds={seeds!r}: expected a list of integers, e.g. [0,1,2,3]")
+        for i, seed in enumerate(seeds):
+            check_value(seed, int, f"sequence.seeds[{i}]")
+        if len(set(seeds)) != len(seeds):
+            raise ValueError(f"sequence.seeds={list(seeds)!r}: a seed appears twice")
 
 
 def parameter_sets(cfg: Mapping[str, Any], base) -> tuple[dict[str, float], dict[str, float], set[str]]:

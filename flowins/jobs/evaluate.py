@@ -32,7 +32,8 @@ from flowins.ins.imu_model import imu_model
 from flowins.ins.initialization import forward_axis
 from flowins.jobs.cli import console_logging
 from flowins.measurements.flow import FlowCamera
-from flowins.navigation import NavigationConfig, NavigationResult, flow_statistics, navigate, run_warnings
+from flowins.navigation import (NavigationConfig, NavigationResult, NavigationRun, flow_statistics, navigate_batch,
+                                run_warnings)
 from flowins.settings import check_job_settings, navigation_config
 from flowins.state import STATE
 
@@ -40,24 +41,35 @@ log = logging.getLogger("flowins")
 
 
 def run(cfg: Mapping[str, Any]) -> list[Row]:
-    """Run the job; returns the table rows (also printed and written to ``metrics.json``)."""
+    """Run the job; returns the table rows (also printed and written to ``metrics.json``).
+
+    With ``sequence.seeds=[...]`` every combination runs on the simulated walk of each seed,
+    all seeds in one batched filter pass, and the table gives the mean ± standard deviation
+    over the seeds (each seed's tracks and metrics under ``seed_<n>/``)."""
     console_logging()
     check_job_settings(cfg)
     out = Path(cfg["output_dir"])
     out.mkdir(parents=True, exist_ok=True)
-    rec = _load(cfg)
-    nav_cfg, cfg = _filter_config(cfg, rec)
-    flows = _flows(cfg, rec)
-    unscored = truth_extent_problem(rec.truth)  # a ground truth that can't score a track, or None
-    if unscored:
-        log.warning("warning: %s", unscored)
+    seeds = cfg["sequence"].get("seeds")
+    if seeds is None:
+        recs, outs = [_load(cfg)], [out]
+    else:
+        recs = [_load({**cfg, "sequence": {**cfg["sequence"], "seed": int(seed)}}) for seed in seeds]
+        outs = [out / f"seed_{int(seed)}" for seed in seeds]
+        for path in outs:
+            path.mkdir(exist_ok=True)
+    nav_cfg, cfg = _filter_config(cfg, recs)
+    flows = [_flows(cfg, rec) for rec in recs]
+    unscored = [truth_extent_problem(rec.truth) for rec in recs]  # a ground truth that can't score a track, or None
+    for problem in dict.fromkeys(u for u in unscored if u):
+        log.warning("warning: %s", problem)
     rows, metrics = [], {}
     for name in cfg["combinations"]:
-        row, metrics[name] = _combination(name, cfg, rec, nav_cfg, flows, out, unscored)
+        row, metrics[name] = _combination(name, cfg, recs, nav_cfg, flows, outs, unscored, seeds)
         rows.append(row)
-    if cfg["plots"] and isinstance(flows.get("dense"), FlowPairs) and cfg["flow_panels"] > 0:
-        flow_panels(rec, cfg, out, cfg["flow_panels"])
-    _report(rows, metrics, cfg, rec, nav_cfg, unscored)
+    if cfg["plots"] and isinstance(flows[0].get("dense"), FlowPairs) and cfg["flow_panels"] > 0:
+        flow_panels(recs[0], cfg, outs[0], cfg["flow_panels"])
+    _report(rows, metrics, cfg, recs, nav_cfg, unscored, seeds)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=float))
     log.info(f"\nwrote {out}/metrics.json, *.tum" + (", *.png" if cfg["plots"] else ""))
     for r in rows:
@@ -78,11 +90,14 @@ def _load(cfg: Mapping[str, Any]) -> Recording:
     return rec
 
 
-def _filter_config(cfg: Mapping[str, Any], rec: Recording) -> tuple[NavigationConfig, Mapping[str, Any]]:
-    """The filter's settings: the IMU preset (its range checked against the readings), the
-    ``filter`` group, and a ``train.py`` checkpoint's learned values when one is given."""
-    imu = imu_model(cfg["imu"], recording=bool(cfg["sequence"].get("path")), sensor=rec.sequence.metadata.get("imu"))
-    imu.check_readings(rec.imu)
+def _filter_config(cfg: Mapping[str, Any], recs: list[Recording]) -> tuple[NavigationConfig, Mapping[str, Any]]:
+    """The filter's settings: the IMU preset (its range checked against each recording's
+    readings), the ``filter`` group, and a ``train.py`` checkpoint's learned values when one
+    is given."""
+    imu = imu_model(cfg["imu"], recording=bool(cfg["sequence"].get("path")),
+                    sensor=recs[0].sequence.metadata.get("imu"))
+    for rec in recs:
+        imu.check_readings(rec.imu)
     nav_cfg = navigation_config(cfg["filter"], imu)
     if cfg["model"].get("checkpoint"):
         from flowins.training.parameters import learned_settings
@@ -107,40 +122,70 @@ def _flows(cfg: Mapping[str, Any], rec: Recording) -> dict[str, FlowPairs | str]
     return flows
 
 
-def _combination(name: str, cfg: Mapping[str, Any], rec: Recording, nav_cfg: NavigationConfig,
-                 flows: dict[str, FlowPairs | str], out: Path, unscored: str | None) -> tuple[Row, dict[str, Any]]:
-    """One row of the table: navigate with the combination's sources, export, score."""
+def _combination(name: str, cfg: Mapping[str, Any], recs: list[Recording], nav_cfg: NavigationConfig,
+                 flows: list[dict[str, FlowPairs | str]], outs: list[Path], unscored: list[str | None],
+                 seeds: list[int] | None) -> tuple[Row, dict[str, Any]]:
+    """One row of the table: navigate every recording with the combination's sources (one
+    batched pass), export, score; several recordings give the mean ± std over them."""
     m_cfg = cfg["methods"][name]
     sources = (bool(m_cfg["gnss"]), bool(m_cfg["sparse"]), bool(m_cfg["dense"]))
-    reason = "the sequence has no GNSS" if sources[0] and rec.gnss is None else None
-    flow = None
+    reason = "the sequence has no GNSS" if sources[0] and any(rec.gnss is None for rec in recs) else None
+    pairs: list[FlowPairs | None] = [None] * len(recs)
     for kind, used in (("sparse", sources[1]), ("dense", sources[2])):
         if used:
-            flow = flows[kind]
-            if isinstance(flow, str):
-                reason = flow
+            pairs = [rec_flows[kind] for rec_flows in flows]
+            reason = next((p for p in pairs if isinstance(p, str)), reason)
     if reason is not None:
         return Row(name, sources, None, None, f"not applicable: {reason}"), {"status": "not applicable", "reason": reason}
     t1 = time.perf_counter()
-    seq = rec.sequence
-    calibration = seq.imu_to_camera
-    forward_b = forward_axis(nav_cfg.start.moving.forward_axis, None if calibration is None else calibration.rotation_matrix)
-    result = navigate(rec.imu, rec.gnss if sources[0] else None, config=nav_cfg, flow=flow,
-                      camera=FlowCamera.from_sequence(seq) if flow is not None else None, truth=rec.truth,
-                      forward_b=forward_b, start_gnss=rec.gnss, progress=cfg["progress"])
-    m = _export(out, name, result, rec, plots=cfg["plots"], score=rec.truth is not None and unscored is None)
-    if flow is not None:
-        m.update(flow_statistics(result, flow))
-    m["seconds"] = time.perf_counter() - t1
-    m["warnings"] = run_warnings(result) + ([unscored] if unscored else [])
+    runs = []
+    for rec, flow in zip(recs, pairs):
+        calibration = rec.sequence.imu_to_camera
+        forward_b = forward_axis(nav_cfg.start.moving.forward_axis,
+                                 None if calibration is None else calibration.rotation_matrix)
+        runs.append(NavigationRun(rec.imu, rec.gnss if sources[0] else None, flow=flow,
+                                  camera=FlowCamera.from_sequence(rec.sequence) if flow is not None else None,
+                                  truth=rec.truth, forward_b=forward_b, start_gnss=rec.gnss))
+    results = navigate_batch(runs, config=nav_cfg, progress=cfg["progress"])
+    seconds = time.perf_counter() - t1
+    per_run = []
+    for rec, flow, result, out, problem in zip(recs, pairs, results, outs, unscored):
+        m = _export(out, name, result, rec, plots=cfg["plots"], score=rec.truth is not None and problem is None)
+        if flow is not None:
+            m.update(flow_statistics(result, flow))
+        m["seconds"] = seconds / len(recs)
+        m["warnings"] = run_warnings(result) + ([problem] if problem else [])
+        per_run.append(m)
+    rec, result = recs[0], results[0]
     note = ("no ground truth: TUM tracks only" if rec.truth is None else
-            "the ground truth does not move: TUM tracks only" if unscored else "")
-    fr = "n/a" if m["filter_rmse_m"] is None else f"{m['filter_rmse_m']:.2f} m"
-    log.info(f"  {name:<16} filter RMSE {fr} ({m['seconds']:.1f} s); {result.start.describe()}")
-    for entry in m.get("heading_alignment", []):
-        if entry["status"] == "never set":
-            log.info(f"  {'':<16} GNSS: {entry['fixes']} fixes held for the heading to the end: {entry['reason']}")
-    return Row(name, sources, m["filter_rmse_m"], m["smoother_rmse_m"], note, seconds=m["seconds"]), m
+            "the ground truth does not move: TUM tracks only" if unscored[0] else "")
+    if seeds is None:
+        m = per_run[0]
+        fr = "n/a" if m["filter_rmse_m"] is None else f"{m['filter_rmse_m']:.2f} m"
+        log.info(f"  {name:<16} filter RMSE {fr} ({m['seconds']:.1f} s); {result.start.describe()}")
+        for entry in m.get("heading_alignment", []):
+            if entry["status"] == "never set":
+                log.info(f"  {'':<16} GNSS: {entry['fixes']} fixes held for the heading to the end: {entry['reason']}")
+        return Row(name, sources, m["filter_rmse_m"], m["smoother_rmse_m"], note, seconds=m["seconds"]), m
+    summary: dict[str, Any] = {"seeds": [int(s) for s in seeds], "seconds": seconds}
+    for kind in ("filter", "smoother"):
+        values = [m[f"{kind}_rmse_m"] for m in per_run]
+        mean, std = _mean_std(values)
+        summary[f"{kind}_rmse_m"], summary[f"{kind}_rmse_std_m"] = mean, std
+    summary["per_seed"] = {str(int(s)): m for s, m in zip(seeds, per_run)}
+    fr = "n/a" if summary["filter_rmse_m"] is None else \
+        f"{summary['filter_rmse_m']:.2f} ± {summary['filter_rmse_std_m']:.2f} m"
+    log.info(f"  {name:<16} filter RMSE {fr} over {len(seeds)} seeds ({seconds:.1f} s for all)")
+    return Row(name, sources, summary["filter_rmse_m"], summary["smoother_rmse_m"], note, seconds=seconds,
+               filter_std_m=summary["filter_rmse_std_m"], smoother_std_m=summary["smoother_rmse_std_m"]), summary
+
+
+def _mean_std(values: list[float | None]) -> tuple[float | None, float | None]:
+    """Mean and sample standard deviation (n - 1) of the values; None if any is None."""
+    if any(v is None for v in values):
+        return None, None
+    x = torch.tensor(values, dtype=torch.float64)
+    return float(x.mean()), float(x.std()) if len(values) > 1 else 0.0
 
 
 def _export(out: Path, name: str, result: NavigationResult, rec: Recording, *, plots: bool, score: bool
@@ -193,26 +238,41 @@ def flow_panels(rec: Recording, cfg: Mapping[str, Any], out: Path, count: int) -
     return paths
 
 
-def _report(rows: list[Row], metrics: dict[str, Any], cfg: Mapping[str, Any], rec: Recording,
-            nav_cfg: NavigationConfig, unscored: str | None) -> None:
+def _report(rows: list[Row], metrics: dict[str, Any], cfg: Mapping[str, Any], recs: list[Recording],
+            nav_cfg: NavigationConfig, unscored: list[str | None], seeds: list[int] | None) -> None:
     """Print the table, how the filter started, the warnings and the GNSS floor (into ``metrics``)."""
-    log.info("\nRMSE after Procrustes alignment (rotation + translation) to the ground truth\n")
+    over = "" if seeds is None else f", mean ± std over seeds {', '.join(str(int(s)) for s in seeds)}"
+    log.info(f"\nRMSE after Procrustes alignment (rotation + translation) to the ground truth{over}\n")
     log.info(format_table(rows))
-    starts = {m["start"]["mode"] for m in metrics.values() if isinstance(m, dict) and "start" in m}
+    per_run = {n: ([m] if seeds is None else list(m["per_seed"].values())) for n, m in metrics.items()
+               if isinstance(m, dict) and m.get("status") != "not applicable"}
+    starts = {m["start"]["mode"] for ms in per_run.values() for m in ms if "start" in m}
     if starts:
         log.info(f"\nstart: {', '.join(sorted(starts))} (filter.init.mode={nav_cfg.start.mode}; per row in metrics.json)")
-    warned = [(n, w) for n, m in metrics.items() if isinstance(m, dict) for w in m.get("warnings", [])]
+    labels = [""] if seeds is None else [f"seed {int(s)}: " for s in seeds]
+    warned = [(n, label + w) for n, ms in per_run.items() for label, m in zip(labels, ms) for w in m.get("warnings", [])]
     if warned:
         log.info("\nwarnings:")
         for n, w in warned:
             log.info(f"  {n}: {w}")
     uses_gnss = any(cfg["methods"][name]["gnss"] for name in cfg["combinations"])
-    if uses_gnss and rec.gnss is not None and rec.truth is not None and not unscored and len(rec.gnss) >= 3:
-        try:
-            metrics["gnss_floor"] = gnss_floor_metrics(rec.gnss, rec.truth)
-            log.info("\n" + describe_gnss_floor(metrics["gnss_floor"]))
-        except ValueError as error:  # e.g. too few fixes inside the truth's time span: reported, not fatal
-            metrics["gnss_floor"] = {"status": "not computed", "reason": str(error)}
-            log.info(f"\nGNSS floor not computed: {error}")
-    if rec.warnings:
-        metrics["input_warnings"] = rec.warnings
+    floors = {}
+    for label, rec, problem in zip(labels, recs, unscored):
+        if uses_gnss and rec.gnss is not None and rec.truth is not None and not problem and len(rec.gnss) >= 3:
+            try:
+                floors[label] = gnss_floor_metrics(rec.gnss, rec.truth)
+            except ValueError as error:  # e.g. too few fixes inside the truth's time span: reported, not fatal
+                floors[label] = {"status": "not computed", "reason": str(error)}
+    if seeds is None and floors:
+        metrics["gnss_floor"] = floor = floors[""]
+        log.info(f"\nGNSS floor not computed: {floor['reason']}" if floor.get("status") == "not computed" else
+                 "\n" + describe_gnss_floor(floor))
+    elif floors:
+        metrics["gnss_floor"] = {label.removeprefix("seed ").rstrip(": "): f for label, f in floors.items()}
+        values = [f["rmse_m"] for f in floors.values() if "rmse_m" in f]
+        if values:
+            mean, std = _mean_std(values)
+            log.info(f"\nGNSS floor (flowins.evaluation.gnss_floor): {mean:.2f} ± {std:.2f} m over {len(values)} seeds")
+    warnings = [w for rec in recs for w in rec.warnings]
+    if warnings:
+        metrics["input_warnings"] = warnings

@@ -170,3 +170,39 @@ def test_a_bad_filter_value_stops_the_job_before_the_recording_is_read(tmp_path)
     cfg = _compose([f"sequence.path={tmp_path / 'not_read'}", f"output_dir={tmp_path / 'out'}", "filter.acc_noise=abc"])
     with pytest.raises(ValueError, match=r"^filter\.acc_noise='abc': expected a number"):
         run(cfg)  # the missing folder would be the error if the recording were read first
+
+
+def test_seeds_run_as_one_batch_and_report_the_mean_and_std_of_the_single_runs(tmp_path, monkeypatch):
+    """``sequence.seeds=[a,b]``: each seed's metrics are its single run's (to rounding), the
+    table's the mean ± sample std over them."""
+    import statistics
+
+    monkeypatch.setenv("FLOWINS_CACHE", str(tmp_path / "cache"))
+    common = ["quick=true", "sequence.quick_duration_s=20", "plots=false", "progress=false",
+              "combinations=[ins,ins_gnss]"]
+    rows = {r.name: r for r in run(_compose(common + ["sequence.seeds=[5,6]", f"output_dir={tmp_path / 'both'}"]))}
+    metrics = json.loads((tmp_path / "both" / "metrics.json").read_text())
+    for name in ("ins", "ins_gnss"):
+        alone = []
+        for seed in (5, 6):
+            (row,) = [r for r in run(_compose(common + [f"sequence.seed={seed}", f"output_dir={tmp_path / str(seed)}"]))
+                      if r.name == name]
+            batched = metrics[name]["per_seed"][str(seed)]
+            for kind in ("filter", "smoother"):
+                single = getattr(row, f"{kind}_rmse_m")
+                assert abs(batched[f"{kind}_rmse_m"] - single) <= 1e-8 * max(1.0, single)
+            assert (tmp_path / "both" / f"seed_{seed}" / f"{name}_filter.tum").is_file()
+            alone.append(row)
+        r = rows[name]
+        for kind in ("filter", "smoother"):
+            values = [getattr(a, f"{kind}_rmse_m") for a in alone]
+            assert abs(getattr(r, f"{kind}_rmse_m") - statistics.mean(values)) <= 1e-8 * max(values)
+            assert abs(getattr(r, f"{kind}_std_m") - statistics.stdev(values)) <= 1e-8 * max(values)
+
+
+@pytest.mark.parametrize(("seeds", "message"), [("[]", "expected a list of integers"), ("[1,1]", "appears twice"),
+                                                ("[a]", r"sequence.seeds\[0\]")])
+def test_bad_seeds_are_refused_naming_the_key(tmp_path, seeds, message):
+    cfg = _compose([f"output_dir={tmp_path}", "quick=true", "progress=false", f"sequence.seeds={seeds}"])
+    with pytest.raises(ValueError, match=message):
+        run(cfg)
