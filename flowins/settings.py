@@ -186,6 +186,7 @@ def check_train_settings(cfg: Mapping[str, Any]) -> None:
             raise ValueError(f"methods: unknown {m!r}; expected names from {', '.join(METHODS)}")
     setting(cfg, "window_s", float, minimum=1e-3)
     setting(cfg, "seed", int)
+    setting(cfg, "data.batch_size", int, minimum=1, default=1)
     for key in ("flow_moments", "progress"):
         setting(cfg, key, bool, default=True)
     for key, minimum in (("lr", 1e-12), ("gradient_clip", 1e-12), ("nll_weight", 0.0),

@@ -41,7 +41,7 @@ def run(cfg: Mapping[str, Any]) -> dict[str, Any]:
     log.info(f"learning {len(params.learned)} parameters: {', '.join(params.learned)}")
     data_cfg = {**cfg, "flow": flow_settings(cfg)}
     data = SequenceDataModule(train=cfg["data"]["train"], val=cfg["data"]["val"], config=data_cfg, methods=methods,
-                              progress=bool(cfg.get("progress", True)))
+                              batch_size=int(cfg["data"].get("batch_size", 1)), progress=bool(cfg.get("progress", True)))
     module = FilterLearner(
         params, base, methods=methods, window_s=float(cfg["window_s"]), nll_weight=float(cfg["model"]["nll_weight"]),
         orientation_weight_m_per_rad=float(cfg["model"]["orientation_weight_m_per_rad"]),

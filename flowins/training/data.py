@@ -80,9 +80,15 @@ def _identity(batch: TrainingSequence) -> TrainingSequence:
     return batch
 
 
+def _as_list(batch: list[TrainingSequence]) -> list[TrainingSequence]:
+    return list(batch)
+
+
 class SequenceDataModule(pl.LightningDataModule):
-    """Training and held-out sequences; one batch is one whole sequence (the module cuts it
-    into windows). ``prepare_data`` simulates and runs the flow network once (cached)."""
+    """Training and held-out sequences. A training batch is a list of ``batch_size`` whole
+    sequences (the module cuts them into windows and runs their windows together); a
+    held-out batch is one sequence. ``prepare_data`` simulates and runs the flow network
+    once (cached)."""
 
     def __init__(
         self,
@@ -91,11 +97,15 @@ class SequenceDataModule(pl.LightningDataModule):
         val: Sequence[Mapping[str, Any]],
         config: Mapping[str, Any],
         methods: Sequence[str],
+        batch_size: int = 1,
         progress: bool = True,
     ) -> None:
         super().__init__()
         if not train or not val:
             raise ValueError("data: need at least one training and one held-out (val) sequence")
+        if not (isinstance(batch_size, int) and batch_size >= 1):
+            raise ValueError(f"data.batch_size={batch_size!r}: expected an integer >= 1")
+        self.batch_size = batch_size
         self.sources = {"train": list(train), "val": list(val)}
         self.config = config
         self.methods = list(methods)
@@ -116,7 +126,8 @@ class SequenceDataModule(pl.LightningDataModule):
         return DataLoader(_Sequences(self.sequences[split]), batch_size=None, shuffle=shuffle, collate_fn=_identity)
 
     def train_dataloader(self) -> DataLoader:
-        return self._loader("train", True)
+        return DataLoader(_Sequences(self.sequences["train"]), batch_size=self.batch_size, shuffle=True,
+                          collate_fn=_as_list)
 
     def val_dataloader(self) -> DataLoader:
         return self._loader("val", False)
@@ -124,6 +135,6 @@ class SequenceDataModule(pl.LightningDataModule):
     def test_dataloader(self) -> DataLoader:
         return self._loader("val", False)
 
-    def transfer_batch_to_device(self, batch: TrainingSequence, device, dataloader_idx: int) -> TrainingSequence:
+    def transfer_batch_to_device(self, batch, device, dataloader_idx: int):
         # the filter runs where its inputs are (float64, CPU by default); the sequence is not moved
         return batch

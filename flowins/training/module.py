@@ -1,10 +1,11 @@
 """The ``LightningModule`` that learns the filter's parameters against ground truth.
 
-One batch is one sequence. For each method (a row of Table I) the filter runs
-through the sequence window by window (:func:`flowins.training.unroll.run_window`):
-each window's loss is backpropagated to the window's start and followed by one
-optimiser step, and the state goes on, detached, into the next window (truncated
-backpropagation through time, with Lightning's manual optimisation). Windows whose
+A training batch is a few sequences (``data.batch_size``). For each method (a row of
+Table I) the filter runs through them window by window, the ``i``-th windows of all the
+batch's sequences in one batched filter pass (:func:`flowins.training.unroll.run_windows`):
+the mean of their losses is backpropagated to the windows' start and followed by one
+optimiser step, and each state goes on, detached, into its sequence's next window
+(truncated backpropagation through time, with Lightning's manual optimisation). Windows whose
 loss or gradient is not finite are skipped and counted (``train/skipped_windows``);
 the sequence's remaining windows of that method are skipped with them when the
 state itself is no longer finite.
@@ -26,7 +27,7 @@ import torch
 
 from flowins.navigation import NavigationConfig
 from flowins.training.parameters import FilterParameters
-from flowins.training.unroll import TrainingSequence, run_window, sequence_rmse, window_bounds, window_loss
+from flowins.training.unroll import TrainingSequence, run_windows, sequence_rmse, window_bounds, window_loss
 
 log = logging.getLogger("flowins")
 
@@ -90,47 +91,63 @@ class FilterLearner(pl.LightningModule):
         return torch.optim.Adam(learned, lr=self.lr)
 
     # ------------------------------------------------------------------ training
-    def training_step(self, batch: TrainingSequence, batch_idx: int) -> None:
+    def training_step(self, batch: TrainingSequence | list[TrainingSequence], batch_idx: int) -> None:
         opt = self.optimizers()
-        bounds = window_bounds(batch.imu.t_s, self.window_s)
+        seqs = batch if isinstance(batch, list) else [batch]
+        bounds = [window_bounds(seq.imu.t_s, self.window_s) for seq in seqs]
         for method in self.methods:
-            start = None
-            for i, window in enumerate(bounds):
+            starts: list = [None] * len(seqs)
+            going = [True] * len(seqs)  # a sequence whose state stopped being finite leaves the batch
+            for i in range(max(len(b) for b in bounds)):
+                rows = [k for k in range(len(seqs)) if going[k] and i < len(bounds[k])]
+                if not rows:
+                    break
                 config = self.params.apply(self.base, training=True)
-                p = self.params.value("dropout_p") if _has_moments(batch, method) else None
-                result = run_window(batch, method, config, window, dropout_p=p, start=start)
-                loss = window_loss(result.track, batch.truth, nll_weight=self.nll_weight,
-                                   orientation_weight_m_per_rad=self.orientation_weight)
-                state_ok = bool(torch.isfinite(result.mean).all() and torch.isfinite(result.cov).all())
-                if not bool(torch.isfinite(loss.loss)):
-                    self._skip(len(bounds) - i if not state_ok else 1)
-                    if not state_ok:
-                        break
-                    start = (result.mean.detach(), result.cov.detach())
+                moments = _has_moments(seqs[rows[0]], method)
+                p = self.params.value("dropout_p") if moments else None
+                results = run_windows([seqs[k] for k in rows], method, config, [bounds[k][i] for k in rows],
+                                      dropout_p=p, starts=[starts[k] for k in rows])
+                losses = []
+                for k, result in zip(rows, results):
+                    loss = window_loss(result.track, seqs[k].truth, nll_weight=self.nll_weight,
+                                       orientation_weight_m_per_rad=self.orientation_weight)
+                    state_ok = bool(torch.isfinite(result.mean).all() and torch.isfinite(result.cov).all())
+                    if bool(torch.isfinite(loss.loss)):
+                        losses.append(loss)
+                    else:
+                        self._skip(1 if state_ok else len(bounds[k]) - i)
+                    if state_ok:
+                        starts[k] = (result.mean.detach(), result.cov.detach())
+                    else:
+                        going[k] = False
+                        if bool(torch.isfinite(loss.loss)):
+                            self._skip(len(bounds[k]) - i - 1)
+                if not losses:
                     continue
+                # one optimiser step on the mean loss of the batch's windows
+                total = torch.stack([w.loss for w in losses]).mean()
                 opt.zero_grad()
-                self.manual_backward(loss.loss)
+                self.manual_backward(total)
                 grads = [q.grad for q in self.params.parameters() if q.grad is not None]
                 if not all(bool(torch.isfinite(g).all()) for g in grads):
                     opt.zero_grad()
-                    self._skip(1)
+                    self._skip(len(losses))
                 else:
                     self.clip_gradients(opt, gradient_clip_val=self.gradient_clip, gradient_clip_algorithm="norm")
                     opt.step()
-                    self.trained_windows += 1
-                self.log(f"train/{method}/rmse_m", loss.rmse_m, on_step=True, batch_size=1)
-                self.log("train/loss", loss.loss.detach(), on_step=True, prog_bar=True, batch_size=1)
+                    self.trained_windows += len(losses)
+                n = len(losses)
+                self.log(f"train/{method}/rmse_m", torch.stack([w.rmse_m for w in losses]).mean(), on_step=True,
+                         batch_size=n)
+                self.log("train/loss", total.detach(), on_step=True, prog_bar=True, batch_size=n)
                 if self.nll_weight > 0:
-                    self.log("train/nll", loss.nll, on_step=True, batch_size=1)
+                    self.log("train/nll", torch.stack([w.nll for w in losses]).mean(), on_step=True, batch_size=n)
                 if self.orientation_weight > 0:
-                    self.log(f"train/{method}/orientation_rmse_rad", loss.orientation_rmse_rad, on_step=True, batch_size=1)
+                    self.log(f"train/{method}/orientation_rmse_rad",
+                             torch.stack([w.orientation_rmse_rad for w in losses]).mean(), on_step=True, batch_size=n)
                 for name, value in self.params.values().items():
                     if self.params.raw[name].requires_grad:
-                        self.log(f"params/{name}", value, on_step=True, batch_size=1)
-                if not state_ok:
-                    self._skip(len(bounds) - i - 1)
-                    break
-                start = (result.mean.detach(), result.cov.detach())
+                        self.log(f"params/{name}", value, on_step=True, batch_size=n)
         self.log("train/skipped_windows", float(self.skipped_windows), on_step=True, batch_size=1)
 
     def _skip(self, n: int) -> None:

@@ -10,6 +10,7 @@ uses), so each window sees the current values.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -27,7 +28,7 @@ from flowins.evaluation.metrics import (
     interpolate_positions,
     interpolate_quaternions,
 )
-from flowins.filter.runner import NodeTrack, run_filter
+from flowins.filter.runner import FilterInput, NodeTrack, run_filters
 from flowins.flow.pairs import FlowPairs
 from flowins.measurements.flow import FlowCamera
 from flowins.navigation import NavigationConfig, prepare_navigation
@@ -109,34 +110,45 @@ def run_window(
     Events at the first sample belong to the previous window unless this is the first.
     ``dropout_p``: recompute the flow σ at this dropout rate (the pairs need moments).
     """
-    i_a, i_b = bounds
-    if start is None and i_a != 0:
-        raise ValueError(f"run_window: a window starting at IMU sample {i_a} needs the state there (start=...)")
-    gnss, flow = seq.sources(method)
-    imu = seq.imu
-    t_a, t_b = float(imu.t_s[i_a]), float(imu.t_s[i_b])
-    if flow is not None:
-        # only the pairs this window uses (and the one before, whose end frame augments)
-        flow = flow.select((flow.t2_s > t_a - 1.0) & (flow.t2_s <= t_b))
-        if dropout_p is not None:
-            flow = flow.at_dropout_rate(dropout_p)
-    setup = prepare_navigation(imu, gnss, config=config, flow=flow, camera=seq.camera if flow is not None else None)
-    if setup.start.index != 0:
-        raise ValueError(f"training starts the filter at the first IMU sample; filter.init.mode={setup.start.mode} "
-                         f"starts it at row {setup.start.index}: use filter.init.mode=still or moving")
-    first = start is None
-    events = [e for e in setup.events if (t_a < e.time_s or (first and e.time_s == t_a)) and e.time_s <= t_b]
-    mean0, cov0 = (setup.mean0, setup.cov0) if first else start
-    track = run_filter(
-        t_s=imu.t_s[i_a : i_b + 1],
-        acc_mps2=imu.acc_mps2[i_a : i_b + 1],
-        gyro_rps=imu.gyro_rps[i_a : i_b + 1],
-        mean0=mean0,
-        cov0=cov0,
-        events=events,
-        **config.filter_settings(),
-    )
-    return WindowResult(track.in_final_frame(), track.node_mean[-1], track.node_cov[-1])
+    return run_windows([seq], method, config, [bounds], dropout_p=dropout_p, starts=[start])[0]
+
+
+def run_windows(
+    seqs: Sequence[TrainingSequence],
+    method: str,
+    config: NavigationConfig,
+    bounds: Sequence[tuple[int, int]],
+    *,
+    dropout_p: Tensor | float | None = None,
+    starts: Sequence[tuple[Tensor, Tensor] | None] | None = None,
+) -> list[WindowResult]:
+    """:func:`run_window` of one window of each sequence, ``seqs[i]`` from ``bounds[i][0]`` to
+    ``bounds[i][1]`` starting at ``starts[i]``, all in one batched filter pass
+    (:func:`~flowins.filter.runner.run_filters`)."""
+    starts = [None] * len(seqs) if starts is None else starts
+    inputs = []
+    for seq, (i_a, i_b), start in zip(seqs, bounds, starts):
+        if start is None and i_a != 0:
+            raise ValueError(f"run_window: a window starting at IMU sample {i_a} needs the state there (start=...)")
+        gnss, flow = seq.sources(method)
+        imu = seq.imu
+        t_a, t_b = float(imu.t_s[i_a]), float(imu.t_s[i_b])
+        if flow is not None:
+            # only the pairs this window uses (and the one before, whose end frame augments)
+            flow = flow.select((flow.t2_s > t_a - 1.0) & (flow.t2_s <= t_b))
+            if dropout_p is not None:
+                flow = flow.at_dropout_rate(dropout_p)
+        setup = prepare_navigation(imu, gnss, config=config, flow=flow, camera=seq.camera if flow is not None else None)
+        if setup.start.index != 0:
+            raise ValueError(f"training starts the filter at the first IMU sample; filter.init.mode={setup.start.mode} "
+                             f"starts it at row {setup.start.index}: use filter.init.mode=still or moving")
+        first = start is None
+        events = [e for e in setup.events if (t_a < e.time_s or (first and e.time_s == t_a)) and e.time_s <= t_b]
+        mean0, cov0 = (setup.mean0, setup.cov0) if first else start
+        inputs.append(FilterInput(imu.t_s[i_a : i_b + 1], imu.acc_mps2[i_a : i_b + 1], imu.gyro_rps[i_a : i_b + 1],
+                                  mean0, cov0, events))
+    tracks = run_filters(inputs, **config.filter_settings())
+    return [WindowResult(track.in_final_frame(), track.node_mean[-1], track.node_cov[-1]) for track in tracks]
 
 
 class WindowLoss(NamedTuple):

@@ -128,3 +128,37 @@ def test_a_training_recording_with_an_impossible_reading_is_refused(tmp_path):
     cfg = _cfg(tmp_path)
     with pytest.raises(ValueError, match=r"imu\.csv: sample 321 .*accelerometer reading 1e\+06 m/s².*imu\.acc_range_mps2"):
         load_training_sequence({"path": str(folder)}, cfg, methods=["ins_gnss"])
+
+
+def test_a_batch_of_windows_has_the_mean_loss_and_gradient_of_its_sequences_windows(workdir):
+    """run_windows: the windows of two sequences in one batched filter; the mean of their
+    losses has the mean of the gradients each window gives alone (run_window)."""
+    from flowins.training.unroll import run_windows
+
+    cfg = _cfg(workdir, "experiment=mistuned", *TINY)
+    seqs = [load_training_sequence({"seed": seed, "duration_s": 20.0}, {**cfg, "flow": flow_settings(cfg)},
+                                   methods=["ins_gnss"]) for seed in (1, 2)]
+    base = navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=False))
+    _, start, learn = parameter_sets(cfg, base)
+    params = FilterParameters(start, learn)
+    learned = [(name, p) for name, p in params.raw.items() if p.requires_grad]
+    windows = [window_bounds(seq.imu.t_s, 10.0)[0] for seq in seqs]
+    losses, grads = [], []
+    for seq, window in zip(seqs, windows):
+        params.zero_grad()
+        result = run_window(seq, "ins_gnss", params.apply(base, training=True), window)
+        loss = window_loss(result.track, seq.truth).loss
+        loss.backward()
+        losses.append(float(loss.detach()))
+        grads.append({name: p.grad.clone() for name, p in learned if p.grad is not None})
+    params.zero_grad()
+    results = run_windows(seqs, "ins_gnss", params.apply(base, training=True), windows)
+    batch = [window_loss(r.track, seq.truth).loss for r, seq in zip(results, seqs)]
+    total = torch.stack(batch).mean()
+    total.backward()
+    assert [float(b.detach()) for b in batch] == pytest.approx(losses, rel=1e-9)
+    assert grads[0], "the GNSS window's loss has a gradient"
+    for name, p in learned:
+        if name in grads[0]:
+            expected = 0.5 * (grads[0][name] + grads[1][name])
+            torch.testing.assert_close(p.grad, expected, rtol=1e-7, atol=1e-12)
