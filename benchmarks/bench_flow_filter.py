@@ -10,8 +10,15 @@ Reads the default simulated walk and its dense flow pairs (both cached by
   sequential update, on the first ``--reference-s``
   seconds of the walk (it is slow), with its real-time factor scaled from that window.
 
-    python benchmarks/bench_flow_filter.py [--points 256] [--reference-s 20] [--repeats 3] [--breakdown-s 60]
-                                           [--count-ops-s 20]
+* flowins on ``--batch B`` recordings in one batched pass (:func:`flowins.navigation.navigate_batch`):
+  the walk B times, each copy with its own extra IMU noise and cut to its own length
+  (300 s, 293 s, 286 s, ...), so that the runs differ in values, gating and length. Its
+  real-time factor is the seconds of data of all B runs per second of wall time.
+
+The last line is ``RESULT single=<x>x batched=<x>x batch=<B>``.
+
+    python benchmarks/bench_flow_filter.py [--points 256] [--batch 8] [--reference-s 20] [--repeats 3]
+                                           [--breakdown-s 60] [--count-ops-s 20]
 """
 from __future__ import annotations
 
@@ -32,7 +39,7 @@ from flowins.data.load import load_recording
 from flowins.flow.load import load_flow
 from flowins.measurements.flow import FlowCamera
 from flowins.settings import navigation_config
-from flowins.navigation import navigate
+from flowins.navigation import NavigationRun, navigate, navigate_batch
 
 CONFIGS = str(Path(__file__).resolve().parents[1] / "configs")
 
@@ -47,6 +54,28 @@ def crop(rec, pairs, t_end):
     pk = (pairs.t2_s <= float(imu_c.t_s[-1])).nonzero().squeeze(-1).tolist()
     sub = dataclasses.replace(pairs, t1_s=pairs.t1_s[pk], t2_s=pairs.t2_s[pk], points=[pairs.points[i] for i in pk])
     return imu_c, gnss_c, sub
+
+
+def batch_runs(rec, pairs, camera, count: int) -> list[NavigationRun]:
+    """The walk ``count`` times: run ``b`` cut 7 b seconds short, with extra white IMU noise of
+    its own (1e-3 m/s², 1e-4 rad/s per sample, seed ``b``); run 0 is the walk itself."""
+    runs = []
+    end = float(rec.imu.t_s[-1])
+    for b in range(count):
+        imu, gnss, sub = crop(rec, pairs, end - 7.0 * b)
+        if b:
+            gen = torch.Generator().manual_seed(b)
+            acc = imu.acc_mps2 + 1e-3 * torch.randn(imu.acc_mps2.shape, generator=gen, dtype=imu.acc_mps2.dtype)
+            gyro = imu.gyro_rps + 1e-4 * torch.randn(imu.gyro_rps.shape, generator=gen, dtype=imu.gyro_rps.dtype)
+            imu = ImuStream(imu.t_s, acc, gyro, name=imu.name)
+        runs.append(NavigationRun(imu, gnss, flow=sub, camera=camera))
+    return runs
+
+
+def run_batch(runs, config) -> tuple[float, list]:
+    start = time.perf_counter()
+    results = navigate_batch(runs, config=config)
+    return time.perf_counter() - start, results
 
 
 def run(imu, gnss, pairs, camera, config):
@@ -144,6 +173,7 @@ def count_ops(imu, gnss, pairs, camera, config) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--points", type=int, default=256)
+    parser.add_argument("--batch", type=int, default=8, help="recordings in the batched run (0: skip it)")
     parser.add_argument("--reference-s", type=float, default=20.0)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--breakdown-s", type=float, default=60.0,
@@ -171,6 +201,15 @@ def main() -> None:
     print(f"flowins:       {fast:7.2f} s for {duration:.0f} s  -> {duration / fast:6.1f}x real time "
           f"(median of {args.repeats}; {used:.0f} valid points per frame)")
 
+    batched = None
+    if args.batch > 0:
+        runs = batch_runs(rec, pairs, FlowCamera.from_sequence(rec.sequence), args.batch)
+        seconds = sum(float(r.imu.t_s[-1] - r.imu.t_s[0]) for r in runs)
+        wall, results = run_batch(runs, config)
+        batched = seconds / wall
+        print(f"batch of {args.batch}: {wall:7.2f} s for {seconds:.0f} s of data -> {batched:6.1f}x real time "
+              f"({batched / (duration / fast):.2f}x the single run's rate)")
+
     paper = dataclasses.replace(config, jacobians="autodiff",
                                 flow_update=dataclasses.replace(config.flow_update, sequential=True))
     imu_c, gnss_c, pairs_c = crop(rec, pairs, args.reference_s)
@@ -183,6 +222,8 @@ def main() -> None:
         breakdown(*crop(rec, pairs, args.breakdown_s), FlowCamera.from_sequence(rec.sequence), config)
     if args.count_ops_s > 0:
         count_ops(*crop(rec, pairs, args.count_ops_s), FlowCamera.from_sequence(rec.sequence), config)
+    print(f"RESULT single={duration / fast:.1f}x batched={'n/a' if batched is None else f'{batched:.1f}x'} "
+          f"batch={args.batch}")
 
 
 if __name__ == "__main__":

@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 from torch.func import jacrev, vmap
 
+from flowins.constants import cached_constant
 from flowins.state import symmetrize
 
 # --------------------------------------------------------------------------- prediction
@@ -175,17 +176,29 @@ def joseph_update(
 
 
 def _cholesky_psd(cov: Tensor) -> Tensor:
-    """A Cholesky factor of a positive semi-definite ``cov``: a jitter of ``1e-16`` of the
-    largest variance (rounding level), raised by 100x while the factorisation fails
-    (``P`` is singular right after the pose copy, up to its nugget)."""
-    eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
+    """A Cholesky factor of a positive semi-definite ``cov`` ``(..., D, D)``: a jitter of
+    ``1e-16`` of the largest variance (rounding level), raised by 100x for each matrix
+    whose factorisation fails (``P`` is singular right after the pose copy, up to its
+    nugget); each matrix of a batch gets the jitter it alone would get."""
+    eye = _eye(cov.shape[-1], cov.dtype, cov.device)
     scale = cov.diagonal(dim1=-2, dim2=-1).amax(-1, keepdim=True).unsqueeze(-1).detach().clamp_min(torch.finfo(cov.dtype).tiny)
-    for exponent in range(-16, -5, 2):
-        F, info = torch.linalg.cholesky_ex(cov + (10.0**exponent * scale) * eye)
-        if not bool((info != 0).any()):
+    F, info = torch.linalg.cholesky_ex(cov + (1e-16 * scale) * eye)
+    for exponent in range(-14, -5, 2):
+        failed = info != 0
+        if not bool(failed.any()):
             return F
+        retry, info_retry = torch.linalg.cholesky_ex(cov + (10.0**exponent * scale) * eye)
+        F = torch.where(failed[..., None, None], retry, F)
+        info = torch.where(failed, info_retry, info)
+    if not bool((info != 0).any()):
+        return F
     raise ValueError("scalar_update: the state covariance is not positive semi-definite "
                      "(Cholesky failed even with a jitter of 1e-6 of its largest variance)")
+
+
+@cached_constant
+def _eye(n: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    return torch.eye(n, dtype=dtype, device=device)
 
 
 def scalar_update(
@@ -211,7 +224,7 @@ def scalar_update(
     semi-definite.
     """
     Ht_Rinv = (H / noise_var.unsqueeze(-1)).transpose(-1, -2)  # (..., D, M)
-    eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
+    eye = _eye(cov.shape[-1], cov.dtype, cov.device)
     F = _cholesky_psd(cov)
     FtHtR = F.transpose(-1, -2) @ Ht_Rinv  # (..., D, M)
     W = torch.linalg.cholesky(eye + FtHtR @ (H @ F))

@@ -104,3 +104,18 @@ def test_a_prediction_on_some_rows_moves_the_others_newest_node():
     torch.testing.assert_close(first.node_cov[1], 0.5 * torch.eye(STATE_DIM, dtype=F64) + torch.eye(STATE_DIM, dtype=F64))
     assert torch.equal(first.transition[1], A)
     assert torch.equal(second.node_mean[0], new_mean[0]) and torch.equal(second.pred_mean[0], mean[1, 0])
+
+
+def test_the_cholesky_jitter_one_covariance_needs_leaves_the_others_of_the_batch_alone():
+    from flowins.filter.ekf import _cholesky_psd
+
+    gen = torch.Generator().manual_seed(1)
+    A = torch.randn(6, 6, generator=gen, dtype=F64)
+    good = A @ A.T + torch.eye(6, dtype=F64)
+    Q, _ = torch.linalg.qr(torch.randn(6, 6, generator=gen, dtype=F64))
+    # an eigenvalue of -1e-15 of the largest: the first jitter (1e-16) fails, the second works
+    bad = Q @ torch.diag(torch.tensor([1.0, 0.5, 0.2, 0.1, 0.05, -1e-15], dtype=F64)) @ Q.T
+    assert int(torch.linalg.cholesky_ex(bad + 1e-16 * torch.eye(6, dtype=F64))[1]) != 0
+    both = _cholesky_psd(torch.stack((good, bad)))
+    assert torch.equal(both[0], _cholesky_psd(good)) and torch.equal(both[1], _cholesky_psd(bad))
+    assert not torch.equal(both[0], torch.linalg.cholesky(good + 1e-14 * good.diagonal().max() * torch.eye(6, dtype=F64)))
