@@ -137,18 +137,23 @@ def breakdown(imu, gnss, pairs, camera, config) -> None:
     print(f"  {'the rest':18s} {1e3 * (total - sum(spent.values())) / n:6.2f} ms per frame")
 
 
-#: aten operations that only make a view (counted apart by --count-ops)
-VIEW_OPS = frozenset({
-    "aten.slice.Tensor", "aten.select.int", "aten.view.default", "aten.unsqueeze.default", "aten.expand.default",
-    "aten._unsafe_view.default", "aten.transpose.int", "aten.t.default", "aten.squeeze.dim", "aten.squeeze.default",
-    "aten.permute.default", "aten.alias.default", "aten.as_strided.default", "aten.detach.default",
-    "aten.unbind.int", "aten.split.Tensor", "aten.lift_fresh.default",
-})
+def makes_view(func, args, out) -> bool:
+    """Whether an aten call only made a view of its input (no kernel, no copy): its schema
+    returns an alias of the input (``OpOverload.is_view``: slices, transposes, ``unflatten``,
+    ``diagonal``, ...) and the result shares the input's storage (``reshape`` of a
+    non-contiguous tensor copies and counts as an operation)."""
+    if not getattr(func, "is_view", False):
+        return False
+    source = next((a for a in args if isinstance(a, torch.Tensor)), None)
+    result = out[0] if isinstance(out, (list, tuple)) and out else out
+    if source is None or not isinstance(result, torch.Tensor):
+        return True
+    return result.untyped_storage().data_ptr() == source.untyped_storage().data_ptr()
 
 
 def count_ops(imu, gnss, pairs, camera, config) -> None:
-    """PyTorch operations per flow frame (dispatcher calls, views apart), in all and per
-    stage (the innermost stage running): what the per-operation overhead multiplies."""
+    """PyTorch operations per flow frame (dispatcher calls, views apart: :func:`makes_view`), in
+    all and per stage (the innermost stage running): what the per-operation overhead multiplies."""
     from torch.utils._python_dispatch import TorchDispatchMode
 
     stack: list[str] = []
@@ -157,8 +162,9 @@ def count_ops(imu, gnss, pairs, camera, config) -> None:
     class Count(TorchDispatchMode):
         def __torch_dispatch__(self, func, types, args=(), kwargs=None):
             where = counts.setdefault(stack[-1] if stack else "the rest", {"operations": 0, "views": 0})
-            where["views" if str(func) in VIEW_OPS else "operations"] += 1
-            return func(*args, **(kwargs or {}))
+            out = func(*args, **(kwargs or {}))
+            where["views" if makes_view(func, args, out) else "operations"] += 1
+            return out
 
     with stages_wrapped(stack, {}), Count(), torch.inference_mode():
         navigate(imu, gnss, config=config, flow=pairs, camera=camera)

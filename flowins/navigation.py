@@ -144,8 +144,7 @@ def flow_frames(pairs, camera, update: FlowUpdate, *, t_min_s: float, t_max_s: f
     events: list[FlowFrame] = []
     outside = 0
     last = None
-    for k in range(len(pairs)):
-        t1, t2 = float(pairs.t1_s[k]), float(pairs.t2_s[k])
+    for k, (t1, t2) in enumerate(zip(pairs.t1_s.tolist(), pairs.t2_s.tolist())):
         if t1 < t_min_s or t2 > t_max_s:
             outside += 1
             continue

@@ -171,17 +171,18 @@ def normalize_quaternions(x: Tensor) -> Tensor:
     """
     if x.shape[-1] != STATE_DIM:
         raise ValueError(f"state must have last dimension {STATE_DIM}, got shape {tuple(x.shape)}")
-    tiny = torch.finfo(x.dtype).tiny ** 0.5
-    q, q_prev = x[..., STATE.q], x[..., STATE.q_prev]
-    return torch.cat(
-        (
-            x[..., : STATE.q.start],
-            q / torch.linalg.vector_norm(q, dim=-1, keepdim=True).clamp_min(tiny),
-            x[..., STATE.q.stop : STATE.q_prev.start],
-            q_prev / torch.linalg.vector_norm(q_prev, dim=-1, keepdim=True).clamp_min(tiny),
-        ),
-        dim=-1,
-    )
+    index = _quaternion_index(x.device)
+    q = x[..., index].unflatten(-1, (2, 4))
+    norm = torch.linalg.vector_norm(q, dim=-1, keepdim=True).clamp_min(torch.finfo(x.dtype).tiny ** 0.5)
+    return x.index_copy(-1, index, (q / norm).flatten(-2))
+
+
+@cache
+def _quaternion_index(device: torch.device) -> Tensor:
+    """Indices of ``q`` then ``q_prev`` in the state ``(8,)`` (an integer tensor: no gradient,
+    so the cache is safe in and out of inference mode)."""
+    with torch.inference_mode(False):
+        return STATE.indices("q", "q_prev").to(device)
 
 
 def symmetrize(cov: Tensor) -> Tensor:

@@ -114,6 +114,16 @@ def _copy_matrices(nugget_var: float | Tensor, dtype: torch.dtype, device) -> tu
 _cached_copy_matrices = cached_constant(_copy_matrices)
 
 
+@cached_constant
+def copy_index(device: torch.device) -> Tensor:
+    """``(26,)``: the state entry each entry of :func:`copy_pose`'s result copies (its ``T`` is
+    the identity's rows at these indices): itself on the core, ``p`` and ``q`` for the old pose."""
+    index = torch.arange(STATE_DIM, device=device)
+    index[STATE.p_prev] = torch.arange(STATE.p.start, STATE.p.stop, device=device)
+    index[STATE.q_prev] = torch.arange(STATE.q.start, STATE.q.stop, device=device)
+    return index
+
+
 def copy_pose(mean: Tensor, cov: Tensor, *, nugget_var: float | Tensor) -> tuple[Tensor, Tensor]:
     """The ``σ_{p,0}, σ_{q,0} → ∞`` limit of forgetting followed by augmentation.
 
@@ -166,6 +176,6 @@ def augment_pose_rows(chain: BatchChain, rows: list[int], *, sigma_p0: float | T
     elif mode == "limit":
         # one linear step, recorded as such so the smoother sees its transition
         T, Q = copy_matrices(nugget_var, dtype=like.dtype, device=like.device)
-        chain.linear_predict_rows(rows, T.unsqueeze(0), Q.unsqueeze(0))
+        chain.linear_predict_rows(rows, T.unsqueeze(0), Q.unsqueeze(0), select=copy_index(like.device))
     else:
         raise ValueError(f"pose augmentation mode must be 'paper' or 'limit', got {mode!r}")

@@ -168,7 +168,7 @@ def joseph_update(
     PHt = cov @ Ht
     S = symmetrize(H @ PHt + noise_cov)
     K = torch.linalg.solve(S, PHt.transpose(-1, -2)).transpose(-1, -2)
-    eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
+    eye = _eye(cov.shape[-1], cov.dtype, cov.device)
     D = eye - K @ H
     new_cov = D @ cov @ D.transpose(-1, -2) + K @ noise_cov @ K.transpose(-1, -2)
     new_mean = mean + (K @ innovation.unsqueeze(-1)).squeeze(-1)
@@ -182,15 +182,15 @@ def _cholesky_psd(cov: Tensor) -> Tensor:
     nugget); each matrix of a batch gets the jitter it alone would get."""
     eye = _eye(cov.shape[-1], cov.dtype, cov.device)
     scale = cov.diagonal(dim1=-2, dim2=-1).amax(-1, keepdim=True).unsqueeze(-1).detach().clamp_min(torch.finfo(cov.dtype).tiny)
-    F, info = torch.linalg.cholesky_ex(cov + (1e-16 * scale) * eye)
+    F, info = torch.linalg.cholesky_ex(cov + scale * _scaled_eye(cov.shape[-1], 1e-16, cov.dtype, cov.device))
     for exponent in range(-14, -5, 2):
-        failed = info != 0
-        if not bool(failed.any()):
+        if not bool(info.any()):
             return F
+        failed = info != 0
         retry, info_retry = torch.linalg.cholesky_ex(cov + (10.0**exponent * scale) * eye)
         F = torch.where(failed[..., None, None], retry, F)
         info = torch.where(failed, info_retry, info)
-    if not bool((info != 0).any()):
+    if not bool(info.any()):
         return F
     raise ValueError("scalar_update: the state covariance is not positive semi-definite "
                      "(Cholesky failed even with a jitter of 1e-6 of its largest variance)")
@@ -199,6 +199,11 @@ def _cholesky_psd(cov: Tensor) -> Tensor:
 @cached_constant
 def _eye(n: int, dtype: torch.dtype, device: torch.device) -> Tensor:
     return torch.eye(n, dtype=dtype, device=device)
+
+
+@cached_constant
+def _scaled_eye(n: int, factor: float, dtype: torch.dtype, device: torch.device) -> Tensor:
+    return factor * torch.eye(n, dtype=dtype, device=device)
 
 
 def scalar_update(
@@ -243,7 +248,7 @@ def block_nis(cov: Tensor, innovation: Tensor, H: Tensor, noise_cov: Tensor) -> 
     """
     if innovation.shape[-1] == 1:  # scalars: S_i = h_i P h_iᵀ + r_i without M tiny solves
         h = H[..., 0, :]
-        S = ((h @ cov) * h).sum(-1) + noise_cov[..., 0, 0]
+        S = torch.linalg.vecdot(h @ cov, h) + noise_cov[..., 0, 0]
         return innovation[..., 0] ** 2 / S
     S = symmetrize(H @ cov.unsqueeze(-3) @ H.transpose(-1, -2) + noise_cov)
     return (innovation * torch.linalg.solve(S, innovation.unsqueeze(-1)).squeeze(-1)).sum(-1)

@@ -159,7 +159,7 @@ def _suffix_products(F: Tensor) -> Tensor:
 
 def _eye_like(F: Tensor) -> Tensor:
     """An identity ``(..., 1, D, D)`` matching ``F`` ``(..., L, D, D)``."""
-    return _identity_step(F.dtype, F.device)[0].expand(*F.shape[:-3], 1, *F.shape[-2:])
+    return _identity_step(F.dtype, F.device)[:, 0].expand(*F.shape[:-3], 1, *F.shape[-2:])
 
 
 def _prefix_compose(F: Tensor, S: Tensor) -> tuple[Tensor, Tensor]:
@@ -204,7 +204,10 @@ def plan_nodes(node_steps: Sequence[Sequence[int]], num_steps: int, *, device=No
     L = max(1, max(len(i) for row in intervals for i in row))
     sentinel = len(rows) * num_steps
     group = [[[b * num_steps + k for k in i] + [sentinel] * (L - len(i)) for i in row] for b, row in enumerate(intervals)]
-    return NodePlan(torch.tensor(group, device=device), torch.tensor(node_step, device=device), real)
+    # one tensor for both (each tensor made from Python numbers is two operations)
+    both = torch.tensor([[g + [step] for g, step in zip(rows, steps)] for rows, steps in zip(group, node_step)],
+                        device=device)
+    return NodePlan(both[..., :L], both[..., L], real)
 
 
 def _check_nodes(node_steps: Sequence[int] | Tensor, num_steps: int, *, allow_empty: bool = False) -> list[int]:
@@ -228,9 +231,10 @@ def propagate_batched(
     dt_s: Tensor,
     node_steps: Tensor | NodePlan,
     *,
-    noise: ProcessNoise | Sequence[ProcessNoise],
+    noise: ProcessNoise | Sequence[ProcessNoise] | None = None,
     gravity_mps2: float | Tensor,
     scheme: str = "midpoint",
+    variances: Tensor | None = None,
 ) -> Propagated:
     """Fast path: propagate ``(x0, P0)`` over ``K`` steps, reporting at the nodes.
 
@@ -240,33 +244,50 @@ def propagate_batched(
             ``K - 1``. Or a batch of ``B`` runs: x0 ``(B, 26)``, P0 ``(B, 26, 26)``,
             acc/gyro ``(B, K, 3)``, dt ``(B, K)`` and node_steps a :class:`NodePlan`
             (:func:`plan_nodes`); a row's steps with ``Δt = 0`` are identities (padding).
-        noise: one for all rows, or one per row.
+        noise: one for all rows, or one per row; or ``variances`` ``(K, 15)`` or ``(B, K, 15)``,
+            the steps' noise variances (:meth:`ProcessNoise.variances`) computed beforehand.
     Returns: ``(m, ...)`` outputs, or ``(B, m, ...)`` with each row's padding nodes first.
     """
     if not isinstance(node_steps, NodePlan):
         _check_nodes(node_steps, dt_s.shape[-1])
         plan = plan_nodes([node_steps], dt_s.shape[-1], device=dt_s.device)
         out = propagate_batched(x0.unsqueeze(0), P0.unsqueeze(0), acc_mps2.unsqueeze(0), gyro_rps.unsqueeze(0),
-                                dt_s.unsqueeze(0), plan, noise=noise, gravity_mps2=gravity_mps2, scheme=scheme)
+                                dt_s.unsqueeze(0), plan, noise=noise, gravity_mps2=gravity_mps2, scheme=scheme,
+                                variances=None if variances is None else variances.unsqueeze(0))
         return Propagated(*(t[0] for t in out))
     plan = node_steps
     B, K = dt_s.shape
     means, pieces = _run_pieces(x0, acc_mps2, gyro_rps, dt_s, gravity_mps2, scheme)  # (B, K, 26)
     F, G = core_jacobians_from_pieces(pieces, scheme)  # (B, K, 19, 19), (B, K, 19, 15)
-    W = (G * _variances(noise, dt_s).unsqueeze(-2)) @ G.transpose(-1, -2)
-    eye, zero = _identity_step(F.dtype, F.device)
-    group = plan.group.reshape(-1)
-    F_nodes = torch.cat((F.reshape(B * K, CORE_DIM, CORE_DIM), eye))[group]  # (B m L, 19, 19)
-    W_nodes = torch.cat((W.reshape(B * K, CORE_DIM, CORE_DIM), zero))[group]
-    Phi_core, S_core = _interval_compose(F_nodes.unflatten(0, plan.group.shape), W_nodes.unflatten(0, plan.group.shape))
+    if (noise is None) == (variances is None):
+        raise ValueError("propagate_batched: give the process noise or the steps' variances, one of them")
+    W = (G * (_variances(noise, dt_s) if variances is None else variances).unsqueeze(-2)) @ G.transpose(-1, -2)
+    # each node interval's steps, padded with identity steps (one gather of F and W together)
+    steps = torch.cat((torch.stack((F, W), dim=-3).reshape(B * K, 2, CORE_DIM, CORE_DIM), _identity_step(F.dtype, F.device)))
+    grouped = steps[plan.group.reshape(-1)].unflatten(0, plan.group.shape)  # (B, m, L, 2, 19, 19)
+    Phi_core, S_core = _interval_compose(grouped[..., 0, :, :], grouped[..., 1, :, :])
     Phi, S = embed_core(Phi_core)[0], pad_core(S_core)  # (B, m, 26, 26)
-    # covariance at every node at once: P_j = Φ_{0→j} P0 Φ_{0→j}ᵀ + S_{0→j}
-    Phi_pre, S_pre = _prefix_compose(Phi, S)
-    covs = symmetrize(Phi_pre @ P0.unsqueeze(-3) @ Phi_pre.transpose(-1, -2) + S_pre)
+    covs = _node_covariances(P0, Phi, S)
     # node means: the state after each node's step, the start for a padding node (step -1)
     node_mean = torch.cat((x0.unsqueeze(-2), means), dim=-2).gather(
         -2, (plan.node_step + 1).unsqueeze(-1).expand(*plan.node_step.shape, STATE_DIM))
     return Propagated(node_mean, covs, Phi)
+
+
+def _node_covariances(P0: Tensor, Phi: Tensor, S: Tensor) -> Tensor:
+    """``P_j`` at the ``m`` nodes ``(..., m, D, D)`` from ``P0`` ``(..., D, D)`` and the node
+    intervals' transitions and noises: node by node for ``m <= 2`` (fewer operations),
+    otherwise all at once, ``P_j = Φ_{0→j} P0 Φ_{0→j}ᵀ + S_{0→j}`` with prefix compositions."""
+    m = Phi.shape[-3]
+    if m <= 2:
+        covs, P = [], P0
+        for j in range(m):
+            F = Phi[..., j, :, :]
+            P = F @ P @ F.transpose(-1, -2) + S[..., j, :, :]
+            covs.append(P)
+        return symmetrize(covs[0].unsqueeze(-3) if m == 1 else torch.stack(covs, dim=-3))
+    Phi_pre, S_pre = _prefix_compose(Phi, S)
+    return symmetrize(Phi_pre @ P0.unsqueeze(-3) @ Phi_pre.transpose(-1, -2) + S_pre)
 
 
 def _variances(noise: ProcessNoise | Sequence[ProcessNoise], dt_s: Tensor) -> Tensor:
@@ -279,10 +300,10 @@ def _variances(noise: ProcessNoise | Sequence[ProcessNoise], dt_s: Tensor) -> Te
 
 
 @cached_constant
-def _identity_step(dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
-    """The padding step: identity transition ``(1, 19, 19)`` and zero noise."""
-    eye = torch.eye(CORE_DIM, dtype=dtype, device=device).unsqueeze(0)
-    return eye, torch.zeros_like(eye)
+def _identity_step(dtype: torch.dtype, device: torch.device) -> Tensor:
+    """The padding step ``(1, 2, 19, 19)``: identity transition and zero noise."""
+    eye = torch.eye(CORE_DIM, dtype=dtype, device=device)
+    return torch.stack((eye, torch.zeros_like(eye))).unsqueeze(0)
 
 
 def propagate_reference(

@@ -25,7 +25,7 @@ from flowins.progress import progress as track_progress
 from flowins.filter.ekf import UpdateResult, linear_predict
 from flowins.filter.propagation import plan_nodes, propagate_batched, propagate_reference
 from flowins.ins.mechanization import STANDARD_GRAVITY_MPS2, ProcessNoise
-from flowins.state import STATE_DIM, normalize_quaternions, symmetrize
+from flowins.state import NOISE_DIM, STATE_DIM, normalize_quaternions, symmetrize
 
 
 class Event(Protocol):
@@ -144,14 +144,20 @@ class BatchChain:
                 self.logs[b].append({"t_s": self.time_s(b), **info})
 
     def linear_predict_rows(self, rows: Sequence[int], A: Tensor, Q: Tensor, b: Tensor | None = None,
-                            infos: Sequence[dict[str, Any]] | None = None) -> None:
+                            infos: Sequence[dict[str, Any]] | None = None, *, select: Tensor | None = None) -> None:
         """A node at the same time on the rows ``rows``: ``m = A m + b``, ``P = A P Aᵀ + Q``
-        (``A``, ``Q`` ``(r or 1, 26, 26)``, ``b`` ``(r or 1, 26)``)."""
+        (``A``, ``Q`` ``(r or 1, 26, 26)``, ``b`` ``(r or 1, 26)``). ``select`` ``(26,)``: ``A`` is
+        the identity's rows ``select`` (a copy of state entries), so ``A m = m[select]`` and
+        ``A P Aᵀ = P[select][:, select]`` exactly, without matrix products."""
         self._check_current(rows)
         everyone = list(rows) == list(range(self.rows))
         index = None if everyone else torch.tensor(rows, device=A.device)
         mean, cov = (self.mean, self.cov) if everyone else (self.mean[index], self.cov[index])
-        m, P = linear_predict(mean, cov, A, Q, None if b is None else b)
+        if select is None:
+            m, P = linear_predict(mean, cov, A, Q, None if b is None else b)
+        else:
+            m = mean[..., select] if b is None else mean[..., select] + b
+            P = cov[..., select, :][..., select] + Q
         r = len(rows)
         A = A.expand(r, *A.shape[-2:])
         if everyone:
@@ -400,6 +406,7 @@ class _Run(NamedTuple):
     acc: Tensor  # (S, 3) the reading driving each step
     gyro: Tensor
     dt: Tensor  # (S,)
+    variances: Tensor  # (S, 15) the steps' process noise variances
     segments: list[tuple[int, int, list[int], list[float], list]]  # first, last step, node steps, times, events
     early: list  # events at the start time
 
@@ -448,8 +455,8 @@ def run_filters(
         return [run_filters([run], noise=noise, output_every=output_every, gravity_mps2=gravity_mps2,
                             jacobians=jacobians, scheme=scheme)[0] for run in runs]
     dtype, device = like.dtype, like.device
-    plans = [_prepare(run, output_every, dtype, device) for run in runs]
     noises = [run.noise or noise for run in runs]
+    plans = [_prepare(run, output_every, dtype, device, n) for run, n in zip(runs, noises)]
     B = len(runs)
     chain = BatchChain(B)
     eye = torch.eye(STATE_DIM, dtype=dtype, device=device)
@@ -462,14 +469,15 @@ def run_filters(
     pad = offsets[-1]
     flat = None if B == 1 else [torch.cat([getattr(plan, name) for plan in plans] + [zero])
                                  for name, zero in (("acc", like.new_zeros(1, 3)), ("gyro", like.new_zeros(1, 3)),
-                                                    ("dt", like.new_zeros(1)))]
+                                                    ("dt", like.new_zeros(1)), ("variances", like.new_zeros(1, NOISE_DIM)))]
     count = max(len(plan.segments) for plan in plans)
     for k in track_progress(range(count), total=count, description="filter", unit="update", enabled=progress):
         segments = [plan.segments[k] if k < len(plan.segments) else None for plan in plans]
         L = max(last - first + 1 for first, last, *_ in filter(None, segments))
         if B == 1:
             first, last = segments[0][:2]
-            acc, gyro, dt = (getattr(plans[0], name)[first:last + 1].unsqueeze(0) for name in ("acc", "gyro", "dt"))
+            acc, gyro, dt, variances = (getattr(plans[0], name)[first:last + 1].unsqueeze(0)
+                                        for name in ("acc", "gyro", "dt", "variances"))
             node_steps = [[step - first for step in segments[0][2]]]
         else:
             index, node_steps = [], []
@@ -483,10 +491,10 @@ def run_filters(
                 index.append([pad] * shift + list(range(offset + first, offset + last + 1)))
                 node_steps.append([step - first + shift for step in steps])
             index = torch.tensor(index, device=device)
-            acc, gyro, dt = (part[index] for part in flat)
+            acc, gyro, dt, variances = (part[index] for part in flat)
         nodes = plan_nodes(node_steps, L, device=device)
         if jacobians == "analytic":
-            out = propagate_batched(chain.mean, chain.cov, acc, gyro, dt, nodes, noise=noises,
+            out = propagate_batched(chain.mean, chain.cov, acc, gyro, dt, nodes, variances=variances,
                                     gravity_mps2=gravity_mps2, scheme=scheme)
         else:
             out = propagate_reference(chain.mean[0], chain.cov[0], acc[0], gyro[0], dt[0],
@@ -521,7 +529,8 @@ def apply_events(chain: BatchChain, events: Sequence[Sequence[Event]]) -> None:
             type(members[0][1]).apply_batch(chain, [b for b, _ in members], [e for _, e in members])
 
 
-def _prepare(run: FilterInput, output_every: int, dtype: torch.dtype, device: torch.device) -> _Run:
+def _prepare(run: FilterInput, output_every: int, dtype: torch.dtype, device: torch.device,
+             noise: ProcessNoise) -> _Run:
     """One run's steps (IMU samples and event times), segments, nodes and events."""
     t_imu = torch.as_tensor(run.t_s, dtype=torch.float64)
     t0 = float(t_imu[0])
@@ -541,7 +550,7 @@ def _prepare(run: FilterInput, output_every: int, dtype: torch.dtype, device: to
             j += 1
         segments.append((start, end, steps, times, plan.events_by_step.get(end, [])))
         start = end + 1
-    return _Run(t0, acc, gyro, dt, segments, [e for e in events if e.time_s <= t0])
+    return _Run(t0, acc, gyro, dt, noise.variances(dt), segments, [e for e in events if e.time_s <= t0])
 
 
 class _Schedule(NamedTuple):
@@ -574,8 +583,7 @@ def _schedule(t_imu: Tensor, events: Sequence[Event], output_every: int) -> _Sch
     # a segment ends at each event step (the mean must be recomputed after updates)
     segment_ends = sorted(set(event_step.tolist()) | {grid.shape[0] - 1})
     events_by_step: dict[int, list[Event]] = {}
-    for event in events:
-        if event.time_s > t0:
-            step = int(torch.searchsorted(grid, torch.tensor(event.time_s, dtype=torch.float64)))
-            events_by_step.setdefault(step, []).append(event)
+    later = [event for event in events if event.time_s > t0]
+    for event, step in zip(later, event_step.tolist()):
+        events_by_step.setdefault(step, []).append(event)
     return _Schedule(grid, sample, torch.nonzero(is_node).squeeze(-1), segment_ends, events_by_step)

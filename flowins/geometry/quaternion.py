@@ -194,21 +194,31 @@ def from_matrix(R: Tensor) -> Tensor:
     return normalize(q)
 
 
-def _half_angle_terms(theta_sq: Tensor, *, derivative: bool = False) -> tuple[Tensor, ...]:
-    """``(cos(r/2), sin(r/2)/r)`` from ``r² = θ²``, and with ``derivative``
-    ``k = (r cos(r/2)/2 - sin(r/2))/r³`` (so that ``∂(sθ)/∂θ = s I + k θθᵀ``); below
-    ``r² = 10⁻⁶`` their Taylor series, so values and gradients are finite at 0."""
+def _half_angle_terms(theta_sq: Tensor, *, derivative: bool = False) -> Tensor:
+    """``(cos(r/2), sin(r/2)/r)`` from ``r² = θ²``, and with ``derivative`` also
+    ``k = (r cos(r/2)/2 - sin(r/2))/r³`` (so that ``∂(sθ)/∂θ = s I + k θθᵀ``), stacked
+    ``(..., 2 or 3)``; below ``r² = 10⁻⁶`` their Taylor series (one quadratic in ``r²`` for
+    all of them), so values and gradients are finite at 0."""
     small = theta_sq < _SMALL_ANGLE_SQ
     safe_sq = torch.where(small, 1.0, theta_sq)
     r = torch.sqrt(safe_sq)
     half = 0.5 * r
     cos, sin = torch.cos(half), torch.sin(half)
-    c = torch.where(small, 1.0 - theta_sq / 8.0 + theta_sq * theta_sq / 384.0, cos)
-    s = torch.where(small, 0.5 - theta_sq / 48.0 + theta_sq * theta_sq / 3840.0, sin / r)
-    if not derivative:
-        return c, s
-    k = torch.where(small, theta_sq / 960.0 - 1.0 / 24.0, (half * cos - sin) / (safe_sq * r))
-    return c, s, k
+    terms = [cos, sin / r]
+    if derivative:
+        terms.append((half * cos - sin) / (safe_sq * r))
+    a, b, c = _taylor_coefficients(len(terms), theta_sq.dtype, theta_sq.device)
+    x = theta_sq.unsqueeze(-1)
+    taylor = (x * c + b) * x + a
+    return torch.where(small.unsqueeze(-1), taylor, torch.stack(terms, -1))
+
+
+@cached_constant
+def _taylor_coefficients(count: int, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
+    """Coefficients of ``r⁰, r², r⁴`` of ``cos(r/2)``, ``sin(r/2)/r`` and ``k``, each ``(count,)``."""
+    table = torch.tensor([[1.0, 0.5, -1.0 / 24.0], [-1.0 / 8.0, -1.0 / 48.0, 1.0 / 960.0],
+                          [1.0 / 384.0, 1.0 / 3840.0, 0.0]], dtype=dtype, device=device)
+    return table[0, :count].clone(), table[1, :count].clone(), table[2, :count].clone()
 
 
 def from_rotation_vector(rotvec: Tensor) -> Tensor:
@@ -219,9 +229,8 @@ def from_rotation_vector(rotvec: Tensor) -> Tensor:
     """
     if rotvec.shape[-1] != 3:
         raise ValueError(f"rotation vector must have last dimension 3, got shape {tuple(rotvec.shape)}")
-    theta_sq = (rotvec * rotvec).sum(-1)
-    c, s = _half_angle_terms(theta_sq)
-    return torch.cat((c.unsqueeze(-1), s.unsqueeze(-1) * rotvec), dim=-1)
+    cs = _half_angle_terms((rotvec * rotvec).sum(-1))
+    return torch.cat((cs[..., :1], cs[..., 1:] * rotvec), dim=-1)
 
 
 def to_rotation_vector(q: Tensor) -> Tensor:
@@ -310,11 +319,18 @@ def from_rotation_vector_with_jacobian(theta: Tensor) -> tuple[Tensor, Tensor]:
     """
     if theta.shape[-1] != 3:
         raise ValueError(f"rotation vector must have last dimension 3, got shape {tuple(theta.shape)}")
-    c, s, k = _half_angle_terms((theta * theta).sum(-1), derivative=True)
-    s1 = s.unsqueeze(-1)
-    E = torch.cat((c.unsqueeze(-1), s1 * theta), dim=-1)
-    bottom = torch.diag_embed(s1.expand(*s.shape, 3)) + k[..., None, None] * (theta.unsqueeze(-1) * theta.unsqueeze(-2))
-    return E, torch.cat((((-0.5 * s1) * theta).unsqueeze(-2), bottom), dim=-2)
+    csk = _half_angle_terms((theta * theta).sum(-1), derivative=True)
+    c, s, k = csk[..., :1], csk[..., 1:2], csk[..., 2:]
+    E = torch.cat((c, s * theta), dim=-1)
+    # rows (-½ s θᵀ; s I + k θθᵀ) = s [0; I] + (-½ s, k θ) θᵀ
+    w = torch.cat((-0.5 * s, k * theta), dim=-1)
+    return E, s.unsqueeze(-1) * _lower_identity(theta.dtype, theta.device) + w.unsqueeze(-1) * theta.unsqueeze(-2)
+
+
+@cached_constant
+def _lower_identity(dtype: torch.dtype, device: torch.device) -> Tensor:
+    """``(4, 3)``: a zero row above the identity."""
+    return torch.cat((torch.zeros(1, 3, dtype=dtype, device=device), torch.eye(3, dtype=dtype, device=device)))
 
 
 def rotate_jacobian(q: Tensor, a: Tensor) -> Tensor:

@@ -67,36 +67,49 @@ class DltSolution(NamedTuple):
 
     point: Tensor  # (..., 4) unit null vector, oriented in front of camera 1
     conditioning: Tensor  # (...,) (σ₃ - σ₄) / σ₁
-    singular_values: Tensor  # (..., 4) of the equilibrated matrix, descending
-    right_vectors: Tensor  # (..., 4, 4) Vᴴ: rows are the right singular vectors (the last is ``point``)
     rows: Tensor  # (..., 4, 4) the equilibrated matrix A / |rows|
     row_norm: Tensor  # (..., 4) the row norms divided out
+    eigenvalues: Tensor  # (..., 4) of rowsᵀ rows, ascending: ≈ σ₄², σ₃², σ₂², σ₁²
+    eigenvectors: Tensor  # (..., 4, 4) their columns (column 0 before the Newton step)
+    residual: Tensor  # (..., 4) rows @ point
+    residual_sq: Tensor  # (...,) σ₄² = |rows @ point|²
+
+    @property
+    def singular_values(self) -> Tensor:
+        """``(..., 4)`` of the equilibrated matrix, descending (σ₄ from the residual)."""
+        top = self.eigenvalues[..., 1:].flip(-1).clamp_min(0.0).sqrt()
+        return torch.cat((top, self.residual_sq.sqrt().unsqueeze(-1)), -1)
+
+    @property
+    def right_vectors(self) -> Tensor:
+        """``(..., 4, 4)`` Vᴴ: rows are the right singular vectors, descending (the last is ``point``)."""
+        top = self.eigenvectors[..., 1:].flip(-1).transpose(-1, -2)
+        return torch.cat((top, self.point.unsqueeze(-2)), -2)
 
 
-def solve_dlt(A: Tensor, P1: Tensor) -> DltSolution:
+def solve_dlt(A: Tensor, P1: Tensor | None = None) -> DltSolution:
     """The smallest right singular vector of the row-equilibrated ``A`` ``(..., 4, 4)``, its
-    sign chosen so that the point is in front of camera ``P1`` ``(..., 3, 4)`` (see the
-    module doc for how it is computed)."""
+    sign chosen so that the point is in front of camera ``P1`` ``(..., 3, 4)`` (None: ``[I | 0]``;
+    see the module doc for how it is computed)."""
     tiny = torch.finfo(A.dtype).tiny
     norm = torch.linalg.vector_norm(A, dim=-1).clamp_min(tiny**0.5)
     rows = A / norm.unsqueeze(-1)  # equilibrate the rows (the solution is invariant)
     lam, V = torch.linalg.eigh(rows.transpose(-1, -2) @ rows)  # ascending
-    X, V3 = V[..., 0], V[..., 1:].flip(-1).transpose(-1, -2)  # V3: rows v₁, v₂, v₃
-    lam3 = lam[..., 1:].flip(-1).clamp_min(0.0)  # σ₁², σ₂², σ₃²
-    # Newton step X ← X - Σᵢ vᵢ vᵢᵀ (AᵀA X) / (σᵢ² - σ₄²); the gap is at least rounding
-    # (the rows have unit norm, so σ₁² >= 1): a degenerate point stays finite
-    gap = (lam3 - lam[..., :1]).clamp_min(torch.finfo(A.dtype).eps)
-    r = (rows.transpose(-1, -2) @ (rows @ X.unsqueeze(-1))).squeeze(-1)
-    X = X - (((V3 @ r.unsqueeze(-1)).squeeze(-1) / gap).unsqueeze(-2) @ V3).squeeze(-2)
-    point = X / torch.linalg.vector_norm(X, dim=-1, keepdim=True)
-    # the vector's sign is arbitrary: choose the one in front of camera 1
-    z1 = (P1[..., 2, :] * point).sum(-1, keepdim=True)
-    point = torch.where(z1 < 0, -point, point)
-    s4 = torch.linalg.vector_norm((rows @ point.unsqueeze(-1)).squeeze(-1), dim=-1, keepdim=True)
-    S = torch.cat((lam3.sqrt(), s4), -1)
-    Vh = torch.cat((V3, point.unsqueeze(-2)), -2)
-    conditioning = (S[..., -2] - S[..., -1]) / S[..., 0].clamp_min(tiny)
-    return DltSolution(point, conditioning, S, Vh, rows, norm)
+    # Newton step X ← X - Σᵢ vᵢ vᵢᵀ (AᵀA X) / (σᵢ² - σ₄²) over the other three eigenvectors,
+    # with vᵢᵀ AᵀA X = (A vᵢ)·(A X) from A itself; the gap is at least rounding (the rows have
+    # unit norm, so σ₁² >= 1): a degenerate point stays finite
+    AV = rows @ V
+    gap = (lam[..., 1:] - lam[..., :1]).clamp_min(torch.finfo(A.dtype).eps)
+    step = (AV[..., 1:].transpose(-1, -2) @ AV[..., :1]).squeeze(-1) / gap
+    X = V[..., 0] - (V[..., 1:] @ step.unsqueeze(-1)).squeeze(-1)
+    # unit norm, and of the sign that puts the point in front of camera 1 (the vector's sign is arbitrary)
+    z1 = X[..., 2] if P1 is None else torch.linalg.vecdot(X, P1[..., 2, :])
+    point = X / torch.copysign(torch.linalg.vector_norm(X, dim=-1), z1).unsqueeze(-1)
+    residual = (rows @ point.unsqueeze(-1)).squeeze(-1)
+    residual_sq = torch.linalg.vecdot(residual, residual)
+    s31 = lam[..., 1::2].clamp_min(0.0).sqrt()  # σ₃, σ₁
+    conditioning = (s31[..., 0] - residual_sq.sqrt()) / s31[..., 1].clamp_min(tiny)
+    return DltSolution(point, conditioning, rows, norm, lam, V, residual, residual_sq)
 
 
 def triangulate(P1: Tensor, P2: Tensor, x1: Tensor, x2: Tensor) -> Triangulation:

@@ -94,14 +94,16 @@ def core_jacobians_from_pieces(pieces: StepPieces, scheme: str) -> tuple[Tensor,
     q, theta, E, E_rot, dE, R_E, q_rot, C, acc_unbiased, a, T_a, dt = pieces
     batch = q.shape[:-1]
     dt3 = dt.unsqueeze(-1)  # (..., 1, 1)
-    LJ = quat.left_matrix(q).unsqueeze(-3) @ dE  # (..., 1|2, 4, 3): ∂(q ⊙ 𝒬)/∂θ
-    minus_dt3 = -dt3
-    dq_dbw = minus_dt3 * LJ[..., 0, :, :]  # (..., 4, 3)
+    # -Δt, -Δt/2 (the θ and θ/2 increments' ∂/∂b_ω) and Δt/2, in one product
+    dts = dt3.unsqueeze(-3) * _dt_factors(dt3.dtype, dt3.device)  # (..., 3, 1, 1)
+    # ∂(q ⊙ 𝒬{θ})/∂b_ω (and of 𝒬{θ/2}): -Δt L(q) ∂𝒬/∂θ (-Δt/2 for the half increment)
+    LJ = (quat.left_matrix(q).unsqueeze(-3) @ dE) * dts[..., : dE.shape[-3], :, :]  # (..., 1|2, 4, 3)
+    dq_dbw = LJ[..., 0, :, :]  # (..., 4, 3)
     dq_dq = R_E[..., 0, :, :]
     if scheme == "paper":
         drot = torch.cat((dq_dq, dq_dbw), dim=-1)  # (..., 4, 7): ∂q_rot/∂(q, b_ω)
     else:
-        drot = torch.cat((R_E[..., 1, :, :], (0.5 * minus_dt3) * LJ[..., 1, :, :]), dim=-1)
+        drot = torch.cat((R_E[..., 1, :, :], LJ[..., 1, :, :]), dim=-1)
     dv = dt3 * (quat.rotate_jacobian(q_rot, a) @ drot)  # (..., 3, 7): ∂v'/∂(q, b_ω)
     dtC = dt3 * C
     # the velocity rows over the columns q, b_a, b_w, T_a (resp. the noises acc, gyro)
@@ -112,7 +114,7 @@ def core_jacobians_from_pieces(pieces: StepPieces, scheme: str) -> tuple[Tensor,
     q_noise = torch.cat((zeros.expand(*batch, 4, 3), -dq_dbw), -1)  # (..., 4, 6)
     if scheme == "midpoint":
         # p' = p + v Δt + (Δt/2)(v' - v): (Δt/2) x the velocity rows without their identity
-        half = 0.5 * dt3
+        half = dts[..., 2, :, :]
         p_row, p_noise = half * v_row, half * v_noise
     else:
         p_row, p_noise = torch.zeros_like(v_row), torch.zeros_like(v_noise)
@@ -122,6 +124,12 @@ def core_jacobians_from_pieces(pieces: StepPieces, scheme: str) -> tuple[Tensor,
     G_top = torch.nn.functional.pad(torch.cat((p_noise, v_noise, q_noise), -2), (0, NOISE_DIM - 6))
     G = torch.cat((G_top, walks_G.expand(*batch, CORE_DIM - 10, NOISE_DIM)), -2)
     return F, G
+
+
+@cached_constant
+def _dt_factors(dtype: torch.dtype, device: torch.device) -> Tensor:
+    """The step's factors of Δt ``(3, 1, 1)``: -1 and -1/2 (∂θ/∂b_ω of the increments θ and θ/2), 1/2."""
+    return torch.tensor([-1.0, -0.5, 0.5], dtype=dtype, device=device).reshape(3, 1, 1)
 
 
 @cached_constant

@@ -8,9 +8,10 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from flowins.filter.augmentation import PoseAugmentation
+from flowins.constants import cached_constant
+from flowins.filter.augmentation import augment_pose_rows
 from flowins.filter.ekf import Gate, ekf_update
-from flowins.filter.runner import ChainBuilder
+from flowins.filter.runner import BatchChain, ChainBuilder
 from flowins.flow.points import FlowPoints
 from flowins.measurements.flow import FlowCamera, epipolar_update, flow_measurements
 from flowins.measurements.selection import select_points
@@ -133,46 +134,32 @@ class FlowFrame:
     jacobians: str = "analytic"
 
     def noise_sigma(self, sigma_px: Tensor) -> Tensor:
+        """``σ = sqrt((sigma_scale σ_flow)² + sigma_floor_px²)`` per component."""
         u = self.update
-        scale = torch.as_tensor(u.sigma_scale, dtype=sigma_px.dtype)
-        floor = torch.as_tensor(u.sigma_floor_px, dtype=sigma_px.dtype)
-        return torch.sqrt((scale * sigma_px) ** 2 + floor**2)
+        floor = u.sigma_floor_px
+        if not isinstance(floor, Tensor):
+            floor = _scalar(float(floor), sigma_px.dtype, sigma_px.device)
+        elif floor.dtype != sigma_px.dtype:
+            floor = floor.to(sigma_px.dtype)
+        return torch.hypot(u.sigma_scale * sigma_px, floor)
+
+    def batch_key(self) -> tuple:
+        """Frames with the same update settings and Jacobians act together in a batch."""
+        return (FlowFrame, id(self.update), self.jacobians)
 
     def apply(self, chain: ChainBuilder) -> None:
-        u = self.update
-        points = self.points
-        M = len(points)
-        if M:
-            mean, cov = chain.mean, chain.cov
-            points = type(points)(points.uv1_px.to(mean), points.flow_px.to(mean), self.noise_sigma(points.sigma_px.to(mean)))
-            if u.n_points is not None and M > u.n_points:
-                keep = select_points(mean, points, self.camera.K, self.camera.R_ci, n_points=u.n_points,
-                                     method=u.selection, cell_px=u.cell_px)
-                points = points.take(keep)
-            sigma = points.sigma_px
-            min_parallax = u.min_parallax_sigma * torch.linalg.vector_norm(sigma, dim=-1) / 2**0.5
-            x_i, result = mean, None
-            for _ in range(u.iterations):
-                m = flow_measurements(x_i, points.flow_px, points.uv1_px, self.camera, min_parallax_px=min_parallax,
-                                      jacobians=self.jacobians)
-                if not bool(m.valid.any()):
-                    break
-                upd = epipolar_update(m, sigma, parallax_inflation=u.parallax_inflation)
-                # iterated EKF: linearised at x_i, applied to the prior (mean, cov)
-                shift = (upd.H @ (mean - x_i).unsqueeze(-1)).squeeze(-1)
-                result = ekf_update(mean, cov, innovation=upd.innovation - shift, H=upd.H,
-                                    noise_cov=upd.noise_cov, gate=u.gate, sequential=u.sequential,
-                                    normalize=normalize_quaternions)
-                x_i = result.mean
-            info = dict(kind="flow", name=self.name, candidates=M, points=len(points), valid=int(m.valid.sum()),
-                        degenerate=m.n_degenerate, behind=m.n_behind, low_parallax=m.n_low_parallax)
-            accepted = 0.0 if result is None else float(result.weight.detach().sum())
-            if result is not None:
-                chain.update(result, accepted=accepted, **info)
-            else:
-                chain.log.append({"t_s": chain.time_s, "accepted": 0.0, **info})
-            self._recover(chain, valid=info["valid"], accepted=accepted)
-        PoseAugmentation(self.time_s, u.sigma_p0, u.sigma_q0, mode=u.augmentation_mode).apply(chain)
+        type(self).apply_batch(chain._batch, [chain._row], [self])
+
+    @classmethod
+    def apply_batch(cls, chain: BatchChain, rows: list[int], frames: list[FlowFrame]) -> None:
+        """The frames ``frames[i]`` (all with the same :attr:`update`) on the rows ``rows[i]`` of
+        ``chain``: the rows' points (padded to one count, with a mask) are selected,
+        linearised and update together, then every row's pose is forgotten and augmented."""
+        with_points = [i for i, frame in enumerate(frames) if len(frame.points)]
+        if with_points:
+            _flow_update(chain, [rows[i] for i in with_points], [frames[i] for i in with_points])
+        u = frames[0].update
+        augment_pose_rows(chain, rows, sigma_p0=u.sigma_p0, sigma_q0=u.sigma_q0, mode=u.augmentation_mode)
 
     def _recover(self, chain: ChainBuilder, *, valid: int, accepted: float) -> None:
         """Count consecutive gated frames; after ``recovery.after_frames`` inflate (:class:`FlowRecovery`)."""
@@ -185,3 +172,100 @@ class FlowFrame:
             eye = torch.eye(chain.mean.shape[-1], dtype=chain.mean.dtype)
             chain.linear_predict(eye, r.inflation(chain.mean), kind="flow_inflate", name=self.name, frames=gated)
             chain.memory["flow_gated"] = 0
+
+
+def _flow_update(chain: BatchChain, rows: list[int], frames: list[FlowFrame]) -> None:
+    """The flow update of frames with points on the rows ``rows``, their logs and recovery."""
+    first = frames[0]
+    u = first.update
+    everyone = rows == list(range(chain.rows))
+    index = None if everyone else torch.tensor(rows, device=chain.mean.device)
+    mean, cov = (chain.mean, chain.cov) if everyone else (chain.mean[index], chain.cov[index])
+    points, mask = stack_points([frame.points for frame in frames], like=mean)
+    points = FlowPoints(points.uv1_px, points.flow_px, first.noise_sigma(points.sigma_px))
+    camera = stack_cameras([frame.camera for frame in frames])
+    candidates = [len(frame.points) for frame in frames]
+    if u.n_points is not None and max(candidates) > u.n_points:
+        keep = select_points(mean, points, camera.K, camera.R_ci, n_points=u.n_points, method=u.selection,
+                             cell_px=u.cell_px, mask=mask)  # (r, n)
+        packed = torch.cat(points[:3], -1).gather(-2, keep.unsqueeze(-1).expand(*keep.shape, 6))  # one gather
+        points = FlowPoints(packed[..., 0:2], packed[..., 2:4], packed[..., 4:6])
+        mask = None if mask is None else mask.gather(-1, keep)
+    sigma = points.sigma_px
+    min_parallax = torch.linalg.vector_norm(sigma, dim=-1) * (u.min_parallax_sigma / 2**0.5)
+    # iterated EKF, linearised at x_i and applied to the prior (mean, cov); a row whose
+    # points are all invalid at an iteration stops there, keeping its previous result (none
+    # in the first iteration: no update) and that iteration's counts
+    x_i = mean
+    for iteration in range(u.iterations):
+        m = flow_measurements(x_i, points.flow_px, points.uv1_px, camera, mask=mask, min_parallax_px=min_parallax,
+                              jacobians=first.jacobians)
+        upd = epipolar_update(m, sigma, parallax_inflation=u.parallax_inflation)
+        innovation = upd.innovation if iteration == 0 else upd.innovation - (upd.H @ (mean - x_i)[:, None, :, None]).squeeze(-1)
+        step = ekf_update(mean, cov, innovation=innovation, H=upd.H, noise_cov=upd.noise_cov, gate=u.gate,
+                          sequential=u.sequential, normalize=normalize_quaternions)
+        counts_now = torch.stack((m.valid.sum(-1), m.n_degenerate, m.n_behind, m.n_low_parallax), -1)
+        accepted = (step.weight * m.valid).sum(-1)
+        if iteration == 0:
+            new_mean, new_cov, counts, weight = step.mean, step.cov, counts_now, accepted
+            updated = going = None if u.iterations == 1 else m.valid.any(-1)
+        else:
+            go = going & m.valid.any(-1)
+            new_mean = torch.where(go.unsqueeze(-1), step.mean, new_mean)
+            new_cov = torch.where(go[:, None, None], step.cov, new_cov)
+            counts = torch.where(going.unsqueeze(-1), counts_now, counts)
+            weight = torch.where(go, accepted, weight)
+            going = go
+        x_i = new_mean
+    counts_list, weights = counts.tolist(), weight.tolist()
+    # a row updated iff its first iteration had a valid point
+    done = [c[0] > 0 for c in counts_list] if updated is None else updated.tolist()
+    logs = []
+    for i, (frame, (valid, degenerate, behind, low), accepted, has) in enumerate(zip(frames, counts_list, weights, done)):
+        logs.append(dict(kind="flow", name=frame.name, candidates=candidates[i],
+                         points=candidates[i] if u.n_points is None else min(u.n_points, candidates[i]),
+                         valid=int(valid), degenerate=int(degenerate), behind=int(behind), low_parallax=int(low),
+                         accepted=float(accepted) if has else 0.0))
+    if all(done):
+        chain.update_rows(rows, new_mean, new_cov, logs)
+    else:
+        which = [i for i, has in enumerate(done) if has]
+        if which:
+            picked = torch.tensor(which, device=new_mean.device)
+            chain.update_rows([rows[i] for i in which], new_mean[picked], new_cov[picked], [logs[i] for i in which])
+        for i, has in enumerate(done):
+            if not has:
+                chain.logs[rows[i]].append({"t_s": chain.time_s(rows[i]), **logs[i]})
+    for b, frame, log in zip(rows, frames, logs):
+        frame._recover(chain.row(b), valid=log["valid"], accepted=log["accepted"])
+
+
+def stack_points(points: list[FlowPoints], *, like: Tensor) -> tuple[FlowPoints, Tensor | None]:
+    """The points of ``r`` frames as one batch ``(r, M, 2)`` (dtype and device of ``like``) and
+    the mask of real points ``(r, M)`` (None when every frame has ``M`` points)."""
+    counts = [len(p) for p in points]
+    M = max(counts)
+    if len(points) == 1:
+        stacked = [points[0][k].unsqueeze(0) for k in range(3)]
+    elif all(c == M for c in counts):
+        stacked = [torch.stack([p[k] for p in points]) for k in range(3)]
+    else:
+        pads = [(0, 0, 0, M - c) for c in counts]
+        stacked = [torch.stack([torch.nn.functional.pad(p[k], pad) for p, pad in zip(points, pads)]) for k in range(3)]
+    stacked = FlowPoints(*(x if x.dtype == like.dtype and x.device == like.device else x.to(like) for x in stacked))
+    if all(c == M for c in counts):
+        return stacked, None
+    mask = torch.arange(M, device=like.device) < torch.tensor(counts, device=like.device).unsqueeze(-1)
+    return stacked, mask
+
+
+@cached_constant
+def _scalar(value: float, dtype: torch.dtype, device: torch.device) -> Tensor:
+    return torch.tensor(value, dtype=dtype, device=device)
+
+
+def stack_cameras(cameras: list[FlowCamera]) -> FlowCamera:
+    """One camera for the batch: the shared one, or ``K``, ``R_ci``, ``t_ci`` stacked per row."""
+    if all(c is cameras[0] for c in cameras):
+        return cameras[0]
+    return FlowCamera(*(torch.stack([getattr(c, k) for c in cameras]) for k in ("K", "R_ci", "t_ci")))

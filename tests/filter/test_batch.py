@@ -119,3 +119,21 @@ def test_the_cholesky_jitter_one_covariance_needs_leaves_the_others_of_the_batch
     both = _cholesky_psd(torch.stack((good, bad)))
     assert torch.equal(both[0], _cholesky_psd(good)) and torch.equal(both[1], _cholesky_psd(bad))
     assert not torch.equal(both[0], torch.linalg.cholesky(good + 1e-14 * good.diagonal().max() * torch.eye(6, dtype=F64)))
+
+
+def test_the_pose_copy_by_index_is_the_matrix_step_exactly():
+    """The limit augmentation on a chain (entries copied by index) equals T m, T P Tᵀ + Q."""
+    from flowins.filter.augmentation import copy_matrices
+    from flowins.filter.runner import ChainBuilder
+
+    gen = torch.Generator().manual_seed(3)
+    mean = torch.randn(STATE_DIM, generator=gen, dtype=F64)
+    A = torch.randn(STATE_DIM, STATE_DIM, generator=gen, dtype=F64)
+    cov = A @ A.T
+    chain = ChainBuilder()
+    chain.add_node(0.0, torch.eye(STATE_DIM, dtype=F64), mean, cov)
+    PoseAugmentation(0.0, nugget_var=1e-6, mode="limit").apply(chain)
+    T, Q = copy_matrices(1e-6, dtype=F64)
+    assert torch.equal(chain.mean, T @ mean)
+    assert torch.equal(chain.cov, T @ cov @ T.T + Q)
+    assert torch.equal(chain.finish().transition[1], T)

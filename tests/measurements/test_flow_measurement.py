@@ -107,7 +107,9 @@ def test_analytic_jacobians_carry_the_same_second_derivatives(frame_pair):
 
 def test_one_pass_without_gradients_equals_the_tracked_two_passes(frame_pair):
     """Inference screens and linearises in one pass; with a gradient to carry it screens
-    first and differentiates the valid points only. Same numbers, same counts."""
+    first and differentiates the valid points only (gathered, so in batches of another
+    shape). Same numbers to rounding (ε / conditioning², and H_x sums products of that
+    size), same counts."""
     x, flow, uv1, camera = frame_pair
     still = x.clone()
     still[STATE.p_prev] = still[STATE.p]
@@ -119,7 +121,7 @@ def test_one_pass_without_gradients_equals_the_tracked_two_passes(frame_pair):
         assert torch.equal(fast.valid, tracked.valid) and fast.n_degenerate == tracked.n_degenerate
         for a, b in ((fast.residual, tracked.residual), (fast.H_x, tracked.H_x), (fast.H_r, tracked.H_r)):
             assert torch.isfinite(a).all()
-            torch.testing.assert_close(a, b.detach(), rtol=0, atol=1e-9)
+            torch.testing.assert_close(a, b.detach(), rtol=0, atol=1e-11 * max(1.0, float(a.abs().max())))
 
 
 def test_dominant_direction_is_the_first_left_singular_vector():

@@ -84,3 +84,69 @@ def test_select_points_by_parallax_prefers_large_parallax_over_sigma_and_checks_
         select_points(x, pts, K, torch.eye(3, dtype=F64), n_points=2, method="best")
     with pytest.raises(ValueError, match="n_points"):
         select_points(x, pts, K, torch.eye(3, dtype=F64), n_points=0)
+
+
+def _selection_rows(counts, seed):
+    """Per row: a state (a random turn between the frames), its own camera, and candidates."""
+    gen = torch.Generator().manual_seed(seed)
+    rows = []
+    for n in counts:
+        x = make_state(p=torch.zeros(3, dtype=F64), v=torch.zeros(3, dtype=F64),
+                       q=quat.from_rotation_vector(0.05 * torch.randn(3, generator=gen, dtype=F64)))
+        x = x.clone()
+        x[STATE.q_prev] = quat.from_rotation_vector(0.05 * torch.randn(3, generator=gen, dtype=F64))
+        f = 180.0 + 60.0 * torch.rand(1, generator=gen, dtype=F64)
+        K = torch.tensor([[float(f), 0, 160], [0, float(f), 120], [0, 0, 1]], dtype=F64)
+        R_ci = quat.to_matrix(quat.from_rotation_vector(0.3 * torch.randn(3, generator=gen, dtype=F64)))
+        uv1 = torch.rand(n, 2, generator=gen, dtype=F64) * torch.tensor([320.0, 240.0], dtype=F64)
+        uv1[: n // 3] *= 0.2  # a crowded corner
+        flow = 3.0 * torch.randn(n, 2, generator=gen, dtype=F64)
+        sigma = 0.2 + torch.rand(n, 2, generator=gen, dtype=F64)
+        rows.append((x, K, R_ci, FlowPoints(uv1, flow, sigma)))
+    return rows
+
+
+@pytest.mark.parametrize("method", ["parallax", "sigma", "grid"])
+@pytest.mark.parametrize("shape", [(1,), (3,), (3, 2)])
+@pytest.mark.parametrize("fill", ["tempting", "nan"])
+def test_a_batch_with_padding_picks_in_each_row_what_the_row_alone_picks(method, shape, fill):
+    """Rows of 30-90 candidates padded to 90 with candidates that would win every ranking
+    (in the crowded corner, large flow, tiny σ) or with NaN: the real picks of each row are
+    the row's own picks, in order, and the padding comes after them."""
+    counts = [90, 30, 64, 45, 90, 71][: math.prod(shape)]
+    rows = _selection_rows(counts, seed=len(counts))
+    M = max(counts)
+    mask = torch.arange(M) < torch.tensor(counts).unsqueeze(-1)
+    tensors = []
+    for k in range(3):
+        t = torch.stack([torch.cat((r[3][k], torch.zeros(M - len(r[3][k]), 2, dtype=F64))) for r in rows])
+        t[~mask] = {"tempting": (5.0, 50.0, 1e-3)[k], "nan": float("nan")}[fill]
+        tensors.append(t.reshape(*shape, M, 2))
+    points = FlowPoints(*tensors)
+    x, K, R_ci = (torch.stack([r[i] for r in rows]).reshape(*shape, *rows[0][i].shape) for i in range(3))
+    mask = mask.reshape(*shape, M)
+    for n_points in (20, 50):
+        picked = select_points(x, points, K, R_ci, n_points=n_points, method=method, cell_px=64.0, mask=mask)
+        assert picked.shape == (*shape, n_points)
+        real = torch.take_along_dim(mask, picked, -1).reshape(-1, n_points)
+        picked = picked.reshape(-1, n_points)
+        for b, (x_b, K_b, R_b, points_b) in enumerate(rows):
+            alone = select_points(x_b, points_b, K_b, R_b, n_points=n_points, method=method, cell_px=64.0)
+            n = len(alone)
+            assert n == min(n_points, counts[b])
+            assert bool(real[b, :n].all()) and not bool(real[b, n:].any())  # real first, then padding
+            assert picked[b, :n].tolist() == alone.tolist()
+
+
+def test_spread_top_k_with_a_mask_is_the_round_robin_of_the_real_points():
+    gen = torch.Generator().manual_seed(9)
+    uv = torch.rand(2, 200, 2, generator=gen, dtype=F64) * torch.tensor([320.0, 240.0], dtype=F64)
+    score = torch.rand(2, 200, generator=gen, dtype=F64)
+    mask = torch.rand(2, 200, generator=gen) < 0.6  # padding anywhere, not only at the end
+    score[~mask] = 10.0  # the best scores, were they real
+    got = spread_top_k(score, uv, 150, cell_px=64.0, mask=mask)
+    for b in range(2):
+        real = torch.nonzero(mask[b]).squeeze(-1)
+        want = [int(real[i]) for i in naive_spread_top_k(score[b, real], uv[b, real], 150, 64.0)]
+        assert got[b, : len(want)].tolist() == want
+        assert not bool(mask[b, got[b, len(want):]].any())
