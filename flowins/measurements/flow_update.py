@@ -3,6 +3,7 @@ order: flow update against the augmented previous pose, then pose forgetting and
 augmentation), with the point selection, noise, gate and recovery settings."""
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import torch
@@ -265,7 +266,27 @@ def _scalar(value: float, dtype: torch.dtype, device: torch.device) -> Tensor:
 
 
 def stack_cameras(cameras: list[FlowCamera]) -> FlowCamera:
-    """One camera for the batch: the shared one, or ``K``, ``R_ci``, ``t_ci`` stacked per row."""
+    """One camera for the batch: the shared one, or ``K``, ``R_ci``, ``t_ci`` stacked per row.
+
+    A stacked camera is kept for the next frames of the same cameras (the last few
+    combinations, with the cameras themselves, so their identities stay valid), so that the
+    terms it caches (:class:`~flowins.measurements.flow.FlowCamera`) are built once, not
+    once per frame; cameras with a gradient are stacked afresh."""
     if all(c is cameras[0] for c in cameras):
         return cameras[0]
-    return FlowCamera(*(torch.stack([getattr(c, k) for c in cameras]) for k in ("K", "R_ci", "t_ci")))
+    if any(c.tracked for c in cameras):
+        return FlowCamera(*(torch.stack([getattr(c, k) for c in cameras]) for k in ("K", "R_ci", "t_ci")))
+    key = tuple(id(c) for c in cameras)
+    if key in _STACKED:
+        _STACKED.move_to_end(key)
+        return _STACKED[key][1]
+    with torch.inference_mode(False):  # plain tensors, usable by later runs with gradients too
+        stacked = FlowCamera(*(torch.stack([getattr(c, k) for c in cameras]) for k in ("K", "R_ci", "t_ci")))
+    _STACKED[key] = (tuple(cameras), stacked)
+    while len(_STACKED) > 8:
+        _STACKED.popitem(last=False)
+    return stacked
+
+
+#: recently stacked cameras by the identities of their rows' cameras (:func:`stack_cameras`)
+_STACKED: OrderedDict[tuple[int, ...], tuple[tuple[FlowCamera, ...], FlowCamera]] = OrderedDict()

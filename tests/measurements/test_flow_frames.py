@@ -9,7 +9,7 @@ from flowins.data.simulate.world import build_city
 from flowins.data.synthetic import Walk, WalkConfig
 from flowins.measurements.flow_update import FlowFrame
 from flowins.flow.points import FlowPoints
-from flowins.filter.runner import run_filter
+from flowins.filter.runner import FilterInput, run_filter, run_filters
 from flowins.ins.initialization import augmented_covariance
 from flowins.ins.mechanization import ProcessNoise
 from flowins.measurements.flow import FlowCamera
@@ -62,3 +62,54 @@ def test_flow_frames_bound_the_inertial_drift_and_reveal_the_gyro_bias():
     assert float(b_w_err) < 0.3 * float(truth["b_w"][-1].norm())
     flows = [e for e in track.log if e.get("kind") == "flow"]
     assert len(flows) == len(events) - 1 and sum(e["valid"] + e["low_parallax"] for e in flows) >= 0.99 * 100 * len(flows)
+
+
+def _flow_run(t0, t1, n_points, seed, *, own_camera):
+    """INS + flow frames on the walk from ``t0`` to ``t1`` (``n_points`` per frame); with
+    ``own_camera`` the frames carry a camera object of their own (equal values)."""
+    walk = Walk(WalkConfig(duration_s=20.0))
+    t, acc, gyro, _ = simulate_imu(walk, SimulationConfig(duration_s=20.0), torch.Generator().manual_seed(0))
+    keep = (t >= t0) & (t <= t1 + 0.01)
+    t, acc, gyro = t[keep], acc[keep], gyro[keep]
+    cc = CameraConfig(width=160, height=120)
+    cam, T_ci = cc.intrinsics(), cc.imu_to_camera()
+    city = build_city(walk, seed=0)
+    times = torch.arange(math.ceil(float(t[0]) * 10) / 10, float(t[-1]), 0.1, dtype=F64)
+    R, P = CameraTrajectory(walk, T_ci).pose(times)
+    camera = FlowCamera.from_calibration(cam, T_ci)
+    if own_camera:
+        camera = FlowCamera(camera.K.clone(), camera.R_ci.clone(), camera.t_ci.clone())
+    gen = torch.Generator().manual_seed(seed)
+    events, previous = [], None
+    empty = torch.zeros(0, 2, dtype=F64)
+    for i, ti in enumerate(times.tolist()):
+        frame = render(city, cam, R[i], P[i], ti)
+        if previous is None:
+            events.append(FlowFrame(ti, FlowPoints(empty, empty, empty), camera))
+        else:
+            truth_flow = exact_flow(city, cam, previous[0], previous[1], (R[i], P[i], ti), frame)
+            ok = (truth_flow.valid & truth_flow.static & (truth_flow.depth < 8.0)).nonzero()
+            pick = ok[torch.randperm(ok.shape[0], generator=gen)[:n_points]]
+            uv1 = torch.stack((pick[:, 1], pick[:, 0]), -1).to(F64)
+            flow = truth_flow.flow[pick[:, 0], pick[:, 1]].to(F64) + 0.3 * torch.randn(pick.shape[0], 2, generator=gen, dtype=F64)
+            events.append(FlowFrame(ti, FlowPoints(uv1, flow, torch.full_like(flow, 0.3)), camera))
+        previous = (frame, (R[i], P[i], ti))
+    x0 = make_state(p=walk.position(t[:1])[0], v=walk.velocity(t[:1])[0], q=walk.quaternion(t[:1])[0])
+    sigma = torch.cat((torch.full((3,), 0.01), torch.full((3,), 0.01), torch.full((4,), 1e-3),
+                       torch.full((3,), 0.05), torch.full((3,), 0.01), torch.full((3,), 0.02))).to(F64)
+    return FilterInput(t, acc, gyro, x0, augmented_covariance(torch.diag(sigma**2), 1e-9), events)
+
+
+def test_flow_frames_of_unequal_runs_in_one_batch_equal_each_run_alone():
+    """Two runs with their own spans, point counts (padded and masked in the batch) and camera
+    objects, and frames that are not at the same times: each equals its run alone."""
+    runs = [_flow_run(5.0, 9.0, 60, 1, own_camera=False), _flow_run(6.03, 8.5, 90, 2, own_camera=True)]
+    batched = run_filters(runs, noise=ProcessNoise())
+    for run, track in zip(runs, batched):
+        alone = run_filter(t_s=run.t_s, acc_mps2=run.acc_mps2, gyro_rps=run.gyro_rps, mean0=run.mean0,
+                           cov0=run.cov0, noise=ProcessNoise(), events=run.events)
+        assert torch.equal(track.t_s, alone.t_s)
+        assert [e["accepted"] for e in track.log] == [e["accepted"] for e in alone.log]
+        for name in ("node_mean", "node_cov"):
+            x, y = getattr(track, name), getattr(alone, name)
+            torch.testing.assert_close(x, y, rtol=0, atol=1e-10 * max(1.0, float(y.abs().max())))
