@@ -156,7 +156,7 @@ class PoseAugmentation:
             raise ValueError(f"PoseAugmentation.mode must be 'paper' or 'limit', got {self.mode!r}")
 
     def apply(self, chain: ChainBuilder) -> None:
-        augment_pose_rows(chain._batch, [chain._row], sigma_p0=self.sigma_p0, sigma_q0=self.sigma_q0,
+        augment_pose_rows(chain.batch, [chain.row], sigma_p0=self.sigma_p0, sigma_q0=self.sigma_q0,
                           nugget_var=self.nugget_var, mode=self.mode)
 
 
@@ -167,12 +167,7 @@ def augment_pose_rows(chain: BatchChain, rows: list[int], *, sigma_p0: float | T
     if mode == "paper":
         A, Q = forgetting_matrices(sigma_p0, sigma_q0, dtype=like.dtype, device=like.device)
         chain.linear_predict_rows(rows, A.unsqueeze(0), Q.unsqueeze(0))
-        if rows == list(range(chain.rows)):
-            mean, cov = chain.mean, chain.cov
-        else:
-            index = torch.tensor(rows, device=like.device)
-            mean, cov = chain.mean[index], chain.cov[index]
-        chain.update_rows(rows, *augment_pose(mean, cov, nugget_var=nugget_var))
+        chain.update_rows(rows, *augment_pose(*chain.newest(rows), nugget_var=nugget_var))
     elif mode == "limit":
         # one linear step, recorded as such so the smoother sees its transition
         T, Q = copy_matrices(nugget_var, dtype=like.dtype, device=like.device)

@@ -120,6 +120,13 @@ class BatchChain:
             self._current[b] = bool(flags[-1]) if n else self._current[b]
         self._append(transition, mean, cov, mean[:, -1:], cov[:, -1:])
 
+    def newest(self, rows: Sequence[int]) -> tuple[Tensor, Tensor]:
+        """The newest filtered mean ``(r, 26)`` and covariance ``(r, 26, 26)`` of the rows ``rows``."""
+        if list(rows) == list(range(self.rows)):
+            return self.mean, self.cov
+        index = torch.tensor(rows, device=self.mean.device)
+        return self.mean[index], self.cov[index]
+
     def _check_current(self, rows: Sequence[int]) -> None:
         for b in rows:
             if not self._current[b]:
@@ -152,7 +159,7 @@ class BatchChain:
         self._check_current(rows)
         everyone = list(rows) == list(range(self.rows))
         index = None if everyone else torch.tensor(rows, device=A.device)
-        mean, cov = (self.mean, self.cov) if everyone else (self.mean[index], self.cov[index])
+        mean, cov = self.newest(rows)
         if select is None:
             m, P = linear_predict(mean, cov, A, Q, None if b is None else b)
         else:
@@ -204,6 +211,16 @@ class ChainBuilder:
     def __init__(self, batch: BatchChain | None = None, row: int = 0) -> None:
         self._batch = BatchChain(1) if batch is None else batch
         self._row = row
+
+    @property
+    def batch(self) -> BatchChain:
+        """The :class:`BatchChain` this chain is a row of (events acting on rows at once use it)."""
+        return self._batch
+
+    @property
+    def row(self) -> int:
+        """This chain's row in :attr:`batch`."""
+        return self._row
 
     @property
     def t_s(self) -> list[float]:

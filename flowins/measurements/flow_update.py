@@ -149,7 +149,7 @@ class FlowFrame:
         return (FlowFrame, id(self.update), self.jacobians)
 
     def apply(self, chain: ChainBuilder) -> None:
-        type(self).apply_batch(chain._batch, [chain._row], [self])
+        type(self).apply_batch(chain.batch, [chain.row], [self])
 
     @classmethod
     def apply_batch(cls, chain: BatchChain, rows: list[int], frames: list[FlowFrame]) -> None:
@@ -179,9 +179,7 @@ def _flow_update(chain: BatchChain, rows: list[int], frames: list[FlowFrame]) ->
     """The flow update of frames with points on the rows ``rows``, their logs and recovery."""
     first = frames[0]
     u = first.update
-    everyone = rows == list(range(chain.rows))
-    index = None if everyone else torch.tensor(rows, device=chain.mean.device)
-    mean, cov = (chain.mean, chain.cov) if everyone else (chain.mean[index], chain.cov[index])
+    mean, cov = chain.newest(rows)
     points, mask = stack_points([frame.points for frame in frames], like=mean)
     points = FlowPoints(points.uv1_px, points.flow_px, first.noise_sigma(points.sigma_px))
     camera = stack_cameras([frame.camera for frame in frames])

@@ -21,36 +21,8 @@ F64 = torch.float64
 def test_flow_frames_bound_the_inertial_drift_and_reveal_the_gyro_bias():
     """10 s of walking, iPad-grade IMU errors, exact flow + 0.3 px noise at 100 points
     per frame (10 Hz) on near scene points: the drift shrinks by well over 10x."""
-    t0, t1 = 5.0, 15.0
-    walk = Walk(WalkConfig(duration_s=20.0))
-    t, acc, gyro, truth = simulate_imu(walk, SimulationConfig(duration_s=20.0), torch.Generator().manual_seed(0))
-    keep = (t >= t0) & (t <= t1 + 0.01)
-    t, acc, gyro = t[keep], acc[keep], gyro[keep]
-    cc = CameraConfig(width=160, height=120)
-    cam, T_ci = cc.intrinsics(), cc.imu_to_camera()
-    city = build_city(walk, seed=0)
-    times = torch.arange(math.ceil(float(t[0]) * 10) / 10, float(t[-1]), 0.1, dtype=F64)
-    R, P = CameraTrajectory(walk, T_ci).pose(times)
-    camera = FlowCamera.from_calibration(cam, T_ci)
-    gen = torch.Generator().manual_seed(5)
-    events, previous = [], None
-    empty = torch.zeros(0, 2, dtype=F64)
-    for i, ti in enumerate(times.tolist()):
-        frame = render(city, cam, R[i], P[i], ti)
-        if previous is None:
-            events.append(FlowFrame(ti, FlowPoints(empty, empty, empty), camera))
-        else:
-            truth_flow = exact_flow(city, cam, previous[0], previous[1], (R[i], P[i], ti), frame)
-            ok = (truth_flow.valid & truth_flow.static & (truth_flow.depth < 8.0)).nonzero()
-            pick = ok[torch.randperm(ok.shape[0], generator=gen)[:100]]
-            uv1 = torch.stack((pick[:, 1], pick[:, 0]), -1).to(F64)
-            flow = truth_flow.flow[pick[:, 0], pick[:, 1]].to(F64) + 0.3 * torch.randn(pick.shape[0], 2, generator=gen, dtype=F64)
-            events.append(FlowFrame(ti, FlowPoints(uv1, flow, torch.full_like(flow, 0.3)), camera))
-        previous = (frame, (R[i], P[i], ti))
-    x0 = make_state(p=walk.position(t[:1])[0], v=walk.velocity(t[:1])[0], q=walk.quaternion(t[:1])[0])
-    sigma = torch.cat((torch.full((3,), 0.01), torch.full((3,), 0.01), torch.full((4,), 1e-3),
-                       torch.full((3,), 0.05), torch.full((3,), 0.01), torch.full((3,), 0.02))).to(F64)
-    cov0 = augmented_covariance(torch.diag(sigma**2), 1e-9)
+    run, walk, truth = _flow_run(5.0, 15.0, 100, 5, own_camera=False)
+    t, acc, gyro, x0, cov0, events = run.t_s, run.acc_mps2, run.gyro_rps, run.mean0, run.cov0, run.events
     errors = {}
     for label, ev in (("ins", []), ("ins+flow", events)):
         track = run_filter(t_s=t, acc_mps2=acc, gyro_rps=gyro, mean0=x0, cov0=cov0, noise=ProcessNoise(), events=ev)
@@ -65,10 +37,12 @@ def test_flow_frames_bound_the_inertial_drift_and_reveal_the_gyro_bias():
 
 
 def _flow_run(t0, t1, n_points, seed, *, own_camera):
-    """INS + flow frames on the walk from ``t0`` to ``t1`` (``n_points`` per frame); with
-    ``own_camera`` the frames carry a camera object of their own (equal values)."""
+    """INS + flow frames on the walk from ``t0`` to ``t1``: exact flow + 0.3 px noise at ``n_points``
+    near scene points per frame (10 Hz), and a prior from the truth; with ``own_camera`` the
+    frames carry a camera object of their own (equal values). Returns the run, the walk and
+    the simulated truth."""
     walk = Walk(WalkConfig(duration_s=20.0))
-    t, acc, gyro, _ = simulate_imu(walk, SimulationConfig(duration_s=20.0), torch.Generator().manual_seed(0))
+    t, acc, gyro, truth = simulate_imu(walk, SimulationConfig(duration_s=20.0), torch.Generator().manual_seed(0))
     keep = (t >= t0) & (t <= t1 + 0.01)
     t, acc, gyro = t[keep], acc[keep], gyro[keep]
     cc = CameraConfig(width=160, height=120)
@@ -97,13 +71,13 @@ def _flow_run(t0, t1, n_points, seed, *, own_camera):
     x0 = make_state(p=walk.position(t[:1])[0], v=walk.velocity(t[:1])[0], q=walk.quaternion(t[:1])[0])
     sigma = torch.cat((torch.full((3,), 0.01), torch.full((3,), 0.01), torch.full((4,), 1e-3),
                        torch.full((3,), 0.05), torch.full((3,), 0.01), torch.full((3,), 0.02))).to(F64)
-    return FilterInput(t, acc, gyro, x0, augmented_covariance(torch.diag(sigma**2), 1e-9), events)
+    return FilterInput(t, acc, gyro, x0, augmented_covariance(torch.diag(sigma**2), 1e-9), events), walk, truth
 
 
 def test_flow_frames_of_unequal_runs_in_one_batch_equal_each_run_alone():
     """Two runs with their own spans, point counts (padded and masked in the batch) and camera
     objects, and frames that are not at the same times: each equals its run alone."""
-    runs = [_flow_run(5.0, 9.0, 60, 1, own_camera=False), _flow_run(6.03, 8.5, 90, 2, own_camera=True)]
+    runs = [_flow_run(5.0, 9.0, 60, 1, own_camera=False)[0], _flow_run(6.03, 8.5, 90, 2, own_camera=True)[0]]
     batched = run_filters(runs, noise=ProcessNoise())
     for run, track in zip(runs, batched):
         alone = run_filter(t_s=run.t_s, acc_mps2=run.acc_mps2, gyro_rps=run.gyro_rps, mean0=run.mean0,
