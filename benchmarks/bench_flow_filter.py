@@ -18,7 +18,7 @@ Reads the default simulated walk and its dense flow pairs (both cached by
 The last line is ``RESULT single=<x>x batched=<x>x batch=<B>``.
 
     python benchmarks/bench_flow_filter.py [--points 256] [--batch 8] [--reference-s 20] [--repeats 3]
-                                           [--breakdown-s 60] [--count-ops-s 20]
+                                           [--breakdown-s 60] [--count-ops-s 20] [--profile-s 0]
 """
 from __future__ import annotations
 
@@ -56,13 +56,15 @@ def crop(rec, pairs, t_end):
     return imu_c, gnss_c, sub
 
 
-def batch_runs(rec, pairs, camera, count: int) -> list[NavigationRun]:
-    """The walk ``count`` times: run ``b`` cut 7 b seconds short, with extra white IMU noise of
-    its own (1e-3 m/s², 1e-4 rad/s per sample, seed ``b``); run 0 is the walk itself."""
+def batch_runs(rec, pairs, camera, count: int, *, end_s: float | None = None, step_s: float = 7.0
+               ) -> list[NavigationRun]:
+    """The walk (up to ``end_s``) ``count`` times: run ``b`` cut ``step_s`` b seconds short, with
+    extra white IMU noise of its own (1e-3 m/s², 1e-4 rad/s per sample, seed ``b``); run 0 is
+    the walk itself."""
     runs = []
-    end = float(rec.imu.t_s[-1])
+    end = float(rec.imu.t_s[-1]) if end_s is None else end_s
     for b in range(count):
-        imu, gnss, sub = crop(rec, pairs, end - 7.0 * b)
+        imu, gnss, sub = crop(rec, pairs, end - step_s * b)
         if b:
             gen = torch.Generator().manual_seed(b)
             acc = imu.acc_mps2 + 1e-3 * torch.randn(imu.acc_mps2.shape, generator=gen, dtype=imu.acc_mps2.dtype)
@@ -176,6 +178,22 @@ def count_ops(imu, gnss, pairs, camera, config) -> None:
         print(f"  {name:18s} {c['operations'] / n:5.0f} operations {c['views'] / n:5.0f} views")
 
 
+def profile(imu, gnss, pairs, camera, config, runs=None) -> None:
+    """``torch.profiler``'s table of the operations that take the most time: one recording,
+    and the batch ``runs`` when given."""
+    from torch.profiler import ProfilerActivity, profile as torch_profile
+
+    for label, call in (("one recording", lambda: navigate(imu, gnss, config=config, flow=pairs, camera=camera)),
+                        (f"batch of {len(runs or [])}", lambda: navigate_batch(runs, config=config))):
+        if label.startswith("batch") and not runs:
+            continue
+        call()  # warm-up
+        with torch_profile(activities=[ProfilerActivity.CPU]) as prof:
+            call()
+        print(f"profile, {label}:")
+        print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=8))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--points", type=int, default=256)
@@ -184,6 +202,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--breakdown-s", type=float, default=60.0,
                         help="also time each stage over the first this many seconds (0: skip)")
+    parser.add_argument("--profile-s", type=float, default=0.0,
+                        help="also profile the first this many seconds, alone and as the batch (0: skip)")
     parser.add_argument("--count-ops-s", type=float, default=20.0,
                         help="also count PyTorch operations per frame over the first this many seconds (0: skip)")
     args = parser.parse_args()
@@ -228,6 +248,10 @@ def main() -> None:
         breakdown(*crop(rec, pairs, args.breakdown_s), FlowCamera.from_sequence(rec.sequence), config)
     if args.count_ops_s > 0:
         count_ops(*crop(rec, pairs, args.count_ops_s), FlowCamera.from_sequence(rec.sequence), config)
+    if args.profile_s > 0:
+        camera = FlowCamera.from_sequence(rec.sequence)
+        short = batch_runs(rec, pairs, camera, args.batch, end_s=args.profile_s, step_s=2.0) if args.batch else None
+        profile(*crop(rec, pairs, args.profile_s), camera, config, short)
     print(f"RESULT single={duration / fast:.1f}x batched={'n/a' if batched is None else f'{batched:.1f}x'} "
           f"batch={args.batch}")
 
