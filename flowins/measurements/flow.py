@@ -407,6 +407,13 @@ def _point_derivatives(L: Tensor, cameras: Tensor, dlt, pi: Tensor, depth: Tenso
     return (U @ V).view(*U.shape[:-2], 12)
 
 
+def _chain(dh: Tensor, J: Tensor) -> Tensor:
+    """``∂h/∂(x, δ)`` ``(..., M, 2, 28)`` from ``∂h/∂P₂'`` ``(..., M, 2, 12)`` and ``J`` ``(..., 12, 28)``:
+    one product per sequence over its ``2M`` rows (``J`` is not copied out to every point)."""
+    rows = dh.reshape(*dh.shape[:-3], dh.shape[-3] * dh.shape[-2], dh.shape[-1])
+    return (rows @ J).view(*dh.shape[:-1], J.shape[-1])
+
+
 @cached_constant
 def _neg_eye(dtype: torch.dtype, device: torch.device) -> Tensor:
     """``-δ_sj`` as ``(2, 1, 2)`` [s, ·, j]."""
@@ -451,7 +458,7 @@ def flow_linearisation(x: Tensor, flow_px: Tensor, uv1_px: Tensor, camera: FlowC
     """
     camera = camera.to(x)
     lin = _linearise(x, cast_like(flow_px, x), cast_like(uv1_px, x), camera)
-    H = lin.dh @ lin.J.unsqueeze(-3)
+    H = _chain(lin.dh, lin.J)
     aux = FlowAux(lin.conditioning, lin.depth[..., 0], lin.depth[..., 1], lin.parallax)
     return FlowLinearisation(lin.residual, H[..., :STATE_DIM], H[..., STATE_DIM:], aux)
 
@@ -525,7 +532,7 @@ def flow_measurements(
         lin = _linearise(x, flow_px, uv1_px, camera, mask=mask)
         valid, parallax_px, counts = _screen(lin, camera, mask, min_conditioning, min_depth, min_parallax_px)
         keep = valid.unsqueeze(-1)
-        H = torch.where(keep.unsqueeze(-1), lin.dh, 0.0) @ lin.J.unsqueeze(-3)
+        H = _chain(torch.where(keep.unsqueeze(-1), lin.dh, 0.0), lin.J)
         return FlowMeasurements(torch.where(keep, lin.residual, 0.0), H[..., :STATE_DIM], H[..., STATE_DIM:],
                                 valid, *counts, parallax_px)
     with torch.no_grad():
