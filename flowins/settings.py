@@ -189,9 +189,17 @@ def check_train_settings(cfg: Mapping[str, Any]) -> None:
     setting(cfg, "data.batch_size", int, minimum=1, default=1)
     for key in ("flow_moments", "progress"):
         setting(cfg, key, bool, default=True)
-    for key, minimum in (("lr", 1e-12), ("gradient_clip", 1e-12), ("nll_weight", 0.0),
+    for key, minimum in (("lr", 1e-12), ("lr_final", 1e-12), ("gradient_clip", 1e-12), ("nll_weight", 0.0),
                          ("orientation_weight_m_per_rad", 0.0), ("mistune", 1e-12)):
         setting(cfg, f"model.{key}", float, minimum=minimum)
+    setting(cfg, "model.warmup_steps", int, minimum=0)
+    setting(cfg, "model.accumulate_windows", int, minimum=1)
+    curriculum = cfg.get("curriculum_window_s") or []
+    if isinstance(curriculum, (str, Mapping)) or not isinstance(curriculum, (list, tuple)):
+        raise ValueError(f"curriculum_window_s={curriculum!r}: expected a list of window lengths (s), e.g. [5.0, 10.0]")
+    for i, w in enumerate(curriculum):
+        if check_value(w, float, f"curriculum_window_s[{i}]") < 1e-3:
+            raise ValueError(f"curriculum_window_s[{i}]={w!r}: expected a window length >= 0.001 s")
     setting(cfg, "model.checkpoint", str | None)
     start = cfg["model"].get("start") or {}
     if not isinstance(start, Mapping):

@@ -20,7 +20,7 @@ from flowins.ins.imu_model import imu_model
 from flowins.jobs.cli import console_logging
 from flowins.settings import check_train_settings, flow_settings, navigation_config, parameter_sets
 from flowins.training.data import SequenceDataModule
-from flowins.training.module import FilterLearner
+from flowins.training.module import FilterLearner, selection_table
 from flowins.training.parameters import FilterParameters
 
 log = logging.getLogger("flowins")
@@ -42,30 +42,35 @@ def run(cfg: Mapping[str, Any]) -> dict[str, Any]:
     data_cfg = {**cfg, "flow": flow_settings(cfg)}
     data = SequenceDataModule(train=cfg["data"]["train"], val=cfg["data"]["val"], config=data_cfg, methods=methods,
                               batch_size=int(cfg["data"].get("batch_size", 1)), progress=bool(cfg.get("progress", True)))
+    model = cfg["model"]
     module = FilterLearner(
-        params, base, methods=methods, window_s=float(cfg["window_s"]), nll_weight=float(cfg["model"]["nll_weight"]),
-        orientation_weight_m_per_rad=float(cfg["model"]["orientation_weight_m_per_rad"]),
-        lr=float(cfg["model"]["lr"]), gradient_clip=float(cfg["model"]["gradient_clip"]),
+        params, base, methods=methods, window_s=float(cfg["window_s"]),
+        curriculum_window_s=[float(w) for w in cfg.get("curriculum_window_s") or []],
+        nll_weight=float(model["nll_weight"]), orientation_weight_m_per_rad=float(model["orientation_weight_m_per_rad"]),
+        lr=float(model["lr"]), lr_final=float(model["lr_final"]), warmup_steps=int(model["warmup_steps"]),
+        accumulate_windows=int(model["accumulate_windows"]), gradient_clip=float(model["gradient_clip"]),
         reference={"start": start, "hand-tuned": tuned}, output_dir=str(out),
     )
-    checkpoint = pl.callbacks.ModelCheckpoint(dirpath=out / "checkpoints", filename="best", monitor="val/rmse_mean_m",
-                                              mode="min", save_last=True)
     logger = instantiate(cfg["logger"], "logger") if cfg.get("logger") else False
+    checkpoints = out / "checkpoints"
     with _without_lightning_noise():
-        trainer: pl.Trainer = instantiate(cfg["trainer"], "trainer", logger=logger, callbacks=[checkpoint])
+        trainer: pl.Trainer = instantiate(cfg["trainer"], "trainer", logger=logger, enable_checkpointing=False)
+        trainer.validate(module, datamodule=data, verbose=False)  # the start: a candidate like every epoch
         trainer.fit(module, datamodule=data)
-        best = checkpoint.best_model_path or None
-        if best:
-            module.params.load_state_dict(FilterParameters.from_checkpoint(best).state_dict())
+        trainer.save_checkpoint(checkpoints / "last.ckpt", weights_only=False)
+        chosen = module.select_best()
+        best = checkpoints / "best.ckpt"
+        trainer.save_checkpoint(best, weights_only=False)
+        log.info("\n" + selection_table(module.history, chosen))
         trainer.test(module, datamodule=data, verbose=False)
+    (out / "selection.json").write_text(json.dumps({"history": module.history, "chosen": chosen["label"]}, indent=2))
     learned = module.params.values()
     (out / "learned_parameters.json").write_text(json.dumps(learned, indent=2))
     log.info(f"\nlearned parameters: {out / 'learned_parameters.json'}")
-    if best:
-        log.info(f"checkpoint: {best}\n  python evaluate.py model.checkpoint={best}")
+    log.info(f"checkpoint ({chosen['label']}): {best}\n  python evaluate.py model.checkpoint={best}")
     log.info(f"skipped windows (non-finite loss or gradient): {module.skipped_windows}; trained: {module.trained_windows}")
-    return {"learned": learned, "start": start, "hand-tuned": tuned, "checkpoint": best,
-            "skipped_windows": module.skipped_windows}
+    return {"learned": learned, "start": start, "hand-tuned": tuned, "checkpoint": str(best),
+            "chosen": chosen["label"], "history": module.history, "skipped_windows": module.skipped_windows}
 
 
 class _NotTheLitLoggerTip(logging.Filter):

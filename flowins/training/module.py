@@ -2,17 +2,24 @@
 
 A training batch is a few sequences (``data.batch_size``). For each method (a row of
 Table I) the filter runs through them window by window, the ``i``-th windows of all the
-batch's sequences in one batched filter pass (:func:`flowins.training.unroll.run_windows`):
-the mean of their losses is backpropagated to the windows' start and followed by one
-optimiser step, and each state goes on, detached, into its sequence's next window
-(truncated backpropagation through time, with Lightning's manual optimisation). Windows whose
-loss or gradient is not finite are skipped and counted (``train/skipped_windows``);
-the sequence's remaining windows of that method are skipped with them when the
-state itself is no longer finite.
+batch's sequences in one batched filter pass (:func:`flowins.training.unroll.run_windows`),
+and each state goes on, detached, into its sequence's next window (truncated
+backpropagation through time, with Lightning's manual optimisation). The gradients of
+``model.accumulate_windows`` such window groups are summed, and one Adam step is taken on
+their mean: the mean over every window of every process, so that two processes (DDP)
+step exactly as one process with both processes' sequences would. The learning rate
+follows :func:`flowins.training.schedule.learning_rate` (warm-up, then a cosine decay over
+the epochs) and the window length :func:`~flowins.training.schedule.window_length` (a
+curriculum of short windows first). Windows whose loss or gradient is not finite are
+skipped and counted (``train/skipped_windows``); the sequence's remaining windows of
+that method are skipped with them when the state itself is no longer finite.
 
 Validation runs every method over each held-out sequence in inference mode (hard
-gates) and logs the filter RMSE after the Table I alignment; ``trainer.test`` prints
-the held-out table of the starting, the learned and the hand-tuned parameters.
+gates) and logs the filter RMSE after the Table I alignment. Each validation is kept in
+:attr:`FilterLearner.history` with the parameters it scored; the training job validates
+the start before the first step, and :meth:`FilterLearner.select_best` takes the best of
+the start and every epoch. ``trainer.test`` prints the held-out table of the starting,
+the learned (selected) and the hand-tuned parameters.
 """
 from __future__ import annotations
 
@@ -24,9 +31,11 @@ from pathlib import Path
 
 import pytorch_lightning as pl
 import torch
+from pytorch_lightning.trainer.states import TrainerFn
 
 from flowins.navigation import NavigationConfig
 from flowins.training.parameters import FilterParameters
+from flowins.training.schedule import learning_rate, window_length
 from flowins.training.unroll import TrainingSequence, run_windows, sequence_rmse, window_bounds, window_loss
 
 log = logging.getLogger("flowins")
@@ -57,9 +66,13 @@ class FilterLearner(pl.LightningModule):
         *,
         methods: Sequence[str],
         window_s: float = 20.0,
+        curriculum_window_s: Sequence[float] = (),
         nll_weight: float = 0.0,
         orientation_weight_m_per_rad: float = 0.0,
         lr: float = 0.1,
+        lr_final: float | None = None,
+        warmup_steps: int = 0,
+        accumulate_windows: int = 1,
         gradient_clip: float = 1.0,
         reference: Mapping[str, Mapping[str, float]] | None = None,
         output_dir: str | None = None,
@@ -70,19 +83,31 @@ class FilterLearner(pl.LightningModule):
         self.base = base
         self.methods = list(methods)
         self.window_s = float(window_s)
+        self.curriculum = [float(w) for w in curriculum_window_s]
         self.nll_weight = float(nll_weight)
         self.orientation_weight = float(orientation_weight_m_per_rad)
         self.lr = float(lr)
+        self.lr_final = self.lr if lr_final is None else float(lr_final)
+        self.warmup_steps = int(warmup_steps)
+        if int(accumulate_windows) < 1:
+            raise ValueError(f"model.accumulate_windows={accumulate_windows!r}: expected an integer >= 1")
+        self.accumulate = int(accumulate_windows)
         self.gradient_clip = float(gradient_clip)
         self.reference = {k: dict(v) for k, v in (reference or {}).items()}
         self.output_dir = output_dir
         self.skipped_windows = 0
         self.trained_windows = 0
+        self.optimizer_steps = 0
+        #: every held-out validation: {"label", "epoch", "step", "rmse_m" {method: mean}, "score", "raw" {name: value}}
+        self.history: list[dict] = []
+        self._val: dict[str, list[float]] = {}
         self._heldout: dict[str, dict[str, list[float]]] = {}
-        self.save_hyperparameters({"methods": self.methods, "window_s": self.window_s, "nll_weight": self.nll_weight,
-                                   "orientation_weight_m_per_rad": self.orientation_weight,
-                                   "lr": self.lr, "gradient_clip": self.gradient_clip, "reference": self.reference,
-                                   "learned": params.learned})
+        self.save_hyperparameters({"methods": self.methods, "window_s": self.window_s,
+                                   "curriculum_window_s": self.curriculum, "nll_weight": self.nll_weight,
+                                   "orientation_weight_m_per_rad": self.orientation_weight, "lr": self.lr,
+                                   "lr_final": self.lr_final, "warmup_steps": self.warmup_steps,
+                                   "accumulate_windows": self.accumulate, "gradient_clip": self.gradient_clip,
+                                   "reference": self.reference, "learned": params.learned})
 
     def configure_optimizers(self):
         learned = [p for p in self.params.parameters() if p.requires_grad]
@@ -94,61 +119,104 @@ class FilterLearner(pl.LightningModule):
     def training_step(self, batch: TrainingSequence | list[TrainingSequence], batch_idx: int) -> None:
         opt = self.optimizers()
         seqs = batch if isinstance(batch, list) else [batch]
-        bounds = [window_bounds(seq.imu.t_s, self.window_s) for seq in seqs]
+        window = window_length(self.current_epoch, window_s=self.window_s, curriculum=self.curriculum)
+        bounds = [window_bounds(seq.imu.t_s, window) for seq in seqs]
+        learned = [q for q in self.params.parameters() if q.requires_grad]
         for method in self.methods:
             starts: list = [None] * len(seqs)
             going = [True] * len(seqs)  # a sequence whose state stopped being finite leaves the batch
-            for i in range(max(len(b) for b in bounds)):
+            # every process takes the same number of steps (their batches may differ in windows)
+            count = int(self._sum_over_processes(torch.tensor([max(len(b) for b in bounds)], dtype=torch.float64),
+                                                 reduce="max")[0])
+            gradient, pending = torch.zeros(sum(q.numel() for q in learned), dtype=torch.float64), 0
+            for i in range(count):
                 rows = [k for k in range(len(seqs)) if going[k] and i < len(bounds[k])]
-                if not rows:
-                    break
-                config = self.params.apply(self.base, training=True)
-                moments = _has_moments(seqs[rows[0]], method)
-                p = self.params.value("dropout_p") if moments else None
-                results = run_windows([seqs[k] for k in rows], method, config, [bounds[k][i] for k in rows],
-                                      dropout_p=p, starts=[starts[k] for k in rows])
-                losses = []
-                for k, result in zip(rows, results):
-                    loss = window_loss(result.track, seqs[k].truth, nll_weight=self.nll_weight,
-                                       orientation_weight_m_per_rad=self.orientation_weight)
-                    state_ok = bool(torch.isfinite(result.mean).all() and torch.isfinite(result.cov).all())
-                    if bool(torch.isfinite(loss.loss)):
-                        losses.append(loss)
+                losses = self._window_losses(seqs, rows, method, [bounds[k][i] for k in rows], starts, going, bounds, i)
+                if losses:
+                    total = torch.stack([w.loss for w in losses]).sum()
+                    grads = (torch.autograd.grad(total, learned, allow_unused=True) if total.requires_grad
+                             else [None] * len(learned))
+                    flat = torch.cat([torch.zeros(q.numel(), dtype=torch.float64) if g is None else g.reshape(-1)
+                                      for q, g in zip(learned, grads)])
+                    if bool(torch.isfinite(flat).all()):
+                        gradient += flat
+                        pending += len(losses)
                     else:
-                        self._skip(1 if state_ok else len(bounds[k]) - i)
-                    if state_ok:
-                        starts[k] = (result.mean.detach(), result.cov.detach())
-                    else:
-                        going[k] = False
-                        if bool(torch.isfinite(loss.loss)):
-                            self._skip(len(bounds[k]) - i - 1)
-                if not losses:
-                    continue
-                # one optimiser step on the mean loss of the batch's windows
-                total = torch.stack([w.loss for w in losses]).mean()
-                opt.zero_grad()
-                self.manual_backward(total)
-                grads = [q.grad for q in self.params.parameters() if q.grad is not None]
-                if not all(bool(torch.isfinite(g).all()) for g in grads):
-                    opt.zero_grad()
-                    self._skip(len(losses))
-                else:
-                    self.clip_gradients(opt, gradient_clip_val=self.gradient_clip, gradient_clip_algorithm="norm")
-                    opt.step()
-                    self.trained_windows += len(losses)
-                n = len(losses)
-                self.log(f"train/{method}/rmse_m", torch.stack([w.rmse_m for w in losses]).mean(), on_step=True,
-                         batch_size=n)
-                self.log("train/loss", total.detach(), on_step=True, prog_bar=True, batch_size=n)
-                if self.nll_weight > 0:
-                    self.log("train/nll", torch.stack([w.nll for w in losses]).mean(), on_step=True, batch_size=n)
-                if self.orientation_weight > 0:
-                    self.log(f"train/{method}/orientation_rmse_rad",
-                             torch.stack([w.orientation_rmse_rad for w in losses]).mean(), on_step=True, batch_size=n)
-                for name, value in self.params.values().items():
-                    if self.params.raw[name].requires_grad:
-                        self.log(f"params/{name}", value, on_step=True, batch_size=n)
+                        self._skip(len(losses))
+                    self._log_windows(method, total.detach() / len(losses), losses)
+                if (i + 1) % self.accumulate == 0 or i == count - 1:
+                    self._step(opt, learned, gradient, pending)
+                    gradient, pending = torch.zeros_like(gradient), 0
         self.log("train/skipped_windows", float(self.skipped_windows), on_step=True, batch_size=1)
+
+    def _window_losses(self, seqs, rows, method, windows, starts, going, bounds, i) -> list:
+        """The losses of the rows' ``i``-th windows (one batched filter pass); the rows'
+        states go on, detached, to their next windows, and a row whose state is not finite
+        leaves the batch (its remaining windows counted as skipped)."""
+        if not rows:
+            return []
+        config = self.params.apply(self.base, training=True)
+        p = self.params.value("dropout_p") if _has_moments(seqs[rows[0]], method) else None
+        results = run_windows([seqs[k] for k in rows], method, config, windows, dropout_p=p,
+                              starts=[starts[k] for k in rows])
+        losses = []
+        for k, result in zip(rows, results):
+            loss = window_loss(result.track, seqs[k].truth, nll_weight=self.nll_weight,
+                               orientation_weight_m_per_rad=self.orientation_weight)
+            state_ok = bool(torch.isfinite(result.mean).all() and torch.isfinite(result.cov).all())
+            finite = bool(torch.isfinite(loss.loss))
+            if finite:
+                losses.append(loss)
+            if state_ok:
+                starts[k] = (result.mean.detach(), result.cov.detach())
+            else:
+                going[k] = False
+            self._skip((0 if finite else 1) + (0 if state_ok else len(bounds[k]) - i - 1))
+        return losses
+
+    def _step(self, opt, learned: list[torch.Tensor], gradient: torch.Tensor, pending: int) -> None:
+        """One Adam step on the mean gradient of the ``pending`` windows behind ``gradient`` (their
+        sum), over all processes; nothing when no process has a window."""
+        both = self._sum_over_processes(torch.cat((gradient, torch.tensor([float(pending)], dtype=torch.float64))))
+        n = int(both[-1])
+        if n == 0:
+            return
+        offset = 0
+        for q in learned:
+            q.grad = (both[offset : offset + q.numel()] / n).view_as(q).clone()
+            offset += q.numel()
+        rate = learning_rate(self.optimizer_steps, self.current_epoch, lr=self.lr, lr_final=self.lr_final,
+                             warmup_steps=self.warmup_steps, epochs=self.trainer.max_epochs)
+        for group in opt.optimizer.param_groups if hasattr(opt, "optimizer") else opt.param_groups:
+            group["lr"] = rate
+        self.clip_gradients(opt, gradient_clip_val=self.gradient_clip, gradient_clip_algorithm="norm")
+        opt.step()
+        opt.zero_grad()
+        self.optimizer_steps += 1
+        self.trained_windows += n
+        self.log("train/lr", rate, on_step=True, batch_size=1)
+        for name, value in self.params.values().items():
+            if self.params.raw[name].requires_grad:
+                self.log(f"params/{name}", value, on_step=True, batch_size=1)
+
+    def _sum_over_processes(self, values: torch.Tensor, reduce: str = "sum") -> torch.Tensor:
+        """``values`` summed (or their maximum) over the training processes (itself in one process)."""
+        if not (torch.distributed.is_available() and torch.distributed.is_initialized()):
+            return values
+        out = values.clone()
+        op = torch.distributed.ReduceOp.MAX if reduce == "max" else torch.distributed.ReduceOp.SUM
+        torch.distributed.all_reduce(out, op=op)
+        return out
+
+    def _log_windows(self, method: str, mean_loss: torch.Tensor, losses: list) -> None:
+        n = len(losses)
+        self.log(f"train/{method}/rmse_m", torch.stack([w.rmse_m for w in losses]).mean(), on_step=True, batch_size=n)
+        self.log("train/loss", mean_loss, on_step=True, prog_bar=True, batch_size=n)
+        if self.nll_weight > 0:
+            self.log("train/nll", torch.stack([w.nll for w in losses]).mean(), on_step=True, batch_size=n)
+        if self.orientation_weight > 0:
+            self.log(f"train/{method}/orientation_rmse_rad",
+                     torch.stack([w.orientation_rmse_rad for w in losses]).mean(), on_step=True, batch_size=n)
 
     def _skip(self, n: int) -> None:
         self.skipped_windows += n
@@ -159,12 +227,38 @@ class FilterLearner(pl.LightningModule):
         return sequence_rmse(seq, method, params.apply(self.base, training=False), dropout_p=p)
 
     def validation_step(self, batch: TrainingSequence, batch_idx: int) -> None:
-        values = []
         for method in self.methods:
             rmse = self._rmse(batch, method, self.params)
-            self.log(f"val/{method}/filter_rmse_m", rmse, on_epoch=True, batch_size=1)
-            values.append(rmse if math.isfinite(rmse) else 1e6)
-        self.log("val/rmse_mean_m", sum(values) / len(values), on_epoch=True, prog_bar=True, batch_size=1)
+            self._val.setdefault(method, []).append(rmse)
+            self.log(f"val/{method}/filter_rmse_m", rmse, on_epoch=True, batch_size=1, sync_dist=True)
+
+    def on_validation_epoch_end(self) -> None:
+        """Record this validation (``start`` when run before the first step, by ``trainer.validate``;
+        ``epoch N`` after training epoch ``N``) with the parameters it scored."""
+        per_method, self._val = self._val, {}
+        if self.trainer.sanity_checking or not per_method:
+            return
+        means = {m: sum(v) / len(v) for m, v in per_method.items()}
+        score = sum(means.values()) / len(means)
+        score = score if math.isfinite(score) else math.inf  # a diverged filter is never the best
+        self.log("val/rmse_mean_m", score, prog_bar=True, batch_size=1, sync_dist=True)
+        fitting = self.trainer.state.fn == TrainerFn.FITTING
+        self.history.append({
+            "label": f"epoch {self.current_epoch + 1}" if fitting else "start",
+            "step": self.optimizer_steps, "rmse_m": means, "score": score,
+            "raw": {n: float(q.detach()) for n, q in self.params.raw.items()},
+        })
+
+    def select_best(self) -> dict:
+        """Load the parameters of the best validation so far (the lowest mean held-out RMSE; the
+        earliest on a tie, so the start wins over an epoch that is no better) and return it."""
+        if not self.history:
+            raise ValueError("select_best: no validation has run (trainer.validate before fit scores the start)")
+        best = min(self.history, key=lambda entry: entry["score"])
+        with torch.no_grad():
+            for name, value in best["raw"].items():
+                self.params.raw[name].fill_(value)
+        return best
 
     def test_step(self, batch: TrainingSequence, batch_idx: int) -> None:
         candidates = {"learned": self.params}
@@ -210,3 +304,16 @@ def heldout_table(results: Mapping[str, Mapping[str, list[float]]], methods: Seq
             change.append(f"{100 * (1 - (sum(b) / len(b)) / (sum(a) / len(a))):>16.1f} %" if a and b else f"{'':>18}")
         lines.append(f"{'reduction':<14}" + "".join(change))
     return "\n".join(lines)
+
+
+def selection_table(history: list[dict], chosen: dict) -> str:
+    """The held-out RMSE of every validation (the start, then each epoch), the chosen one marked."""
+    methods = list(history[0]["rmse_m"])
+    lines = ["held-out filter RMSE (m) at each validation; the checkpoint is the best of them",
+             f"{'':<10}" + "".join(f"{m:>18}" for m in methods) + f"{'mean':>10}"]
+    for entry in history:
+        mark = "  <- chosen" if entry is chosen else ""
+        lines.append(f"{entry['label']:<10}" + "".join(f"{entry['rmse_m'][m]:>18.3f}" for m in methods)
+                     + f"{entry['score']:>10.3f}{mark}")
+    return "\n".join(lines)
+

@@ -63,10 +63,21 @@ def test_train_job_writes_a_checkpoint_that_evaluate_reads(workdir, recwarn, cap
     for name in NOISE_NAMES:
         if result["hand-tuned"][name] > 0:
             assert result["start"][name] == pytest.approx(10 * result["hand-tuned"][name])
-    # learning moved the learned parameters and kept the frozen ones
+    # the start was validated before the first step, and the checkpoint is the best of it and the epoch
+    history = result["history"]
+    assert [entry["label"] for entry in history] == ["start", "epoch 1"]
+    chosen = min(history, key=lambda entry: entry["score"])
+    assert result["chosen"] == chosen["label"]
+    assert json.loads((out / "selection.json").read_text())["chosen"] == chosen["label"]
+    # the held-out test of the selected parameters scores what their validation scored
+    for method in ("ins_dense", "ins_gnss_dense"):
+        assert held["rmse_m"]["learned"][method][0] == pytest.approx(chosen["rmse_m"][method], rel=1e-9)
+    assert held["rmse_m"]["start"]["ins_dense"][0] == pytest.approx(history[0]["rmse_m"]["ins_dense"], rel=1e-9)
+    # the epoch's learning moved the learned parameters and kept the frozen ones
+    last = FilterParameters.from_checkpoint(out / "checkpoints" / "last.ckpt").values()
+    assert last["flow_sigma_scale"] != pytest.approx(result["start"]["flow_sigma_scale"], rel=1e-6)
+    assert last["initial_yaw_rad"] == pytest.approx(result["start"]["initial_yaw_rad"], rel=1e-12)
     learned = result["learned"]
-    assert learned["flow_sigma_scale"] != pytest.approx(result["start"]["flow_sigma_scale"], rel=1e-6)
-    assert learned["initial_yaw_rad"] == pytest.approx(result["start"]["initial_yaw_rad"], rel=1e-12)
     ckpt = Path(result["checkpoint"])
     assert ckpt.is_file()
     assert FilterParameters.from_checkpoint(ckpt).values() == pytest.approx(learned, rel=1e-9)
