@@ -41,7 +41,8 @@ def run(cfg: Mapping[str, Any]) -> dict[str, Any]:
     log.info(f"learning {len(params.learned)} parameters: {', '.join(params.learned)}")
     data_cfg = {**cfg, "flow": flow_settings(cfg)}
     data = SequenceDataModule(train=cfg["data"]["train"], val=cfg["data"]["val"], config=data_cfg, methods=methods,
-                              batch_size=int(cfg["data"].get("batch_size", 1)), progress=bool(cfg.get("progress", True)))
+                              batch_size=int(cfg["data"].get("batch_size", 1)), progress=bool(cfg.get("progress", True)),
+                              seed=int(cfg.get("seed", 0)))
     model = cfg["model"]
     module = FilterLearner(
         params, base, methods=methods, window_s=float(cfg["window_s"]),
@@ -63,9 +64,10 @@ def run(cfg: Mapping[str, Any]) -> dict[str, Any]:
         trainer.save_checkpoint(best, weights_only=False)
         log.info("\n" + selection_table(module.history, chosen))
         trainer.test(module, datamodule=data, verbose=False)
-    (out / "selection.json").write_text(json.dumps({"history": module.history, "chosen": chosen["label"]}, indent=2))
     learned = module.params.values()
-    (out / "learned_parameters.json").write_text(json.dumps(learned, indent=2))
+    if trainer.is_global_zero:
+        (out / "selection.json").write_text(json.dumps({"history": module.history, "chosen": chosen["label"]}, indent=2))
+        (out / "learned_parameters.json").write_text(json.dumps(learned, indent=2))
     log.info(f"\nlearned parameters: {out / 'learned_parameters.json'}")
     log.info(f"checkpoint ({chosen['label']}): {best}\n  python evaluate.py model.checkpoint={best}")
     log.info(f"skipped windows (non-finite loss or gradient): {module.skipped_windows}; trained: {module.trained_windows}")

@@ -14,7 +14,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import pytorch_lightning as pl
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import DataLoader, Dataset, DistributedSampler
 
 from flowins.data.load import load_recording
 from flowins.flow.load import load_flow
@@ -99,6 +99,7 @@ class SequenceDataModule(pl.LightningDataModule):
         methods: Sequence[str],
         batch_size: int = 1,
         progress: bool = True,
+        seed: int = 0,
     ) -> None:
         super().__init__()
         if not train or not val:
@@ -106,6 +107,7 @@ class SequenceDataModule(pl.LightningDataModule):
         if not (isinstance(batch_size, int) and batch_size >= 1):
             raise ValueError(f"data.batch_size={batch_size!r}: expected an integer >= 1")
         self.batch_size = batch_size
+        self.seed = int(seed)
         self.sources = {"train": list(train), "val": list(val)}
         self.config = config
         self.methods = list(methods)
@@ -126,8 +128,17 @@ class SequenceDataModule(pl.LightningDataModule):
         return DataLoader(_Sequences(self.sequences[split]), batch_size=None, shuffle=shuffle, collate_fn=_identity)
 
     def train_dataloader(self) -> DataLoader:
-        return DataLoader(_Sequences(self.sequences["train"]), batch_size=self.batch_size, shuffle=True,
-                          collate_fn=_as_list)
+        """Shuffled batches of ``batch_size`` sequences; with several processes (DDP) each
+        process takes its own share of the sequences (``trainer.use_distributed_sampler`` is
+        off, so that every process validates every held-out sequence and the processes agree
+        on the best validation)."""
+        sequences = _Sequences(self.sequences["train"])
+        trainer = getattr(self, "trainer", None)
+        if trainer is not None and trainer.world_size > 1:
+            sampler = DistributedSampler(sequences, num_replicas=trainer.world_size, rank=trainer.global_rank,
+                                         shuffle=True, seed=self.seed)
+            return DataLoader(sequences, batch_size=self.batch_size, sampler=sampler, collate_fn=_as_list)
+        return DataLoader(sequences, batch_size=self.batch_size, shuffle=True, collate_fn=_as_list)
 
     def val_dataloader(self) -> DataLoader:
         return self._loader("val", False)

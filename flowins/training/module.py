@@ -128,7 +128,7 @@ class FilterLearner(pl.LightningModule):
             # every process takes the same number of steps (their batches may differ in windows)
             count = int(self._sum_over_processes(torch.tensor([max(len(b) for b in bounds)], dtype=torch.float64),
                                                  reduce="max")[0])
-            gradient, pending = torch.zeros(sum(q.numel() for q in learned), dtype=torch.float64), 0
+            gradient, present, pending = self._no_gradient(learned), torch.zeros(len(learned), dtype=torch.float64), 0
             for i in range(count):
                 rows = [k for k in range(len(seqs)) if going[k] and i < len(bounds[k])]
                 losses = self._window_losses(seqs, rows, method, [bounds[k][i] for k in rows], starts, going, bounds, i)
@@ -140,13 +140,14 @@ class FilterLearner(pl.LightningModule):
                                       for q, g in zip(learned, grads)])
                     if bool(torch.isfinite(flat).all()):
                         gradient += flat
+                        present += torch.tensor([float(g is not None) for g in grads], dtype=torch.float64)
                         pending += len(losses)
                     else:
                         self._skip(len(losses))
                     self._log_windows(method, total.detach() / len(losses), losses)
                 if (i + 1) % self.accumulate == 0 or i == count - 1:
-                    self._step(opt, learned, gradient, pending)
-                    gradient, pending = torch.zeros_like(gradient), 0
+                    self._step(opt, learned, gradient, present, pending)
+                    gradient, present, pending = self._no_gradient(learned), torch.zeros_like(present), 0
         self.log("train/skipped_windows", float(self.skipped_windows), on_step=True, batch_size=1)
 
     def _window_losses(self, seqs, rows, method, windows, starts, going, bounds, i) -> list:
@@ -174,16 +175,24 @@ class FilterLearner(pl.LightningModule):
             self._skip((0 if finite else 1) + (0 if state_ok else len(bounds[k]) - i - 1))
         return losses
 
-    def _step(self, opt, learned: list[torch.Tensor], gradient: torch.Tensor, pending: int) -> None:
+    @staticmethod
+    def _no_gradient(learned: list[torch.Tensor]) -> torch.Tensor:
+        return torch.zeros(sum(q.numel() for q in learned), dtype=torch.float64)
+
+    def _step(self, opt, learned: list[torch.Tensor], gradient: torch.Tensor, present: torch.Tensor,
+              pending: int) -> None:
         """One Adam step on the mean gradient of the ``pending`` windows behind ``gradient`` (their
-        sum), over all processes; nothing when no process has a window."""
-        both = self._sum_over_processes(torch.cat((gradient, torch.tensor([float(pending)], dtype=torch.float64))))
+        sum), over all processes; nothing when no process has a window. A parameter no window
+        reached (``present`` 0 everywhere) keeps no gradient, so Adam leaves it alone, as it
+        does one process's parameter without ``.grad``."""
+        both = self._sum_over_processes(torch.cat((gradient, present, torch.tensor([float(pending)],
+                                                                                   dtype=torch.float64))))
         n = int(both[-1])
         if n == 0:
             return
-        offset = 0
-        for q in learned:
-            q.grad = (both[offset : offset + q.numel()] / n).view_as(q).clone()
+        offset, reached = 0, both[gradient.numel():-1]
+        for j, q in enumerate(learned):
+            q.grad = (both[offset : offset + q.numel()] / n).view_as(q).clone() if reached[j] > 0 else None
             offset += q.numel()
         rate = learning_rate(self.optimizer_steps, self.current_epoch, lr=self.lr, lr_final=self.lr_final,
                              warmup_steps=self.warmup_steps, epochs=self.trainer.max_epochs)
@@ -268,13 +277,13 @@ class FilterLearner(pl.LightningModule):
             for method in self.methods:
                 rmse = self._rmse(batch, method, params)
                 self._heldout.setdefault(label, {}).setdefault(method, []).append(rmse)
-                self.log(f"test/{label}/{method}/filter_rmse_m", rmse, on_epoch=True, batch_size=1)
+                self.log(f"test/{label}/{method}/filter_rmse_m", rmse, on_epoch=True, batch_size=1, sync_dist=True)
 
     def on_test_epoch_end(self) -> None:
         table = heldout_table(self._heldout, self.methods)
         log.info("\nheld-out filter RMSE (m, Table I alignment), mean over the held-out sequences\n")
         log.info(table)
-        if self.output_dir:
+        if self.output_dir and self.trainer.is_global_zero:
             out = Path(self.output_dir)
             out.mkdir(parents=True, exist_ok=True)
             (out / "heldout.json").write_text(json.dumps(
