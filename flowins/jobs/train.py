@@ -55,7 +55,8 @@ def run(cfg: Mapping[str, Any]) -> dict[str, Any]:
     logger = instantiate(cfg["logger"], "logger") if cfg.get("logger") else False
     checkpoints = out / "checkpoints"
     with _without_lightning_noise():
-        trainer: pl.Trainer = instantiate(cfg["trainer"], "trainer", logger=logger, enable_checkpointing=False)
+        bar = {} if "enable_progress_bar" in cfg["trainer"] else {"enable_progress_bar": bool(cfg.get("progress", True))}
+        trainer: pl.Trainer = instantiate(cfg["trainer"], "trainer", logger=logger, enable_checkpointing=False, **bar)
         trainer.validate(module, datamodule=data, verbose=False)  # the start: a candidate like every epoch
         trainer.fit(module, datamodule=data)
         trainer.save_checkpoint(checkpoints / "last.ckpt", weights_only=False)

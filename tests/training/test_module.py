@@ -29,3 +29,51 @@ def test_select_best_loads_the_lowest_validation_and_prefers_the_earliest_on_a_t
     learner.history = [_entry("start", 0.7, start), _entry("epoch 1", 0.7, moved), _entry("epoch 2", 0.9, other)]
     assert learner.select_best()["label"] == "start"
     assert {n: float(params.raw[n].detach()) for n in NAMES} == start
+
+
+def test_accumulated_windows_take_one_adam_step_on_their_mean_gradient(tmp_path):
+    """``model.accumulate_windows=2`` over a sequence of two windows: one step, on the mean of
+    both windows' gradients (computed here window by window), as Adam's first step takes it."""
+    import torch
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+    from pathlib import Path
+
+    from flowins.ins.imu_model import imu_model
+    from flowins.jobs.train import run
+    from flowins.settings import flow_settings, navigation_config
+    from flowins.training.data import load_training_sequence
+    from flowins.training.unroll import run_window, window_bounds, window_loss
+
+    configs = str(Path(__file__).resolve().parents[2] / "configs")
+    source = {"seed": 1, "duration_s": 12.0}
+    with initialize_config_dir(config_dir=configs, version_base="1.3"):
+        cfg = OmegaConf.to_container(compose("train", overrides=[
+            f"output_dir={tmp_path / 'out'}", f"cache_dir={tmp_path / 'cache'}", "progress=false", "logger=csv",
+            "methods=[ins_gnss]", "filter.gnss_heading.enabled=false", f"data.train=[{{seed: 1, duration_s: 12.0}}]",
+            "data.val=[{seed: 1, duration_s: 12.0}]", "window_s=6.0", "curriculum_window_s=[]",
+            "trainer.max_epochs=1", "model.warmup_steps=0", "model.lr=0.05", "model.accumulate_windows=2"]),
+            resolve=True)
+    result = run(cfg)
+    # the reference: both windows' losses from the start values, their mean's gradient, Adam's first step
+    seq = load_training_sequence(source, {**cfg, "flow": flow_settings(cfg)}, methods=["ins_gnss"])
+    base = navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=False))
+    learn = [n for n in NAMES if n not in ("initial_position_m", "initial_yaw_rad")]
+    params = FilterParameters(result["start"], learn=learn)
+    config = params.apply(base, training=True)
+    first, second = window_bounds(seq.imu.t_s, 6.0)
+    a = run_window(seq, "ins_gnss", config, first)
+    b = run_window(seq, "ins_gnss", config, second, start=(a.mean.detach(), a.cov.detach()))
+    loss = 0.5 * (window_loss(a.track, seq.truth).loss + window_loss(b.track, seq.truth).loss)
+    grads = torch.autograd.grad(loss, [params.raw[n] for n in learn], allow_unused=True)
+    reached = {n: g for n, g in zip(learn, grads) if g is not None}
+    norm = torch.linalg.vector_norm(torch.stack(list(reached.values())))
+    clip = min(1.0, 1.0 / (float(norm) + 1e-6))
+    last = FilterParameters.from_checkpoint(tmp_path / "out" / "checkpoints" / "last.ckpt")
+    for name in NAMES:
+        expected = float(params.raw[name].detach())
+        if name in reached:
+            g = float(reached[name]) * clip
+            expected -= 0.05 * g / (abs(g) + 1e-8)
+        assert float(last.raw[name]) == pytest.approx(expected, rel=1e-9, abs=1e-12), name
+    assert len(reached) >= 5 and {"acc_noise", "gnss_noise_scale"} <= set(reached)

@@ -1,0 +1,75 @@
+"""How well a ``train.py`` run fits: every validation's parameters and the hand-tuned ones, scored
+on the training sequences and on the held-out ones.
+
+Training lowers a loss on the training sequences; the held-out RMSE is what it is selected
+by. Scoring the same parameters on both tells an optimisation that has not reached the
+hand-tuned values yet (worse than hand-tuned on the training sequences too) from one that
+overfits (better on the training sequences, worse held out).
+
+    python benchmarks/bench_train_fit.py outputs/DATE/TIME [--method ins_dense] [--all]
+
+It reads the run's ``.hydra/config.yaml`` (its sequences, settings and flow, from the cache)
+and ``selection.json``, and prints the filter RMSE after the Table I alignment (hard gates, as
+validation runs) per sequence, for the hand-tuned parameters, the start, the chosen validation
+and the last (``--all``: every validation).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+
+from flowins.ins.imu_model import imu_model
+from flowins.settings import flow_settings, navigation_config, parameter_sets
+from flowins.training.data import load_training_sequence
+from flowins.training.parameters import NAMES, FilterParameters
+from flowins.training.unroll import sequence_rmse
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("run", type=Path, help="a train.py output folder (with .hydra/config.yaml, selection.json)")
+    parser.add_argument("--method", default="ins_dense")
+    parser.add_argument("--all", action="store_true", help="every validation (default: the start, the chosen, the last)")
+    args = parser.parse_args()
+    config_file, selection_file = args.run / ".hydra" / "config.yaml", args.run / "selection.json"
+    for f in (config_file, selection_file):
+        if not f.is_file():
+            raise SystemExit(f"error: {f}: not found; expected the output folder of a finished train.py run")
+    cfg = OmegaConf.to_container(OmegaConf.load(config_file), resolve=False)
+    cfg["output_dir"] = str(args.run)
+    recording = any(item.get("path") for part in ("train", "val") for item in cfg["data"][part])
+    base = navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=recording))
+    tuned, _, _ = parameter_sets(cfg, base)
+    data_cfg = {**cfg, "flow": flow_settings(cfg)}
+    sources = [("train", s) for s in cfg["data"]["train"]] + [("held out", s) for s in cfg["data"]["val"]]
+    seqs = [(part, load_training_sequence(s, data_cfg, methods=[args.method])) for part, s in sources]
+    history = json.loads(selection_file.read_text())["history"]
+
+    def scored(params: FilterParameters) -> list[float]:
+        p = float(params.value("dropout_p").detach())
+        return [sequence_rmse(seq, args.method, params.apply(base, training=False), dropout_p=p) for _, seq in seqs]
+
+    chosen = json.loads(selection_file.read_text())["chosen"]
+    rows = {"hand-tuned": scored(FilterParameters(tuned, learn=()))}
+    for entry in history if args.all else [e for e in history if e["label"] in ("start", chosen)] + history[-1:]:
+        params = FilterParameters({n: 0.5 if n == "dropout_p" else 1.0 for n in NAMES}, learn=())
+        with torch.no_grad():
+            for name, value in entry["raw"].items():
+                params.raw[name].fill_(value)
+        rows[entry["label"]] = scored(params)
+    print(f"{args.method} filter RMSE (m, Table I alignment) per sequence of {args.run}")
+    columns = [f"{part} {i + 1}" for i, (part, _) in enumerate(seqs)]
+    for column, (_, seq) in zip(columns, seqs):
+        print(f"  {column}: {seq.name}")
+    print(f"{'':12s}" + "".join(f"{c:>14s}" for c in columns))
+    for label, values in rows.items():
+        print(f"{label:12s}" + "".join(f"{v:>14.2f}" if math.isfinite(v) else f"{'diverged':>14s}" for v in values))
+
+
+if __name__ == "__main__":
+    main()
