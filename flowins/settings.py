@@ -126,6 +126,8 @@ def check_data_settings(cfg: Mapping[str, Any]) -> None:
     setting(cfg, "sequence.path", str | None)
     setting(cfg, "sequence.max_imu_gap_s", float, minimum=1e-6)
     setting(cfg, "sequence.crop", bool)
+    setting(cfg, "sequence.start_s", float | None, minimum=0.0, default=None)
+    setting(cfg, "sequence.end_s", float | None, minimum=1e-6, default=None)
     if not cfg["sequence"].get("path"):
         setting(cfg, "sequence.duration_s", float, minimum=1.0)
         setting(cfg, "sequence.quick_duration_s", float, minimum=1.0)
@@ -225,7 +227,8 @@ def check_train_settings(cfg: Mapping[str, Any]) -> None:
             key = f"data.{part}[{i}]"
             if not isinstance(source, Mapping) or not (source.get("path") or "seed" in source):
                 raise ValueError(f"{key}={source!r}: expected {{path: DIR}} or {{seed: N}} (optionally duration_s)")
-            for name, tp in (("path", str | None), ("seed", int), ("duration_s", float)):
+            for name, tp in (("path", str | None), ("seed", int), ("duration_s", float), ("start_s", float),
+                             ("end_s", float)):
                 if name in source:
                     check_value(source[name], tp, f"{key}.{name}")
     setting(cfg, "trainer.max_epochs", int | None, minimum=-1, default=None)

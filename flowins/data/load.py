@@ -64,7 +64,7 @@ def load_recording(cfg: Mapping[str, Any], *, quick: bool, progress: bool = Fals
         seq, cropped = within_imu_span(seq, crop=cfg["crop"])
         for line in cropped:
             log.warning("warning: %s", line)
-        return Recording(seq, cropped)
+        return time_window(Recording(seq, cropped), cfg.get("start_s"), cfg.get("end_s"))
     if cfg["kind"] != "simulated_walk":
         raise ValueError(
             f"sequence.kind={cfg['kind']!r} is not supported; use the built-in 'simulated_walk' "
@@ -79,4 +79,35 @@ def load_recording(cfg: Mapping[str, Any], *, quick: bool, progress: bool = Fals
         camera=CameraConfig(**dict(cfg["camera"])),
         flow_every=0,
     )
-    return Recording(simulate(config=config, progress=progress))
+    return time_window(Recording(simulate(config=config, progress=progress)), cfg.get("start_s"), cfg.get("end_s"))
+
+
+def time_window(rec: Recording, start_s: float | None, end_s: float | None) -> Recording:
+    """The part of ``rec`` from ``start_s`` to ``end_s`` seconds after its first IMU sample
+    (``sequence.start_s``, ``sequence.end_s``; None: from the start, to the end): the IMU
+    samples in it, and the frames, tracks, GNSS fixes and ground truth cropped to the IMU
+    samples' span. Both None: ``rec`` itself."""
+    if start_s is None and end_s is None:
+        return rec
+    imu = rec.imu
+    t0, duration = float(imu.t_s[0]), float(imu.t_s[-1] - imu.t_s[0])
+    a = 0.0 if start_s is None else float(start_s)
+    b = duration if end_s is None else float(end_s)
+    if a >= duration:
+        raise ValueError(f"{rec.name}: start_s={start_s!r} (sequence.start_s or a data source's) is past its "
+                         f"{duration:.3f} s of IMU data; expected a start inside it")
+    if not 0.0 <= a < b:
+        raise ValueError(f"{rec.name}: start_s={start_s!r}, end_s={end_s!r} (sequence.start_s/end_s or a data "
+                         f"source's): expected 0 <= start_s < end_s, seconds after the first IMU sample")
+    seq = dataclasses.replace(rec.sequence, imu=imu.slice_time(t0 + a, t0 + b))
+    seq, _ = within_imu_span(seq, crop=True)
+    if seq.groundtruth is not None:
+        truth, span = seq.groundtruth, (float(seq.imu.t_s[0]), float(seq.imu.t_s[-1]))
+        keep = (truth.t_s >= span[0]) & (truth.t_s <= span[1])
+        if not bool(keep.any()):
+            raise ValueError(f"{truth.name}: no ground truth in the window [{a:.3f}, {b:.3f}] s of {rec.name}")
+        quat = None if truth.quat_wxyz is None else truth.quat_wxyz[keep]
+        seq = dataclasses.replace(seq, groundtruth=PoseStream(truth.t_s[keep], truth.pos_m[keep], quat, name=truth.name))
+    log.info(f"{rec.name}: {a:.3f} s to {min(b, duration):.3f} s after its first IMU sample "
+             f"(start_s, end_s): {len(seq.imu)} of {len(imu)} IMU samples, every stream cropped to them")
+    return Recording(seq, rec.warnings)

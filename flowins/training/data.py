@@ -24,15 +24,20 @@ from flowins.training.unroll import METHODS, TrainingSequence
 
 
 def _sequence_config(source: Mapping[str, Any], base: Mapping[str, Any]) -> dict[str, Any]:
+    window = {k: source[k] for k in ("start_s", "end_s") if k in source}
     if "path" in source and source["path"]:
-        return {**base, "path": str(source["path"])}
-    unknown = set(source) - {"seed", "duration_s", "path"}
+        unknown = set(source) - {"path", "start_s", "end_s"}
+        if unknown:
+            raise ValueError(f"data source {dict(source)}: a recording takes path, start_s and end_s; "
+                             f"unknown keys {sorted(unknown)}")
+        return {**base, "path": str(source["path"]), **window}
+    unknown = set(source) - {"seed", "duration_s", "path", "start_s", "end_s"}
     if unknown or "seed" not in source:
         raise ValueError(
             f"data source {dict(source)}: expected {{path: DIR}} or {{seed: N}} (optionally duration_s); "
             f"unknown keys {sorted(unknown)}" if unknown else f"data source {dict(source)} has neither path nor seed"
         )
-    cfg = {**base, "path": None, "seed": int(source["seed"])}
+    cfg = {**base, "path": None, "seed": int(source["seed"]), **window}
     if "duration_s" in source:
         cfg["duration_s"] = float(source["duration_s"])
     return cfg
