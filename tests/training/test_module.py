@@ -50,7 +50,7 @@ def test_accumulated_windows_take_one_adam_step_on_their_mean_gradient(tmp_path)
     with initialize_config_dir(config_dir=configs, version_base="1.3"):
         cfg = OmegaConf.to_container(compose("train", overrides=[
             f"output_dir={tmp_path / 'out'}", f"cache_dir={tmp_path / 'cache'}", "progress=false", "logger=csv",
-            "methods=[ins_gnss]", "filter.gnss_heading.enabled=false", f"data.train=[{{seed: 1, duration_s: 12.0}}]",
+            "methods=[ins_gnss]", "filter.gnss_heading.enabled=false", "data.train=[{seed: 1, duration_s: 12.0}]",
             "data.val=[{seed: 1, duration_s: 12.0}]", "window_s=6.0", "curriculum_window_s=[]",
             "trainer.max_epochs=1", "model.warmup_steps=0", "model.lr=0.05", "model.accumulate_windows=2"]),
             resolve=True)
