@@ -20,13 +20,12 @@ import json
 import math
 from pathlib import Path
 
-import torch
 from omegaconf import OmegaConf
 
 from flowins.ins.imu_model import imu_model
 from flowins.settings import flow_settings, navigation_config, parameter_sets
 from flowins.training.data import load_training_sequence
-from flowins.training.parameters import NAMES, FilterParameters
+from flowins.training.parameters import FilterParameters
 from flowins.training.unroll import sequence_rmse
 
 
@@ -57,11 +56,7 @@ def main() -> None:
     chosen = json.loads(selection_file.read_text())["chosen"]
     rows = {"hand-tuned": scored(FilterParameters(tuned, learn=()))}
     for entry in history if args.all else [e for e in history if e["label"] in ("start", chosen)] + history[-1:]:
-        params = FilterParameters({n: 0.5 if n == "dropout_p" else 1.0 for n in NAMES}, learn=())
-        with torch.no_grad():
-            for name, value in entry["raw"].items():
-                params.raw[name].fill_(value)
-        rows[entry["label"]] = scored(params)
+        rows[entry["label"]] = scored(FilterParameters.from_raw(entry["raw"]))
     print(f"{args.method} filter RMSE (m, Table I alignment) per sequence of {args.run}")
     columns = [f"{part} {i + 1}" for i, (part, _) in enumerate(seqs)]
     for column, (_, seq) in zip(columns, seqs):

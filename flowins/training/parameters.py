@@ -194,10 +194,15 @@ class FilterParameters(nn.Module):
         if bad := [n for n in NAMES if not plausible(raw[n])]:
             raise ValueError(f"model.checkpoint: {path}: the parameters {bad} are not single finite numbers "
                              "(stored in log space; -inf stands for 0)")
+        return cls.from_raw({n: raw[n].reshape(()) for n in NAMES})
+
+    @classmethod
+    def from_raw(cls, raw: Mapping[str, float | Tensor]) -> FilterParameters:
+        """Frozen parameters with these unconstrained values (log, or logit for ``dropout_p``), one per name."""
         module = cls({n: 0.5 if n == "dropout_p" else 1.0 for n in NAMES}, learn=())
         with torch.no_grad():
             for n in NAMES:
-                module.raw[n].copy_(raw[n].reshape(()).to(torch.float64))
+                module.raw[n].copy_(torch.as_tensor(raw[n], dtype=torch.float64))
         return module
 
     def extra_repr(self) -> str:
