@@ -150,6 +150,9 @@ class UpdateResult(NamedTuple):
     cov: Tensor  # (..., D, D)
     nis: Tensor  # (..., M) normalised innovation squared of each measurement block
     weight: Tensor  # (..., M) gate weight (1 accepted, 0 rejected)
+    #: (..., M) each block's innovation negative log-likelihood ``½ (NIS + log det S)`` (without
+    #: the constant ``½ d log 2π``), before the gate; None unless asked for (``likelihood=True``)
+    nll: Tensor | None = None
 
 
 def joseph_update(
@@ -247,11 +250,36 @@ def block_nis(cov: Tensor, innovation: Tensor, H: Tensor, noise_cov: Tensor) -> 
     cov ``(..., D, D)`` -> ``(..., M)``.
     """
     if innovation.shape[-1] == 1:  # scalars: S_i = h_i P h_iᵀ + r_i without M tiny solves
-        h = H[..., 0, :]
-        S = torch.linalg.vecdot(h @ cov, h) + noise_cov[..., 0, 0]
-        return innovation[..., 0] ** 2 / S
+        return innovation[..., 0] ** 2 / _scalar_innovation_variance(cov, H, noise_cov)
     S = symmetrize(H @ cov.unsqueeze(-3) @ H.transpose(-1, -2) + noise_cov)
     return (innovation * torch.linalg.solve(S, innovation.unsqueeze(-1)).squeeze(-1)).sum(-1)
+
+
+def block_nll(cov: Tensor, innovation: Tensor, H: Tensor, noise_cov: Tensor) -> tuple[Tensor, Tensor]:
+    """NIS and innovation negative log-likelihood of each of ``M`` measurement blocks.
+
+    Shapes as for :func:`block_nis`; returns ``(nis, nll)``, both ``(..., M)``, with
+    ``nll_i = ½ (v_iᵀ S_i⁻¹ v_i + log det S_i)``, ``S_i = H_i P H_iᵀ + R_i``: the negative
+    log-density of the block's innovation under the filter's prediction, without the
+    constant ``½ d log 2π``. Summed over the updates of a run, one block per update, it is
+    the negative log-likelihood of all the measurements (the prediction-error
+    decomposition).
+    """
+    if innovation.shape[-1] == 1:
+        S = _scalar_innovation_variance(cov, H, noise_cov)
+        nis = innovation[..., 0] ** 2 / S
+        return nis, 0.5 * (nis + torch.log(S))
+    S = symmetrize(H @ cov.unsqueeze(-3) @ H.transpose(-1, -2) + noise_cov)
+    L = torch.linalg.cholesky(S)
+    white = torch.linalg.solve_triangular(L, innovation.unsqueeze(-1), upper=False).squeeze(-1)
+    nis = (white * white).sum(-1)
+    return nis, 0.5 * nis + torch.log(L.diagonal(dim1=-2, dim2=-1)).sum(-1)
+
+
+def _scalar_innovation_variance(cov: Tensor, H: Tensor, noise_cov: Tensor) -> Tensor:
+    """``S_i = h_i P h_iᵀ + r_i`` ``(..., M)`` of scalar blocks (``d = 1``)."""
+    h = H[..., 0, :]
+    return torch.linalg.vecdot(h @ cov, h) + noise_cov[..., 0, 0]
 
 
 def _block_diagonal(blocks: Tensor) -> Tensor:
@@ -272,6 +300,7 @@ def ekf_update(
     gate: Gate | None = None,
     sequential: bool = False,
     normalize: Callable[[Tensor], Tensor] | None = None,
+    likelihood: bool = False,
 ) -> UpdateResult:
     """Gated EKF update with ``M`` independent measurement blocks of dimension ``d``.
 
@@ -288,6 +317,9 @@ def ekf_update(
         normalize: applied to the updated mean, the caller's hook for a state with
             constraints (the flowins layout passes :func:`flowins.state.normalize_quaternions`);
             None: the mean as the update gives it.
+        likelihood: also return each block's innovation negative log-likelihood
+            (:attr:`UpdateResult.nll`, :func:`block_nll`; with ``sequential`` each block's
+            against the covariance updated by the blocks before it).
     """
     if innovation.ndim < 2 or H.shape[:-1] != innovation.shape or noise_cov.shape[-2:] != innovation.shape[-1:] * 2:
         raise ValueError(
@@ -297,7 +329,7 @@ def ekf_update(
     gate = gate or Gate(mode="off")
     dof = innovation.shape[-1]
     if sequential:
-        nis_list, weight_list = [], []
+        nis_list, weight_list, nll_list = [], [], []
         prior_mean = mean
         for i in range(innovation.shape[-2]):
             Hi, Ri = H[..., i : i + 1, :, :], noise_cov[..., i : i + 1, :, :]
@@ -305,13 +337,15 @@ def ekf_update(
             # (first order: v_i - H_i (m - m_prior), exact for linear measurements)
             shift = (Hi[..., 0, :, :] @ (mean - prior_mean).unsqueeze(-1)).squeeze(-1)
             v = innovation[..., i : i + 1, :] - shift.unsqueeze(-2)
-            result = ekf_update(mean, cov, innovation=v, H=Hi, noise_cov=Ri, gate=gate)
+            result = ekf_update(mean, cov, innovation=v, H=Hi, noise_cov=Ri, gate=gate, likelihood=likelihood)
             mean, cov = result.mean, result.cov
             nis_list.append(result.nis)
             weight_list.append(result.weight)
+            nll_list.append(result.nll)
         nis, weight = torch.cat(nis_list, -1), torch.cat(weight_list, -1)
+        nll = torch.cat(nll_list, -1) if likelihood else None
     else:
-        nis = block_nis(cov, innovation, H, noise_cov)
+        nis, nll = block_nll(cov, innovation, H, noise_cov) if likelihood else (block_nis(cov, innovation, H, noise_cov), None)
         weight = gate.weights(nis, dof)
         w = weight.unsqueeze(-1)
         *batch, M, d = innovation.shape
@@ -328,4 +362,4 @@ def ekf_update(
             )
     if normalize is not None:
         mean = normalize(mean)
-    return UpdateResult(mean, cov, nis, weight)  # each branch's covariance is already symmetrised
+    return UpdateResult(mean, cov, nis, weight, nll)  # each branch's covariance is already symmetrised

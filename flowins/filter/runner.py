@@ -57,8 +57,12 @@ class BatchChain:
     that stays true.
     """
 
-    def __init__(self, rows: int) -> None:
+    def __init__(self, rows: int, *, likelihood: bool = False) -> None:
         self.rows = rows
+        #: whether updates add their innovation negative log-likelihood (:meth:`add_likelihood`)
+        self.likelihood = likelihood
+        self._nll: list[list[Tensor]] = [[] for _ in range(rows)]
+        self._nll_count: list[list[Tensor]] = [[] for _ in range(rows)]
         #: per row: the times of its nodes, its log, what its events carry from one to the
         #: next (e.g. GNSS fixes held back for the heading), its changes of frame
         self.t_s: list[list[float]] = [[] for _ in range(rows)]
@@ -145,6 +149,15 @@ class BatchChain:
             self._cov[-1] = self._cov[-1].index_copy(0, index, cov.unsqueeze(1))
         self._log(rows, infos)
 
+    def add_likelihood(self, rows: Sequence[int], nll: Tensor, count: Tensor) -> None:
+        """Add an update's innovation negative log-likelihood ``nll`` ``(r,)`` of ``count`` ``(r,)``
+        scalar measurements to the rows ``rows`` (kept only when :attr:`likelihood`)."""
+        if not self.likelihood:
+            return
+        for i, b in enumerate(rows):
+            self._nll[b].append(nll[i])
+            self._nll_count[b].append(count[i])
+
     def _log(self, rows: Sequence[int], infos: Sequence[dict[str, Any]] | None) -> None:
         for b, info in zip(rows, infos or ()):
             if info:
@@ -196,9 +209,12 @@ class BatchChain:
                 index = torch.tensor(columns, device=parts[0].device)
                 own = [part[b].index_select(0, index) for part in parts]
             transition, pred_mean, pred_cov, mean, cov = own
+            nll = (torch.stack(self._nll[b]).sum() if self._nll[b] else mean.new_zeros(())) if self.likelihood else None
+            count = float(torch.stack(self._nll_count[b]).sum()) if self._nll_count[b] else 0.0
             tracks.append(FilterTrack(t_s=torch.tensor(self.t_s[b], dtype=torch.float64), transition=transition,
                                       pred_mean=pred_mean, pred_cov=pred_cov, node_mean=mean, node_cov=cov,
-                                      log=self.logs[b], frame_changes=self.frame_changes[b]))
+                                      log=self.logs[b], frame_changes=self.frame_changes[b], nll=nll,
+                                      nll_count=count))
         return tracks
 
 
@@ -267,6 +283,15 @@ class ChainBuilder:
         """Replace the newest node's filtered Gaussian by an update's result."""
         self._batch.update_rows([self._row], result[0].unsqueeze(0), result[1].unsqueeze(0), [info])
 
+    @property
+    def likelihood(self) -> bool:
+        """Whether updates add their innovation likelihood (:meth:`BatchChain.add_likelihood`)."""
+        return self._batch.likelihood
+
+    def add_likelihood(self, nll: Tensor, count: Tensor) -> None:
+        """:meth:`BatchChain.add_likelihood` of this row: scalars ``nll``, ``count``."""
+        self._batch.add_likelihood([self._row], nll.reshape(1), count.reshape(1))
+
     def linear_predict(self, A: Tensor, Q: Tensor, b: Tensor | None = None, **info: Any) -> None:
         """Append a node at the same time: ``m = A m + b``, ``P = A P Aᵀ + Q``."""
         self._batch.linear_predict_rows([self._row], A.unsqueeze(0), Q.unsqueeze(0),
@@ -328,6 +353,11 @@ class FilterTrack(_NodeOutputs):
     #: ``(node, A, b, Q)``: node ``node`` re-expressed the state by ``x ↦ A x + b`` (noise
     #: ``Q``); the filter's nodes before it stay in the frame they were computed in
     frame_changes: list[tuple[int, Tensor, Tensor, Tensor]] = field(default_factory=list)
+    #: the summed innovation negative log-likelihood of the updates that report one (flow points,
+    #: GNSS fixes; ``½ (NIS + log det S)`` each, gate-weighted) over ``nll_count`` scalar
+    #: measurements; None unless the run asked for it (``run_filters(likelihood=True)``)
+    nll: Tensor | None = None
+    nll_count: float = 0.0
 
     def in_final_frame(self) -> NodeTrack:
         """The filtered nodes with those before each change of frame re-expressed after it
@@ -393,6 +423,7 @@ def run_filter(
     jacobians: str = "analytic",
     scheme: str = "midpoint",
     progress: bool = False,
+    likelihood: bool = False,
 ) -> FilterTrack:
     """Run the EKF from ``(mean0, cov0)`` at ``t_s[0]`` through all IMU samples and events.
 
@@ -408,12 +439,14 @@ def run_filter(
             (the reference: per-sample ``torch.func.jacrev``).
         scheme: mechanization scheme, ``"midpoint"`` or ``"paper"``
             (see :mod:`flowins.ins.mechanization`).
+        likelihood: sum the innovation negative log-likelihood of the updates that report
+            one (:attr:`FilterTrack.nll`).
 
     The one-run case of :func:`run_filters`.
     """
     run = FilterInput(t_s, acc_mps2, gyro_rps, mean0, cov0, events)
     return run_filters([run], noise=noise, output_every=output_every, gravity_mps2=gravity_mps2,
-                       jacobians=jacobians, scheme=scheme, progress=progress)[0]
+                       jacobians=jacobians, scheme=scheme, progress=progress, likelihood=likelihood)[0]
 
 
 class _Run(NamedTuple):
@@ -437,6 +470,7 @@ def run_filters(
     jacobians: str = "analytic",
     scheme: str = "midpoint",
     progress: bool = False,
+    likelihood: bool = False,
 ) -> list[FilterTrack]:
     """Run ``B`` filters in one batched pass: each run as :func:`run_filter` runs it alone.
 
@@ -452,7 +486,8 @@ def run_filters(
         runs: the :class:`FilterInput` of each run; every ``mean0`` has the same dtype and
             device (the filter's).
         noise: the process noise of the runs without their own.
-        output_every, gravity_mps2, jacobians, scheme: as for :func:`run_filter`, for all runs.
+        output_every, gravity_mps2, jacobians, scheme, likelihood: as for :func:`run_filter`, for
+            all runs.
     """
     if jacobians not in ("analytic", "autodiff"):
         raise ValueError(f"jacobians must be 'analytic' or 'autodiff', got {jacobians!r}")
@@ -470,12 +505,12 @@ def run_filters(
                              f"{like.dtype} on {like.device}; a batch has one dtype and device")
     if jacobians == "autodiff" and len(runs) > 1:  # the reference path: one run at a time
         return [run_filters([run], noise=noise, output_every=output_every, gravity_mps2=gravity_mps2,
-                            jacobians=jacobians, scheme=scheme)[0] for run in runs]
+                            jacobians=jacobians, scheme=scheme, likelihood=likelihood)[0] for run in runs]
     dtype, device = like.dtype, like.device
     noises = [run.noise or noise for run in runs]
     plans = [_prepare(run, output_every, dtype, device, n) for run, n in zip(runs, noises)]
     B = len(runs)
-    chain = BatchChain(B)
+    chain = BatchChain(B, likelihood=likelihood)
     eye = torch.eye(STATE_DIM, dtype=dtype, device=device)
     chain.add_nodes([[plan.t0] for plan in plans], eye.expand(B, 1, STATE_DIM, STATE_DIM),
                     torch.stack([run.mean0 for run in runs]).unsqueeze(1),

@@ -199,7 +199,11 @@ class GnssFix:
             noise_cov=self.noise_cov.to(mean).reshape(1, 3, 3),
             gate=self.gate,
             normalize=normalize_quaternions,
+            likelihood=chain.likelihood,
         )
+        if chain.likelihood:  # weighed by the (constant) gate weight, over 3 scalar measurements
+            kept = result.weight[0].detach()
+            chain.add_likelihood(kept * result.nll[0], 3.0 * kept)
         accepted = float(result.weight[0].detach())
         nis = float(result.nis[0].detach())
         chain.update(result, kind="gnss", name=self.name, nis=nis, accepted=accepted)

@@ -399,3 +399,91 @@ def test_the_update_knows_no_state_layout_and_the_caller_hooks_its_constraint():
     small = ekf_update(torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64), innovation=torch.ones(1, 1, dtype=F64),
                        H=torch.tensor([[[1.0, 0.0]]], dtype=F64), noise_cov=torch.ones(1, 1, 1, dtype=F64))
     torch.testing.assert_close(small.mean, torch.tensor([0.5, 0.0], dtype=F64))
+
+
+# --------------------------------------------------------------------------- innovation likelihood
+
+
+def joint_measurement_nll(A, Q, m0, P0, H_flat, R_flat, zs, measured):
+    """-log p(z_1, ..., z_K) of the linear system written out as one Gaussian: every measured
+    z_k = H x_k + v_k with x_k = A^k x_0 + Σ A^(k-j) w_j, built from the stacked covariances."""
+    D, n = A.shape[0], H_flat.shape[0]
+    steps = [k for k in range(len(zs)) if measured(k)]
+    # x_k = Φ_k x_0 + Σ_{j<=k} Ψ_{k,j} w_j
+    phis, psis = [], []
+    phi = torch.eye(D, dtype=F64)
+    for k in range(len(zs)):
+        phi = A @ phi
+        phis.append(phi)
+        psis.append([torch.linalg.matrix_power(A, k - j) for j in range(k + 1)])
+    mean = torch.cat([H_flat @ phis[k] @ m0 for k in steps])
+    blocks = []
+    for k in steps:
+        row = []
+        for l in steps:
+            c = H_flat @ phis[k] @ P0 @ phis[l].T @ H_flat.T
+            for j in range(min(k, l) + 1):
+                c = c + H_flat @ psis[k][j] @ Q @ psis[l][j].T @ H_flat.T
+            if k == l:
+                c = c + R_flat
+            row.append(c)
+        blocks.append(torch.cat(row, 1))
+    cov = torch.cat(blocks, 0)
+    z = torch.cat([zs[k] for k in steps])
+    return -torch.distributions.MultivariateNormal(mean, covariance_matrix=cov).log_prob(z), len(steps) * n
+
+
+@pytest.mark.parametrize("seed,d,sequential", [(0, 2, False), (1, 1, False), (2, 1, True), (3, 3, True)])
+def test_summed_innovation_nll_is_the_joint_likelihood_of_the_linear_system(seed, d, sequential):
+    """The prediction-error decomposition: the updates' ½ (NIS + log det S), plus ½ n log 2π,
+    summed over a run equals -log p(all measurements) of the system as one Gaussian (one
+    block per update; several blocks only with the sequential update)."""
+    gen = torch.Generator().manual_seed(seed)
+    D, steps = 4, 8
+    M = 3 if sequential else 1
+    A = torch.eye(D, dtype=F64) + 0.2 * torch.randn(D, D, generator=gen, dtype=F64)
+    Q = random_spd(gen, D, scale=0.05)
+    H = torch.randn(M, d, D, generator=gen, dtype=F64)
+    R = torch.stack([random_spd(gen, d, scale=0.3) for _ in range(M)])
+    H_flat, R_flat = H.reshape(M * d, D), block_diag(R)
+    m0, P0 = torch.randn(D, generator=gen, dtype=F64), random_spd(gen, D)
+    zs = [torch.randn(M * d, generator=gen, dtype=F64) for _ in range(steps)]
+
+    def measured(k):
+        return k % 3 != 1
+
+    m, P, total = m0, P0, torch.zeros((), dtype=F64)
+    for k, z in enumerate(zs):
+        m, P = linear_predict(m, P, A, Q)
+        if measured(k):
+            out = ekf_update(m, P, innovation=(z - H_flat @ m).reshape(M, d), H=H, noise_cov=R,
+                             sequential=sequential, likelihood=True)
+            assert out.nll.shape == (M,)
+            total = total + out.nll.sum()
+            m, P = out.mean, out.cov
+    expected, n = joint_measurement_nll(A, Q, m0, P0, H_flat, R_flat, zs, measured)
+    torch.testing.assert_close(total + 0.5 * n * math.log(2 * math.pi), expected, rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.parametrize("d", [1, 3])
+def test_each_block_nll_is_its_marginal_gaussian_density(d):
+    """A stacked update's ``nll`` is, block by block, -log N(v_i; 0, H_i P H_iᵀ + R_i) without
+    the constant, and the NIS and the update are the ones without the likelihood."""
+    gen = torch.Generator().manual_seed(7)
+    D, M = 6, 4
+    m, P = torch.randn(2, D, generator=gen, dtype=F64), torch.stack([random_spd(gen, D), random_spd(gen, D)])
+    H = torch.randn(2, M, d, D, generator=gen, dtype=F64)
+    R = torch.stack([torch.stack([random_spd(gen, d, scale=0.5) for _ in range(M)]) for _ in range(2)])
+    v = torch.randn(2, M, d, generator=gen, dtype=F64)
+    gate = Gate(mode="soft", threshold=3.0, softness=0.5)
+    out = ekf_update(m, P, innovation=v, H=H, noise_cov=R, gate=gate, likelihood=True)
+    plain = ekf_update(m, P, innovation=v, H=H, noise_cov=R, gate=gate)
+    assert plain.nll is None
+    torch.testing.assert_close(out.nis, plain.nis, rtol=1e-12, atol=0)
+    assert torch.equal(out.mean, plain.mean) and torch.equal(out.cov, plain.cov)
+    for b in range(2):
+        for i in range(M):
+            S = H[b, i] @ P[b] @ H[b, i].T + R[b, i]
+            density = torch.distributions.MultivariateNormal(torch.zeros(d, dtype=F64), covariance_matrix=S)
+            expected = -density.log_prob(v[b, i]) - 0.5 * d * math.log(2 * math.pi)
+            torch.testing.assert_close(out.nll[b, i], expected, rtol=1e-11, atol=1e-12)

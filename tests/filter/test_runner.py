@@ -15,7 +15,7 @@ from flowins.data.synthetic import (
 from flowins.filter.ekf import Gate
 from flowins.measurements.gnss import gnss_fixes, GnssFix
 from flowins.filter.augmentation import PoseAugmentation
-from flowins.filter.runner import run_filter
+from flowins.filter.runner import FilterInput, run_filter, run_filters
 from flowins.filter.smoother import rts_smooth
 from flowins.geometry import quaternion as quat
 from flowins.ins.initialization import InitialUncertainty, stationary_initialization
@@ -141,8 +141,8 @@ def test_event_outside_imu_span_raises_naming_it(short_run, offset_s):
 # --------------------------------------------------------------------------- GNSS gating
 
 
-def test_gnss_gate_rejects_an_outlier_and_accepts_a_consistent_fix():
-    # a device at rest, level, with a (2 m)² position prior
+def resting_device():
+    """2 s of a device at rest, level, with a (2 m)² position prior: t, acc, gyro, p0, mean0, cov0."""
     n = 201
     t = torch.linspace(0.0, 2.0, n, dtype=F64)
     acc = torch.tensor([0.0, 0.0, STANDARD_GRAVITY_MPS2], dtype=F64).expand(n, 3)
@@ -151,6 +151,11 @@ def test_gnss_gate_rejects_an_outlier_and_accepts_a_consistent_fix():
     mean0, cov0 = stationary_initialization(
         t_s=t, acc_mps2=acc, gyro_rps=gyro, position_m=p0, uncertainty=InitialUncertainty(position_m=2.0)
     )
+    return t, acc, gyro, p0, mean0, cov0
+
+
+def test_gnss_gate_rejects_an_outlier_and_accepts_a_consistent_fix():
+    t, acc, gyro, p0, mean0, cov0 = resting_device()
     R = 25.0 * torch.eye(3, dtype=F64)  # 5 m accuracy
     z_outlier = p0 + torch.tensor([100.0, 0.0, 0.0], dtype=F64)
     z_good = p0 + torch.tensor([2.0, -1.5, 1.0], dtype=F64)  # within 1σ of S = (4 + 25) I
@@ -192,6 +197,30 @@ def test_gnss_gate_rejects_an_outlier_and_accepts_a_consistent_fix():
     before = float((z_good - m_pred[STATE.p]).norm())
     after = float((z_good - track.node_mean[j_good, STATE.p]).norm())
     assert after < before * (1.0 - 0.1)
+
+
+def test_the_run_sums_the_innovation_likelihood_of_the_accepted_fixes_per_row():
+    """With ``likelihood=True`` each row's track holds -log N(v; 0, S) (less ½ d log 2π) summed
+    over its accepted fixes, and their count in scalars; the gated outlier adds nothing."""
+    t, acc, gyro, p0, mean0, cov0 = resting_device()
+    R = 25.0 * torch.eye(3, dtype=F64)
+    fixes = [(0.505, p0 + torch.tensor([100.0, 0.0, 0.0], dtype=F64)), (1.005, p0 + torch.tensor([2.0, -1.5, 1.0], dtype=F64)),
+             (1.505, p0 + torch.tensor([-3.0, 1.0, 0.5], dtype=F64))]
+    runs = [FilterInput(t, acc, gyro, mean0, cov0, [GnssFix(tf, z, R, Gate(mode="hard")) for tf, z in fixes]),
+            FilterInput(t, acc, gyro, mean0, cov0, [GnssFix(tf, z, R, Gate(mode="hard")) for tf, z in fixes[2:]])]
+    tracks = run_filters(runs, noise=ProcessNoise(), likelihood=True)
+    for track, used in zip(tracks, (fixes[1:], fixes[2:])):
+        expected = 0.0
+        for tf, z in used:
+            j = int(torch.nonzero(track.t_s == tf)[0])
+            S = track.pred_cov[j, STATE.p, STATE.p] + R
+            density = torch.distributions.MultivariateNormal(track.pred_mean[j, STATE.p], covariance_matrix=S)
+            expected += float(-density.log_prob(z)) - 1.5 * math.log(2 * math.pi)
+        assert abs(float(track.nll) - expected) <= 1e-10 * abs(expected)
+        assert track.nll_count == 3.0 * len(used)
+    plain = run_filters(runs, noise=ProcessNoise())
+    assert plain[0].nll is None and plain[0].nll_count == 0.0
+    assert torch.equal(plain[0].node_mean, tracks[0].node_mean)
 
 
 # --------------------------------------------------------------------------- long run
