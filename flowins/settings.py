@@ -192,7 +192,7 @@ def check_train_settings(cfg: Mapping[str, Any]) -> None:
     for key in ("flow_moments", "progress"):
         setting(cfg, key, bool, default=True)
     for key, minimum in (("lr", 1e-12), ("lr_final", 1e-12), ("gradient_clip", 1e-12), ("nll_weight", 0.0),
-                         ("orientation_weight_m_per_rad", 0.0), ("mistune", 1e-12)):
+                         ("orientation_weight_m_per_rad", 0.0), ("innovation_weight", 0.0), ("mistune", 1e-12)):
         setting(cfg, f"model.{key}", float, minimum=minimum)
     setting(cfg, "model.warmup_steps", int, minimum=0)
     setting(cfg, "model.accumulate_windows", int, minimum=1)

@@ -48,6 +48,7 @@ def run(cfg: Mapping[str, Any]) -> dict[str, Any]:
         params, base, methods=methods, window_s=float(cfg["window_s"]),
         curriculum_window_s=[float(w) for w in cfg.get("curriculum_window_s") or []],
         nll_weight=float(model["nll_weight"]), orientation_weight_m_per_rad=float(model["orientation_weight_m_per_rad"]),
+        innovation_weight=float(model["innovation_weight"]),
         lr=float(model["lr"]), lr_final=float(model["lr_final"]), warmup_steps=int(model["warmup_steps"]),
         accumulate_windows=int(model["accumulate_windows"]), gradient_clip=float(model["gradient_clip"]),
         reference={"start": start, "hand-tuned": tuned}, output_dir=str(out),

@@ -53,6 +53,8 @@ class FilterLearner(pl.LightningModule):
         nll_weight: weight of the Gaussian negative log-likelihood in the loss.
         orientation_weight_m_per_rad: weight of the orientation RMSE (rad) in the loss
             (metres per radian; 0: position only).
+        innovation_weight: weight of the innovation negative log-likelihood per scalar
+            measurement (metres per nat; :func:`~flowins.training.unroll.window_loss`).
         lr, gradient_clip: Adam's learning rate (in log-parameter units) and the
             gradient-norm clip of each step.
         reference: named parameter values the held-out test compares with (e.g. the
@@ -69,6 +71,7 @@ class FilterLearner(pl.LightningModule):
         curriculum_window_s: Sequence[float] = (),
         nll_weight: float = 0.0,
         orientation_weight_m_per_rad: float = 0.0,
+        innovation_weight: float = 0.0,
         lr: float = 0.1,
         lr_final: float | None = None,
         warmup_steps: int = 0,
@@ -86,6 +89,7 @@ class FilterLearner(pl.LightningModule):
         self.curriculum = [float(w) for w in curriculum_window_s]
         self.nll_weight = float(nll_weight)
         self.orientation_weight = float(orientation_weight_m_per_rad)
+        self.innovation_weight = float(innovation_weight)
         self.lr = float(lr)
         self.lr_final = self.lr if lr_final is None else float(lr_final)
         self.warmup_steps = int(warmup_steps)
@@ -104,7 +108,8 @@ class FilterLearner(pl.LightningModule):
         self._heldout: dict[str, dict[str, list[float]]] = {}
         self.save_hyperparameters({"methods": self.methods, "window_s": self.window_s,
                                    "curriculum_window_s": self.curriculum, "nll_weight": self.nll_weight,
-                                   "orientation_weight_m_per_rad": self.orientation_weight, "lr": self.lr,
+                                   "orientation_weight_m_per_rad": self.orientation_weight,
+                                   "innovation_weight": self.innovation_weight, "lr": self.lr,
                                    "lr_final": self.lr_final, "warmup_steps": self.warmup_steps,
                                    "accumulate_windows": self.accumulate, "gradient_clip": self.gradient_clip,
                                    "reference": self.reference, "learned": params.learned})
@@ -159,11 +164,12 @@ class FilterLearner(pl.LightningModule):
         config = self.params.apply(self.base, training=True)
         p = self.params.value("dropout_p") if _has_moments(seqs[rows[0]], method) else None
         results = run_windows([seqs[k] for k in rows], method, config, windows, dropout_p=p,
-                              starts=[starts[k] for k in rows])
+                              starts=[starts[k] for k in rows], likelihood=self.innovation_weight > 0)
         losses = []
         for k, result in zip(rows, results):
             loss = window_loss(result.track, seqs[k].truth, nll_weight=self.nll_weight,
-                               orientation_weight_m_per_rad=self.orientation_weight)
+                               orientation_weight_m_per_rad=self.orientation_weight,
+                               innovation_weight=self.innovation_weight, innovation=(result.nll, result.nll_count))
             state_ok = bool(torch.isfinite(result.mean).all() and torch.isfinite(result.cov).all())
             finite = bool(torch.isfinite(loss.loss))
             if finite:
@@ -223,6 +229,9 @@ class FilterLearner(pl.LightningModule):
         self.log("train/loss", mean_loss, on_step=True, prog_bar=True, batch_size=n)
         if self.nll_weight > 0:
             self.log("train/nll", torch.stack([w.nll for w in losses]).mean(), on_step=True, batch_size=n)
+        if self.innovation_weight > 0:
+            self.log(f"train/{method}/innovation_nll", torch.stack([w.innovation_nll for w in losses]).mean(),
+                     on_step=True, batch_size=n)
         if self.orientation_weight > 0:
             self.log(f"train/{method}/orientation_rmse_rad",
                      torch.stack([w.orientation_rmse_rad for w in losses]).mean(), on_step=True, batch_size=n)

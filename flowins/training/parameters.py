@@ -211,11 +211,18 @@ class FilterParameters(nn.Module):
 
 def learned_settings(checkpoint: str, nav_cfg: NavigationConfig, cfg: Mapping[str, Any]) -> tuple[NavigationConfig, dict]:
     """The filter config and job config with a ``train.py`` checkpoint's learned parameters
-    (noise, gates, flow noise; the dropout rate goes to the flow provider when it has one)."""
+    (noise, gates, flow noise; the dropout rate goes to the flow provider when it has one).
+
+    SpyNet's Monte Carlo dropout then runs in closed form (``mc_mode="moments"``), as
+    training runs it: there the mean flow is the deterministic one whatever the rate, and
+    the rate only scales σ. With sampled passes the mean is an average of a few dropped-out
+    passes, whose noise grows with the rate and which training never saw."""
+    from flowins.settings import flow_settings
+
     params = FilterParameters.from_checkpoint(checkpoint)
     values = params.values()
     cfg = dict(cfg)
     if "p" in cfg["flow"]:
-        cfg["flow"] = {**cfg["flow"], "p": values["dropout_p"]}
+        cfg["flow"] = flow_settings({**cfg, "flow_moments": True, "flow": {**cfg["flow"], "p": values["dropout_p"]}})
     logging.getLogger("flowins").info(f"learned parameters from {checkpoint}: " + ", ".join(f"{k}={v:.4g}" for k, v in values.items()))
     return params.apply(nav_cfg, training=False), cfg

@@ -92,6 +92,10 @@ class WindowResult(NamedTuple):
     track: NodeTrack
     mean: Tensor  # (26,) the state at the window's end (with the graph)
     cov: Tensor  # (26, 26)
+    #: the window's summed innovation negative log-likelihood and its number of scalar
+    #: measurements (:attr:`~flowins.filter.runner.FilterTrack.nll`); None unless asked for
+    nll: Tensor | None = None
+    nll_count: float = 0.0
 
 
 def run_window(
@@ -102,6 +106,7 @@ def run_window(
     *,
     dropout_p: Tensor | float | None = None,
     start: tuple[Tensor, Tensor] | None = None,
+    likelihood: bool = False,
 ) -> WindowResult:
     """The filter of ``method`` from IMU sample ``bounds[0]`` to ``bounds[1]``.
 
@@ -109,8 +114,9 @@ def run_window(
     the previous window); None: the sequence's own prior (then ``bounds[0]`` must be 0).
     Events at the first sample belong to the previous window unless this is the first.
     ``dropout_p``: recompute the flow σ at this dropout rate (the pairs need moments).
+    ``likelihood``: also sum the updates' innovation negative log-likelihood (:attr:`WindowResult.nll`).
     """
-    return run_windows([seq], method, config, [bounds], dropout_p=dropout_p, starts=[start])[0]
+    return run_windows([seq], method, config, [bounds], dropout_p=dropout_p, starts=[start], likelihood=likelihood)[0]
 
 
 def run_windows(
@@ -121,6 +127,7 @@ def run_windows(
     *,
     dropout_p: Tensor | float | None = None,
     starts: Sequence[tuple[Tensor, Tensor] | None] | None = None,
+    likelihood: bool = False,
 ) -> list[WindowResult]:
     """:func:`run_window` of one window of each sequence, ``seqs[i]`` from ``bounds[i][0]`` to
     ``bounds[i][1]`` starting at ``starts[i]``, all in one batched filter pass
@@ -147,8 +154,9 @@ def run_windows(
         mean0, cov0 = (setup.mean0, setup.cov0) if first else start
         inputs.append(FilterInput(imu.t_s[i_a : i_b + 1], imu.acc_mps2[i_a : i_b + 1], imu.gyro_rps[i_a : i_b + 1],
                                   mean0, cov0, events))
-    tracks = run_filters(inputs, **config.filter_settings())
-    return [WindowResult(track.in_final_frame(), track.node_mean[-1], track.node_cov[-1]) for track in tracks]
+    tracks = run_filters(inputs, **config.filter_settings(), likelihood=likelihood)
+    return [WindowResult(track.in_final_frame(), track.node_mean[-1], track.node_cov[-1], track.nll, track.nll_count)
+            for track in tracks]
 
 
 class WindowLoss(NamedTuple):
@@ -156,6 +164,7 @@ class WindowLoss(NamedTuple):
     rmse_m: Tensor  # position RMSE after the yaw + translation alignment (no gradient through it)
     nll: Tensor  # mean Gaussian negative log-likelihood of the aligned position errors (0 if unused)
     orientation_rmse_rad: Tensor = torch.zeros(())  # chordal orientation RMSE after the same alignment (0 if unused)
+    innovation_nll: Tensor = torch.zeros(())  # innovation NLL per scalar measurement (0 if unused)
 
 
 def orientation_rmse(q_est: Tensor, q_ref: Tensor) -> Tensor:
@@ -172,6 +181,8 @@ def window_loss(
     *,
     nll_weight: float = 0.0,
     orientation_weight_m_per_rad: float = 0.0,
+    innovation_weight: float = 0.0,
+    innovation: tuple[Tensor, float] | None = None,
     max_dt_s: float = 0.1,
 ) -> WindowLoss:
     """Position (and optionally orientation) error of a window's filter track against the ground truth.
@@ -185,7 +196,12 @@ def window_loss(
     ``½ (eᵀ P⁻¹ e + log det 2πP)`` of the aligned errors under the filter's position
     covariance, so the covariances learn to be honest, plus
     ``orientation_weight_m_per_rad`` times the orientation RMSE (rad,
-    :func:`orientation_rmse`) of the yaw-aligned attitude (needs a truth with orientations).
+    :func:`orientation_rmse`) of the yaw-aligned attitude (needs a truth with orientations),
+    plus ``innovation_weight`` times the innovation negative log-likelihood per scalar
+    measurement, ``innovation = (nll, count)`` of the window
+    (:attr:`WindowResult.nll`, :attr:`WindowResult.nll_count`): the likelihood of the
+    measurements under the filter's own predictions, which fixes the absolute noise levels
+    that the RMSE sees only as ratios, and needs no ground truth.
     """
     t, pos, cov = track.t, track.mean[:, STATE.p], track.cov[:, STATE.p, STATE.p]
     inside = (truth.t_s >= t[0]) & (truth.t_s <= t[-1])
@@ -217,8 +233,14 @@ def window_loss(
         q_est = apply_alignment_to_quaternions(alignment, interpolate_quaternions(track.mean[:, STATE.q], assoc))
         q_ref = truth.quat_wxyz[inside].to(pos)[assoc.ref_index]
         attitude = orientation_rmse(q_est, q_ref)
-    loss = rmse + nll_weight * nll + orientation_weight_m_per_rad * attitude
-    return WindowLoss(loss, rmse.detach(), nll.detach(), attitude.detach())
+    innovation_nll = torch.zeros((), dtype=pos.dtype)
+    if innovation_weight > 0:
+        if innovation is None or innovation[0] is None:
+            raise ValueError("window_loss: innovation_weight > 0 needs the window's innovation likelihood "
+                             "(run_windows(..., likelihood=True))")
+        innovation_nll = innovation[0] / max(innovation[1], 1.0)
+    loss = rmse + nll_weight * nll + orientation_weight_m_per_rad * attitude + innovation_weight * innovation_nll
+    return WindowLoss(loss, rmse.detach(), nll.detach(), attitude.detach(), innovation_nll.detach())
 
 
 def sequence_rmse(seq: TrainingSequence, method: str, config: NavigationConfig, *, dropout_p: float | None = None) -> float:

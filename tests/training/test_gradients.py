@@ -296,9 +296,14 @@ def walk_segment():
                 p_end=p[-1])
 
 
-def unroll_loss(params: FilterParameters, s: dict, parallax_inflation: bool = True) -> tuple[torch.Tensor, list]:
-    """Squared final position error of the filter over the walk segment (soft gates, learned values)."""
-    base = NavigationConfig(initial=InitialUncertainty(yaw_rad=0.05), flow_update=FlowUpdate(parallax_inflation=parallax_inflation))
+def unroll_loss(params: FilterParameters, s: dict, parallax_inflation: bool = True,
+                innovation: bool = False) -> tuple[torch.Tensor, list]:
+    """Squared final position error of the filter over the walk segment (soft gates, learned values);
+    ``innovation``: the summed innovation negative log-likelihood instead (and the track, not its
+    log), with the gates off."""
+    off = {"gate": Gate(mode="off")} if innovation else {}
+    base = NavigationConfig(initial=InitialUncertainty(yaw_rad=0.05), gnss_gate=off.get("gate", Gate()),
+                            flow_update=FlowUpdate(parallax_inflation=parallax_inflation, **off))
     config = params.apply(base, training=True)
     p = params.value("dropout_p")
     events = [FlowFrame(t, pts if len(pts) == 0 else pts.at_dropout_rate(p), s["camera"], config.flow_update, f"frame {t:.2f}")
@@ -307,7 +312,10 @@ def unroll_loss(params: FilterParameters, s: dict, parallax_inflation: bool = Tr
     events += [GnssFix(t, z, gnss_noise(h_acc, h_acc, config.gnss_noise_scale), config.gnss_gate, name=f"fix {t:.0f}")
                for t, z in s["gnss"]]
     track = run_filter(t_s=s["t"], acc_mps2=s["acc"], gyro_rps=s["gyro"], mean0=s["x0"],
-                       cov0=prior_covariance(s["q0"], config.initial), noise=config.noise, events=events)
+                       cov0=prior_covariance(s["q0"], config.initial), noise=config.noise, events=events,
+                       likelihood=innovation)
+    if innovation:
+        return track.nll, track
     err = track.node_mean[-1, STATE.p] - s["p_end"]
     return (err * err).sum(), track.log
 
@@ -316,6 +324,22 @@ def unroll_start() -> dict[str, float]:
     start = starting_values(NavigationConfig())
     start.update(acc_bias_walk=1e-4, gyro_bias_walk=1e-5, acc_scale_walk=1e-5)  # configs/model/filter.yaml
     return start
+
+
+def directional_derivatives(grads: dict, h: float, *, seed: int, loss) -> tuple[float, float]:
+    """Along a random direction of the raw parameters in ``grads``: the derivative from those
+    gradients and the central difference of ``loss(FilterParameters)`` from :func:`unroll_start`."""
+    gen = torch.Generator().manual_seed(seed)
+    direction = {n: float(torch.randn((), generator=gen, dtype=F64)) for n in grads}
+
+    def shifted(sign):
+        moved = FilterParameters(unroll_start())
+        with torch.no_grad():
+            for n, d in direction.items():
+                moved.raw[n].add_(sign * h * d)
+            return float(loss(moved))
+
+    return sum(float(grads[n]) * d for n, d in direction.items()), (shifted(+1) - shifted(-1)) / (2 * h)
 
 
 def test_gradients_are_finite_through_a_300_step_unroll(walk_segment):
@@ -346,20 +370,32 @@ def test_unroll_gradient_is_the_finite_difference_of_the_loss(walk_segment, para
     loss.backward()
     grads = {n: params.raw[n].grad for n in params.learned if params.raw[n].grad is not None}
     assert len(grads) >= 15
-    gen = torch.Generator().manual_seed(0)
-    direction = {n: float(torch.randn((), generator=gen, dtype=F64)) for n in grads}
-    analytic = sum(float(grads[n]) * d for n, d in direction.items())
-    h = 1e-5
-
-    def shifted(sign):
-        moved = FilterParameters(unroll_start())
-        with torch.no_grad():
-            for n, d in direction.items():
-                moved.raw[n].add_(sign * h * d)
-            return float(unroll_loss(moved, walk_segment, parallax_inflation)[0])
-
-    numeric = (shifted(+1) - shifted(-1)) / (2 * h)
+    analytic, numeric = directional_derivatives(grads, 1e-5, seed=0, loss=lambda moved: unroll_loss(
+        moved, walk_segment, parallax_inflation)[0])
     assert abs(numeric) > 1e-4  # a real slope
+    assert analytic == pytest.approx(numeric, rel=1e-4), (analytic, numeric)
+
+
+def test_innovation_likelihood_gradient_is_its_finite_difference(walk_segment):
+    """The summed innovation NLL of the flow points and fixes over the 300-step walk: its count is
+    the gate-accepted valid points plus 3 per accepted fix (from the log), and its directional
+    derivative along a random direction of all learned raw parameters is the central difference.
+    The gates are off: the likelihood takes their weights as constants, so with soft gates its
+    gradient is, by design, not the total derivative."""
+    params = FilterParameters(unroll_start())
+    nll, track = unroll_loss(params, walk_segment, innovation=True)
+    flows = [e for e in track.log if e.get("kind") == "flow"]
+    fixes = [e for e in track.log if e.get("kind") == "gnss"]
+    assert len(fixes) == 3
+    expected_count = sum(e["accepted"] for e in flows) + 3.0 * sum(e["accepted"] for e in fixes)
+    assert track.nll_count == pytest.approx(expected_count, rel=1e-12)
+    nll.backward()
+    grads = {n: params.raw[n].grad for n in params.learned if params.raw[n].grad is not None}
+    assert {"acc_noise", "gyro_noise", "flow_sigma_scale", "gnss_noise_scale", "dropout_p"} <= set(grads)
+    assert track.nll_count == sum(e["valid"] for e in flows) + 9.0  # the gates are off
+    analytic, numeric = directional_derivatives(grads, 1e-6, seed=1, loss=lambda moved: unroll_loss(
+        moved, walk_segment, innovation=True)[0])
+    assert abs(numeric) > 1e-2  # a real slope
     assert analytic == pytest.approx(numeric, rel=1e-4), (analytic, numeric)
 
 

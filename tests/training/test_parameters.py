@@ -14,6 +14,7 @@ from flowins.training.parameters import (
     FROZEN_BY_DEFAULT,
     NAMES,
     FilterParameters,
+    learned_settings,
     starting_values,
 )
 
@@ -227,6 +228,22 @@ def test_from_checkpoint_round_trips_the_lightning_layout(tmp_path):
     path2 = tmp_path / "learner.ckpt"
     torch.save({"state_dict": learner.state_dict()}, path2)
     assert FilterParameters.from_checkpoint(path2).values() == params.values()
+
+
+def test_learned_settings_run_spynet_dropout_in_closed_form_at_the_learned_rate(tmp_path):
+    """evaluate.py with a checkpoint: SpyNet's dropout at the learned rate in closed form (the mode
+    training uses, whose mean flow does not depend on the rate); a provider without a rate is
+    left as it is."""
+    params = FilterParameters(some_start())
+    path = tmp_path / "best.ckpt"
+    torch.save({"state_dict": {"params." + k: v for k, v in params.state_dict().items()}}, path)
+    spynet = {"_target_": "flowins.flow.spynet.SpyNetProvider", "mc_passes": 10, "p": 0.2}
+    nav, cfg = learned_settings(str(path), NavigationConfig(), {"flow": spynet, "flow_moments": False})
+    assert cfg["flow"] == {**spynet, "p": pytest.approx(0.37, rel=1e-12), "mc_mode": "moments"}
+    assert spynet["p"] == 0.2 and "mc_mode" not in spynet  # the caller's config is not changed
+    assert nav.flow_update.sigma_scale == pytest.approx(params.values()["flow_sigma_scale"], rel=1e-12)
+    dis = {"_target_": "flowins.flow.classical.DisProvider"}
+    assert learned_settings(str(path), NavigationConfig(), {"flow": dis})[1]["flow"] == dis
 
 
 def test_from_checkpoint_names_missing_keys_and_missing_files(tmp_path):
