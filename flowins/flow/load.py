@@ -38,7 +38,10 @@ def load_flow(kind: str, rec: Recording, cfg: Mapping[str, Any], *, progress: bo
                  input_scale=pairs_cfg["input_scale"]) if kind == "dense" else {}
     provider = instantiate(target, "flow" if kind == "dense" else "sparse.tracker")
     weights = provider if isinstance(provider, torch.nn.Module) else None  # keyed by its state dict
-    key = cache_key(kind=kind, source=rec.content_key, provider=settings, weights=weights, step=step, **extra)
+    # closed-form dropout keeps σ's moments, which give σ at every rate: one cache for all rates
+    rate = settings.get("p") if kind == "dense" and settings.get("mc_mode") == "moments" else None
+    keyed = settings if rate is None else {k: v for k, v in settings.items() if k != "p"}
+    key = cache_key(kind=kind, source=rec.content_key, provider=keyed, weights=weights, step=step, **extra)
     path = Path(cfg["cache_dir"] or cache_root()) / "flow" / f"{kind}-{key}.npz"
     label = str(target.get("_target_", "")).rsplit(".", 1)[-1]
 
@@ -51,4 +54,6 @@ def load_flow(kind: str, rec: Recording, cfg: Mapping[str, Any], *, progress: bo
     if path.is_file():
         log.info(f"{kind} flow: {label}, read from the cache {path}")
     pairs = cached(path, compute)
+    if rate is not None:
+        pairs = pairs.at_dropout_rate(float(rate))
     return pairs.undistorted(seq.camera)

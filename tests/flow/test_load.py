@@ -38,10 +38,10 @@ def _copy(src: Path, dst: Path) -> Path:
     return dst
 
 
-def _dense_flow(folder: Path, cache: Path, caplog) -> tuple:
-    """``(pairs, read from the cache?)`` of ``evaluate.py``'s dense flow (DIS) on ``folder``."""
+def _dense_flow(folder: Path, cache: Path, caplog, flow: tuple[str, ...] = ("flow=dis",)) -> tuple:
+    """``(pairs, read from the cache?)`` of ``evaluate.py``'s dense flow (DIS by default) on ``folder``."""
     with initialize_config_dir(config_dir=CONFIGS, version_base=None):
-        cfg = compose("evaluate", overrides=[f"sequence.path={folder}", f"cache_dir={cache}", "output_dir=unused", "flow=dis",
+        cfg = compose("evaluate", overrides=[f"sequence.path={folder}", f"cache_dir={cache}", "output_dir=unused", *flow,
                                              "flow_pairs.input_scale=1.0", "progress=false"])
     cfg = OmegaConf.to_container(cfg, resolve=True)
     caplog.clear()
@@ -116,3 +116,22 @@ def test_a_corrupted_image_is_an_error_even_with_a_warm_cache(recording, tmp_pat
     path.write_bytes(bytes(data))
     with pytest.raises(ValueError, match=r"000020\.png"):
         _dense_flow(tmp_path / "rec", cache, caplog)
+
+
+def test_closed_form_dropout_shares_one_cache_across_rates(recording, tmp_path, caplog):
+    """SpyNet in closed form keeps σ's moments: a second rate reads the first rate's cache, and its
+    σ is what the network computes at that rate from scratch (another cache)."""
+    def spynet(p):
+        return ("flow=spynet", "+flow.mc_mode=moments", f"flow.p={p}")
+
+    first, cached = _dense_flow(recording, tmp_path / "shared", caplog, spynet(0.2))
+    assert not cached
+    again, cached = _dense_flow(recording, tmp_path / "shared", caplog, spynet(0.4))
+    assert cached
+    fresh, cached = _dense_flow(recording, tmp_path / "own", caplog, spynet(0.4))
+    assert not cached
+    assert len(again.points) == len(fresh.points) > 0
+    for a, b, c in zip(again.points, fresh.points, first.points):
+        torch.testing.assert_close(a.sigma_px, b.sigma_px, rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(a.flow_px, b.flow_px, rtol=0, atol=0)
+    assert any(not torch.allclose(a.sigma_px, c.sigma_px) for a, c in zip(again.points, first.points))
