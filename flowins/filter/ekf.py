@@ -251,7 +251,7 @@ def block_nis(cov: Tensor, innovation: Tensor, H: Tensor, noise_cov: Tensor) -> 
     """
     if innovation.shape[-1] == 1:  # scalars: S_i = h_i P h_iᵀ + r_i without M tiny solves
         return innovation[..., 0] ** 2 / _scalar_innovation_variance(cov, H, noise_cov)
-    S = symmetrize(H @ cov.unsqueeze(-3) @ H.transpose(-1, -2) + noise_cov)
+    S = _block_innovation_cov(cov, H, noise_cov)
     return (innovation * torch.linalg.solve(S, innovation.unsqueeze(-1)).squeeze(-1)).sum(-1)
 
 
@@ -269,11 +269,15 @@ def block_nll(cov: Tensor, innovation: Tensor, H: Tensor, noise_cov: Tensor) -> 
         S = _scalar_innovation_variance(cov, H, noise_cov)
         nis = innovation[..., 0] ** 2 / S
         return nis, 0.5 * (nis + torch.log(S))
-    S = symmetrize(H @ cov.unsqueeze(-3) @ H.transpose(-1, -2) + noise_cov)
-    L = torch.linalg.cholesky(S)
+    L = torch.linalg.cholesky(_block_innovation_cov(cov, H, noise_cov))
     white = torch.linalg.solve_triangular(L, innovation.unsqueeze(-1), upper=False).squeeze(-1)
     nis = (white * white).sum(-1)
     return nis, 0.5 * nis + torch.log(L.diagonal(dim1=-2, dim2=-1)).sum(-1)
+
+
+def _block_innovation_cov(cov: Tensor, H: Tensor, noise_cov: Tensor) -> Tensor:
+    """``S_i = H_i P H_iᵀ + R_i`` ``(..., M, d, d)`` of each block, symmetrised."""
+    return symmetrize(H @ cov.unsqueeze(-3) @ H.transpose(-1, -2) + noise_cov)
 
 
 def _scalar_innovation_variance(cov: Tensor, H: Tensor, noise_cov: Tensor) -> Tensor:

@@ -205,10 +205,10 @@ def _flow_update(chain: BatchChain, rows: list[int], frames: list[FlowFrame]) ->
         step = ekf_update(mean, cov, innovation=innovation, H=upd.H, noise_cov=upd.noise_cov, gate=u.gate,
                           sequential=u.sequential, normalize=normalize_quaternions, likelihood=likelihood)
         counts_now = torch.stack((m.valid.sum(-1), m.n_degenerate, m.n_behind, m.n_low_parallax), -1)
-        accepted = (step.weight * m.valid).sum(-1)
+        kept = step.weight * m.valid
+        accepted = kept.sum(-1)
         if likelihood:  # the accepted valid points', each weighed by its (constant) gate weight
-            kept = (step.weight * m.valid).detach()
-            chain.add_likelihood(rows, (kept * step.nll).sum(-1), kept.sum(-1))
+            chain.add_likelihood(rows, (kept.detach() * step.nll).sum(-1), accepted.detach())
         if iteration == 0:
             new_mean, new_cov, counts, weight = step.mean, step.cov, counts_now, accepted
             updated = going = None if u.iterations == 1 else m.valid.any(-1)
