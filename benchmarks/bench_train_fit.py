@@ -7,6 +7,14 @@ hand-tuned values yet (worse than hand-tuned on the training sequences too) from
 overfits (better on the training sequences, worse held out).
 
     python benchmarks/bench_train_fit.py outputs/DATE/TIME [--method ins_dense] [--all]
+    python benchmarks/bench_train_fit.py RUN --all --sequence '{seed: 0, duration_s: 300}' --points 256
+    python benchmarks/bench_train_fit.py RUN --all --hand acc_bias_walk,gyro_bias_walk,acc_scale_walk
+
+``--sequence`` adds a sequence to score (a ``data.train`` entry: ``{seed: N, duration_s: S}``
+or ``{path: DIR}``), such as the 300 s walk of ``evaluate.py``, which ``--points 256`` scores
+with as many points per frame as ``evaluate.py`` uses: how far the parameters learned on
+short walks carry. ``--hand`` sets the named parameters to their hand-tuned values in every
+row but the hand-tuned one: which learned parameters a result hinges on.
 
 It reads the run's ``.hydra/config.yaml`` (its sequences, settings and flow, from the cache)
 and ``selection.json``, and prints the filter RMSE after the Table I alignment (hard gates, as
@@ -25,7 +33,7 @@ from omegaconf import OmegaConf
 from flowins.ins.imu_model import imu_model
 from flowins.settings import flow_settings, navigation_config, parameter_sets
 from flowins.training.data import load_training_sequence
-from flowins.training.parameters import FilterParameters
+from flowins.training.parameters import NAMES, FilterParameters
 from flowins.training.unroll import sequence_rmse
 
 
@@ -34,6 +42,11 @@ def main() -> None:
     parser.add_argument("run", type=Path, help="a train.py output folder (with .hydra/config.yaml, selection.json)")
     parser.add_argument("--method", default="ins_dense")
     parser.add_argument("--all", action="store_true", help="every validation (default: the start, the chosen, the last)")
+    parser.add_argument("--sequence", action="append", default=[], metavar="SPEC",
+                        help="one more sequence to score, e.g. '{seed: 0, duration_s: 300}' (repeatable)")
+    parser.add_argument("--points", type=int, default=None, help="flow points per frame (default: the run's)")
+    parser.add_argument("--hand", default="", metavar="NAMES",
+                        help="comma-separated parameters set to their hand-tuned values in the learned rows")
     args = parser.parse_args()
     config_file, selection_file = args.run / ".hydra" / "config.yaml", args.run / "selection.json"
     for f in (config_file, selection_file):
@@ -41,11 +54,24 @@ def main() -> None:
             raise SystemExit(f"error: {f}: not found; expected the output folder of a finished train.py run")
     cfg = OmegaConf.to_container(OmegaConf.load(config_file), resolve=False)
     cfg["output_dir"] = str(args.run)
+    if args.points is not None:
+        cfg["filter"]["flow"]["n_points"] = args.points
+    extra = []
+    for spec in args.sequence:
+        item = OmegaConf.to_container(OmegaConf.create(spec)) if spec.strip().startswith("{") else None
+        if not isinstance(item, dict) or not ("seed" in item or "path" in item):
+            raise SystemExit(f"error: --sequence {spec!r}: expected a mapping such as '{{seed: 0, duration_s: 300}}' "
+                             "or '{path: DIR}'")
+        extra.append(item)
+    hand = [n for n in args.hand.split(",") if n]
+    if unknown := [n for n in hand if n not in NAMES]:
+        raise SystemExit(f"error: --hand {args.hand!r}: unknown parameters {unknown}; expected names from {list(NAMES)}")
     recording = any(item.get("path") for part in ("train", "val") for item in cfg["data"][part])
     base = navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=recording))
     tuned, _, _ = parameter_sets(cfg, base)
     data_cfg = {**cfg, "flow": flow_settings(cfg)}
-    sources = [("train", s) for s in cfg["data"]["train"]] + [("held out", s) for s in cfg["data"]["val"]]
+    sources = ([("train", s) for s in cfg["data"]["train"]] + [("held out", s) for s in cfg["data"]["val"]]
+               + [("extra", s) for s in extra])
     seqs = [(part, load_training_sequence(s, data_cfg, methods=[args.method])) for part, s in sources]
     history = json.loads(selection_file.read_text())["history"]
 
@@ -54,10 +80,14 @@ def main() -> None:
         return [sequence_rmse(seq, args.method, params.apply(base, training=False), dropout_p=p) for _, seq in seqs]
 
     chosen = json.loads(selection_file.read_text())["chosen"]
-    rows = {"hand-tuned": scored(FilterParameters(tuned, learn=()))}
+    hand_params = FilterParameters(tuned, learn=())
+    hand_raw = {n: float(hand_params.raw[n].detach()) for n in hand}
+    rows = {"hand-tuned": scored(hand_params)}
     for entry in history if args.all else [e for e in history if e["label"] in ("start", chosen)] + history[-1:]:
-        rows[entry["label"]] = scored(FilterParameters.from_raw(entry["raw"]))
+        rows[entry["label"]] = scored(FilterParameters.from_raw({**entry["raw"], **hand_raw}))
     print(f"{args.method} filter RMSE (m, Table I alignment) per sequence of {args.run}")
+    if hand:
+        print(f"  learned rows with {', '.join(hand)} hand-tuned")
     columns = [f"{part} {i + 1}" for i, (part, _) in enumerate(seqs)]
     for column, (_, seq) in zip(columns, seqs):
         print(f"  {column}: {seq.name}")
