@@ -13,7 +13,6 @@ from flowins.ins.initialization import (
     StillSettings,
     forward_axis,
     kinematic_fit,
-    moving_prior,
     stationary_initialization,
     still_interval,
     two_vector_attitude,
