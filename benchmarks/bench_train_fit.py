@@ -58,7 +58,10 @@ def main() -> None:
         cfg["filter"]["flow"]["n_points"] = args.points
     extra = []
     for spec in args.sequence:
-        item = OmegaConf.to_container(OmegaConf.create(spec)) if spec.strip().startswith("{") else None
+        try:
+            item = OmegaConf.to_container(OmegaConf.create(spec))
+        except Exception:  # not YAML: the message below says what is expected
+            item = None
         if not isinstance(item, dict) or not ("seed" in item or "path" in item):
             raise SystemExit(f"error: --sequence {spec!r}: expected a mapping such as '{{seed: 0, duration_s: 300}}' "
                              "or '{path: DIR}'")
