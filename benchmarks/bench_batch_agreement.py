@@ -20,10 +20,9 @@ from omegaconf import OmegaConf
 from flowins.data.load import load_recording
 from flowins.evaluation.metrics import trajectory_errors
 from flowins.flow.load import load_flow
-from flowins.ins.imu_model import imu_model
 from flowins.measurements.flow import FlowCamera
 from flowins.navigation import NavigationRun, navigate, navigate_batch
-from flowins.settings import navigation_config
+from flowins.settings import filter_setup
 from flowins.state import STATE
 
 CONFIGS = str(Path(__file__).resolve().parents[1] / "configs")
@@ -43,14 +42,14 @@ def main() -> None:
     recs = [load_recording({**cfg["sequence"], "seed": seed}, quick=True, progress=True) for seed in args.seeds]
     runs = [NavigationRun(rec.imu, rec.gnss, flow=load_flow("dense", rec, cfg, progress=True),
                           camera=FlowCamera.from_sequence(rec.sequence), start_gnss=rec.gnss) for rec in recs]
-    config = navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=False))
+    config = filter_setup(cfg, recs, recorded=False).navigation
     rec, run = recs[-1], runs[-1]
 
     def alone(threads: int):
         before = torch.get_num_threads()
         torch.set_num_threads(threads)
         try:
-            return navigate(run.imu, run.gnss, config=config, flow=run.flow, camera=run.camera, start_gnss=run.gnss)
+            return navigate(run, config=config)
         finally:
             torch.set_num_threads(before)
 

@@ -34,11 +34,10 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from flowins.data.streams import GnssStream, ImuStream
-from flowins.ins.imu_model import imu_model
 from flowins.data.load import load_recording
 from flowins.flow.load import load_flow
 from flowins.measurements.flow import FlowCamera
-from flowins.settings import navigation_config
+from flowins.settings import filter_setup
 from flowins.navigation import NavigationRun, navigate, navigate_batch
 
 CONFIGS = str(Path(__file__).resolve().parents[1] / "configs")
@@ -83,7 +82,7 @@ def run_batch(runs, config) -> tuple[float, list]:
 def run(imu, gnss, pairs, camera, config):
     """Filter + smoother (``navigate`` runs both)."""
     start = time.perf_counter()
-    result = navigate(imu, gnss, config=config, flow=pairs, camera=camera)
+    result = navigate(NavigationRun(imu, gnss, flow=pairs, camera=camera), config=config)
     return time.perf_counter() - start, result
 
 
@@ -92,7 +91,7 @@ STAGES = (
     ("flowins.measurements.flow_update", "flow_measurements"),
     ("flowins.filter.runner", "propagate_batched"),
     ("flowins.measurements.flow_update", "select_points"),
-    ("flowins.measurements.flow_update", "ekf_update"),
+    ("flowins.filter.updater", "ekf_update"),
     ("flowins.measurements.flow_update", "epipolar_update"),
     ("flowins.navigation", "rts_smooth"),
 )
@@ -169,7 +168,7 @@ def count_ops(imu, gnss, pairs, camera, config) -> None:
             return out
 
     with stages_wrapped(stack, {}), Count(), torch.inference_mode():
-        navigate(imu, gnss, config=config, flow=pairs, camera=camera)
+        navigate(NavigationRun(imu, gnss, flow=pairs, camera=camera), config=config)
     n = len(pairs)
     ops, views = (sum(c[k] for c in counts.values()) for k in ("operations", "views"))
     print(f"per frame over {n} frames: {ops / n:.0f} operations and {views / n:.0f} views")
@@ -183,7 +182,8 @@ def profile(imu, gnss, pairs, camera, config, runs=None) -> None:
     and the batch ``runs`` when given."""
     from torch.profiler import ProfilerActivity, profile as torch_profile
 
-    for label, call in (("one recording", lambda: navigate(imu, gnss, config=config, flow=pairs, camera=camera)),
+    one = NavigationRun(imu, gnss, flow=pairs, camera=camera)
+    for label, call in (("one recording", lambda: navigate(one, config=config)),
                         (f"batch of {len(runs or [])}", lambda: navigate_batch(runs, config=config))):
         if label.startswith("batch") and not runs:
             continue
@@ -211,7 +211,7 @@ def main() -> None:
         cfg = OmegaConf.to_container(compose("evaluate", overrides=[f"filter.flow.n_points={args.points}"]), resolve=False)
     rec = load_recording(cfg["sequence"], quick=False, progress=True)
     pairs = load_flow("dense", rec, cfg, progress=True)
-    config = navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=False))
+    config = filter_setup(cfg, [rec], recorded=False).navigation
     duration = float(rec.imu.t_s[-1] - rec.imu.t_s[0])
     print(f"{rec.name}: {duration:.0f} s, {len(pairs)} flow frames, up to {args.points} points each, "
           f"{len(rec.gnss)} GNSS fixes, float64, {torch.get_num_threads()} threads")

@@ -20,7 +20,7 @@ import torch
 
 from flowins.data.streams import GnssStream
 from flowins.data.synthetic import synthetic_walk_recording
-from flowins.navigation import NavigationConfig, navigate
+from flowins.navigation import NavigationConfig, NavigationRun, navigate
 
 
 def _max_rss_mib() -> float:
@@ -33,7 +33,7 @@ def _run(imu, gnss, jacobians: str, repeats: int = 1) -> tuple[float, float, obj
     walls = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        result = navigate(imu, gnss, config=config)
+        result = navigate(NavigationRun(imu, gnss), config=config)
         walls.append(time.perf_counter() - t0)
     return statistics.median(walls), _max_rss_mib(), result
 

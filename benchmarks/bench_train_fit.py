@@ -30,8 +30,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from flowins.ins.imu_model import imu_model
-from flowins.settings import flow_settings, navigation_config, parameter_sets
+from flowins.settings import flow_config, training_setup
 from flowins.training.data import load_training_sequence
 from flowins.training.parameters import NAMES, FilterParameters
 from flowins.training.unroll import sequence_rmse
@@ -69,13 +68,12 @@ def main() -> None:
     hand = [n for n in args.hand.split(",") if n]
     if unknown := [n for n in hand if n not in NAMES]:
         raise SystemExit(f"error: --hand {args.hand!r}: unknown parameters {unknown}; expected names from {list(NAMES)}")
-    recording = any(item.get("path") for part in ("train", "val") for item in cfg["data"][part])
-    base = navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=recording))
-    tuned, _, _ = parameter_sets(cfg, base)
-    data_cfg = {**cfg, "flow": flow_settings(cfg)}
+    data_cfg = {**cfg, "flow": flow_config(cfg, moments=bool(cfg.get("flow_moments", True)))}
     sources = ([("train", s) for s in cfg["data"]["train"]] + [("held out", s) for s in cfg["data"]["val"]]
                + [("extra", s) for s in extra])
     seqs = [(part, load_training_sequence(s, data_cfg, methods=[args.method])) for part, s in sources]
+    setup = training_setup(cfg, [seq for _, seq in seqs], recorded=any(s.get("path") for _, s in sources))
+    base, tuned = setup.filter.navigation, setup.parameters.tuned
     history = json.loads(selection_file.read_text())["history"]
 
     def scored(params: FilterParameters) -> list[float]:

@@ -21,7 +21,6 @@ import time
 
 
 def measure(mode: str, window_s: float, points: int, method: str) -> dict:
-    import dataclasses
 
     from pathlib import Path
 
@@ -29,9 +28,7 @@ def measure(mode: str, window_s: float, points: int, method: str) -> dict:
     import torch
     from omegaconf import OmegaConf
 
-    from flowins.ins.imu_model import imu_model
-    from flowins.settings import navigation_config
-    from flowins.settings import flow_settings, parameter_sets
+    from flowins.settings import flow_config, training_setup
     from flowins.training.data import load_training_sequence
     from flowins.training.parameters import FilterParameters
     from flowins.training.unroll import run_window, window_loss
@@ -40,10 +37,12 @@ def measure(mode: str, window_s: float, points: int, method: str) -> dict:
     configs = Path(__file__).resolve().parents[1] / "configs"
     with hydra.initialize_config_dir(config_dir=str(configs), version_base="1.3"):
         cfg = OmegaConf.to_container(hydra.compose("train", overrides=["output_dir=/tmp"]), resolve=True)
-    seq = load_training_sequence({"seed": 1, "duration_s": 60.0}, {**cfg, "flow": flow_settings(cfg)}, methods=[method])
-    base = navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=False))
-    base = dataclasses.replace(base, flow_update=dataclasses.replace(base.flow_update, n_points=points))
-    _, start, learn = parameter_sets(cfg, base)
+    seq = load_training_sequence({"seed": 1, "duration_s": 60.0}, {**cfg, "flow": flow_config(cfg, moments=True)},
+                                 methods=[method])
+    cfg["filter"]["flow"]["n_points"] = points
+    setup = training_setup(cfg, [seq], recorded=False)
+    base = setup.filter.navigation
+    _, start, learn = setup.parameters
     params = FilterParameters(start, learn)
     t = seq.imu.t_s
     i_b = int(torch.searchsorted(t, t[0] + window_s))

@@ -3,8 +3,10 @@
 A Hydra override arrives as whatever its text parses to (``filter.acc_noise=abc`` is the
 string ``'abc'``). :func:`build` makes a settings dataclass from a config node and checks
 each value against the field's annotation first, so a wrong value stops with the key and
-what was expected (``filter.acc_noise='abc': expected a number``) rather than deep in torch;
-:func:`setting` does the same for one job key with a range.
+what was expected (``filter.acc_noise='abc': expected a number``) rather than deep in torch.
+A field declared with :func:`bounded` also carries its range (and, for a list, that it
+may not be empty), which :func:`build` checks with the same kind of message;
+:func:`setting` does the same for one job key.
 """
 from __future__ import annotations
 
@@ -21,6 +23,7 @@ import torch
 T = TypeVar("T")
 
 _KINDS = {float: "a number", int: "an integer", bool: "true or false", str: "a string"}
+_PLURALS = {float: "numbers", int: "integers", str: "names"}
 
 
 def _expected(tp: Any) -> str:
@@ -28,8 +31,10 @@ def _expected(tp: Any) -> str:
     if typing.get_origin(tp) in (typing.Union, types.UnionType):
         return " or ".join(dict.fromkeys("null" if a is type(None) else _expected(a) for a in args))
     if typing.get_origin(tp) is tuple:
-        return f"a list of {len(args)} numbers" if args and args[-1] is not Ellipsis else "a list of numbers"
-    if dataclasses.is_dataclass(tp):
+        if args and args[-1] is not Ellipsis:
+            return f"a list of {len(args)} numbers"
+        return f"a list of {_PLURALS.get(args[0] if args else float, 'items')}"
+    if dataclasses.is_dataclass(tp) or typing.get_origin(tp) in (dict, Mapping):
         return "a group of keys"
     return _KINDS.get(tp, getattr(tp, "__name__", str(tp)))
 
@@ -90,6 +95,11 @@ def check_value(value: Any, tp: Any, key: str) -> Any:
             raise ValueError(f"{key}={list(value)!r}: expected {_expected(tp)}")
         items = args if args and args[-1] is not Ellipsis else (args[0] if args else float,) * len(value)
         return tuple(check_value(v, a, f"{key}[{i}]") for i, (v, a) in enumerate(zip(value, items)))
+    if origin in (dict, Mapping):
+        if not isinstance(value, Mapping):
+            raise ValueError(f"{key}={value!r}: expected a group of keys")
+        item = typing.get_args(tp)[1] if typing.get_args(tp) else typing.Any
+        return {name: check_value(v, item, f"{key}.{name}") for name, v in value.items()}
     if dataclasses.is_dataclass(tp):
         if isinstance(value, tp):
             return value
@@ -122,6 +132,44 @@ def _fields(cls: type) -> list[str]:
     return [f.name for f in dataclasses.fields(cls) if f.init]
 
 
+def bounded(default: Any = dataclasses.MISSING, *, minimum: float | None = None, maximum: float | None = None,
+            nonempty: bool = False, **kwargs: Any) -> Any:
+    """A dataclass field whose value :func:`build` checks against ``[minimum, maximum]``
+    (each item's, for a tuple) and, with ``nonempty``, refuses an empty list."""
+    if isinstance(default, (list, dict)):
+        mutable, default = default, dataclasses.MISSING
+        kwargs["default_factory"] = lambda: type(mutable)(mutable)
+    return dataclasses.field(default=default, metadata={"minimum": minimum, "maximum": maximum,
+                                                        "nonempty": nonempty}, **kwargs)
+
+
+def _check_range(value: Any, raw: Any, tp: Any, key: str, minimum: float | None, maximum: float | None) -> None:
+    """ValueError naming ``key`` when ``value`` is outside ``[minimum, maximum]``."""
+    if value is None:
+        return
+    if minimum is not None and value < minimum:
+        raise ValueError(f"{key}={raw!r}: expected {_expected(tp)} >= {minimum:g}")
+    if maximum is not None and value > maximum:
+        raise ValueError(f"{key}={raw!r}: expected {_expected(tp)} <= {maximum:g}")
+
+
+def _check_field(field: dataclasses.Field, value: Any, raw: Any, tp: Any, key: str) -> None:
+    """The range and non-emptiness a :func:`bounded` field declares."""
+    meta = field.metadata
+    if not meta:
+        return
+    if isinstance(value, tuple):
+        items = [a for a in typing.get_args(tp) if a is not type(None)] if typing.get_origin(tp) is not tuple else [tp]
+        if meta.get("nonempty") and not value:
+            raise ValueError(f"{key}=[]: expected {_expected(items[0])}, not an empty one")
+        args = typing.get_args(items[0]) if items else ()
+        for i, (item, raw_item) in enumerate(zip(value, raw)):
+            _check_range(item, raw_item, args[0] if args else float, f"{key}[{i}]", meta.get("minimum"),
+                         meta.get("maximum"))
+    else:
+        _check_range(value, raw, tp, key, meta.get("minimum"), meta.get("maximum"))
+
+
 def build(cls: type[T], values: Mapping[str, Any], key: str, **ready: Any) -> T:
     """``cls(**values, **ready)`` for a dataclass ``cls``, each of ``values`` checked
     against its field's annotation (nested dataclasses from nested mappings). ``key`` is
@@ -130,11 +178,14 @@ def build(cls: type[T], values: Mapping[str, Any], key: str, **ready: Any) -> T:
     values already built (not checked)."""
     hints = typing.get_type_hints(cls)
     names = _fields(cls)
+    declared = {f.name: f for f in dataclasses.fields(cls)}
     kwargs: dict[str, Any] = {}
     for name, value in values.items():
+        dotted = f"{key}.{name}" if key else name
         if name not in names:
-            raise ValueError(f"{key}.{name}: unknown key; {key} takes {', '.join(names)}")
-        kwargs[name] = check_value(value, hints[name], f"{key}.{name}")
+            raise ValueError(f"{dotted}: unknown key; {key or 'the job'} takes {', '.join(names)}")
+        kwargs[name] = check_value(value, hints[name], dotted)
+        _check_field(declared[name], kwargs[name], value, hints[name], dotted)
     kwargs.update(ready)
     try:
         return cls(**kwargs)
@@ -155,10 +206,7 @@ def setting(cfg: Mapping[str, Any], key: str, tp: type[T], *, minimum: float | N
             raise ValueError(f"{key}: missing from the config")
         node = node[part]
     value = check_value(node, tp, key)
-    if value is not None and minimum is not None and value < minimum:
-        raise ValueError(f"{key}={node!r}: expected {_expected(tp)} >= {minimum:g}")
-    if value is not None and maximum is not None and value > maximum:
-        raise ValueError(f"{key}={node!r}: expected {_expected(tp)} <= {maximum:g}")
+    _check_range(value, node, tp, key, minimum, maximum)
     return value
 
 

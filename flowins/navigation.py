@@ -5,7 +5,8 @@
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+from collections.abc import Mapping, Sequence
+from dataclasses import KW_ONLY, dataclass, field
 from typing import Any
 
 import torch
@@ -13,7 +14,8 @@ from torch import Tensor
 
 from flowins.data.streams import GnssStream, ImuStream, PoseStream
 from flowins.filter.ekf import Gate
-from flowins.filter.runner import FilterInput, FilterTrack, run_filters
+from flowins.filter.chain import FilterTrack
+from flowins.filter.runner import FilterInput, run_filters
 from flowins.filter.smoother import SmoothedTrack, rts_smooth
 from flowins.flow.pairs import FlowPairs
 from flowins.geometry.geodesy import LocalTangentPlane
@@ -22,6 +24,7 @@ from flowins.ins.mechanization import SCHEMES, STANDARD_GRAVITY_MPS2, ProcessNoi
 from flowins.measurements.flow_update import FlowFrame, FlowUpdate
 from flowins.measurements.gnss import GnssRecovery, correlation_inflation, gnss_fixes, gnss_noise
 from flowins.measurements.gnss_heading import HeadingAlignment
+from flowins.measurements.registry import NavigationContext, measurement_kind
 from flowins.measurements.zero_velocity import ZeroVelocity
 from flowins.state import STATE
 from flowins.start import Start, StartSettings, choose_start
@@ -51,6 +54,10 @@ class NavigationConfig:
     jacobians: str = "analytic"
     dtype: torch.dtype = torch.float64
     flow_update: FlowUpdate = field(default_factory=FlowUpdate)
+    #: the settings of each registered measurement kind by name (``filter.measurements.<name>``,
+    #: :func:`~flowins.measurements.registry.measurement_settings`); a kind not named here
+    #: uses its settings' defaults
+    measurements: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.scheme not in SCHEMES:
@@ -171,23 +178,41 @@ class NavigationSetup:
     gnss_before_start: int = 0
 
 
-def prepare_navigation(
-    imu: ImuStream,
-    gnss: GnssStream | None = None,
-    *,
-    config: NavigationConfig = NavigationConfig(),
-    frame: LocalTangentPlane | None = None,
-    flow=None,
-    camera=None,
-    truth: PoseStream | None = None,
-    forward_b: Tensor | None = None,
-    start_gnss: GnssStream | None = None,
-) -> NavigationSetup:
+@dataclass(frozen=True)
+class NavigationRun:
+    """One recording's inputs to :func:`navigate`, :func:`navigate_batch` and
+    :func:`prepare_navigation`."""
+
+    #: the IMU samples (``N``) that drive the filter
+    imu: ImuStream
+    #: fixes (``G``) that update the filter and set the local ENU frame (origin at the first fix, or ``frame``)
+    gnss: GnssStream | None = None
+    _: KW_ONLY
+    #: the local ENU frame of the GNSS fixes; None: at the first fix
+    frame: LocalTangentPlane | None = None
+    #: frame pairs (dense or sparse) whose points update the filter as the paper's flow frames (needs ``camera``)
+    flow: FlowPairs | None = None
+    #: the flow's camera (:class:`~flowins.measurements.flow.FlowCamera`: K and the IMU->camera transform)
+    camera: Any = None
+    #: ground-truth poses (``M``) that may set the start (``filter.init.mode`` groundtruth, or auto)
+    truth: PoseStream | None = None
+    #: ``(3,)`` the body axis along the motion of a moving start
+    forward_b: Tensor | None = None
+    #: without ``gnss``: fixes (``G'``) that may set the start (a moving start's velocity and heading)
+    #: and nothing else, so that a run without GNSS starts as the run with it does
+    start_gnss: GnssStream | None = None
+    #: further measurement streams by the name of their kind (:mod:`flowins.measurements.registry`);
+    #: each stream is what its kind's ``events`` takes
+    streams: Mapping[str, Any] = field(default_factory=dict)
+
+
+def prepare_navigation(run: NavigationRun, *, config: NavigationConfig = NavigationConfig()) -> NavigationSetup:
     """The prior and the measurement events of :func:`navigate` (see there).
 
     Every number of ``config`` may be a tensor with a gradient (the training wraps
     this same function), so the events carry the graph into the filter.
     """
+    imu, gnss, frame = run.imu, run.gnss, run.frame
     events = []
     enu = fixes = None
     if gnss is not None:
@@ -196,71 +221,61 @@ def prepare_navigation(
         cov = gnss_noise(gnss.h_acc_m, gnss.v_acc_m, config.gnss_noise_scale) * inflation.reshape(-1, 1, 1)
         events = gnss_fixes(gnss.t_s, enu, cov, gate=config.gnss_gate, name=gnss.name, heading=config.gnss_heading,
                             recovery=config.gnss_recovery)
-    start_gnss = gnss if gnss is not None else start_gnss
+    start_gnss = gnss if gnss is not None else run.start_gnss
     if start_gnss is not None:
-        start_enu, _, frame = start_gnss.enu(frame)
+        start_enu = enu  # the GNSS updates' fixes, converted once
+        if start_gnss is not gnss:
+            start_enu, _, frame = start_gnss.enu(frame)
         sigma = torch.stack((start_gnss.h_acc_m, start_gnss.h_acc_m, start_gnss.v_acc_m), -1)
         fixes = (start_gnss.t_s, start_enu, sigma)
-    start = choose_start(imu, settings=config.start, fixes=fixes, truth=truth, forward_b=forward_b,
+    start = choose_start(imu, settings=config.start, fixes=fixes, truth=run.truth, forward_b=run.forward_b,
                          uncertainty=config.initial, gravity_mps2=float(config.gravity_mps2), fused=gnss is not None)
+    t_end_s = float(imu.t_s[-1])
     before = [e for e in events if e.time_s < start.t_s]
     events = [e for e in events if e.time_s >= start.t_s]
     events += [ZeroVelocity(t, config.start.still.zupt_sigma_mps, f"zero velocity at {t:.2f} s")
-               for t in start.zupt_times_s if t <= float(imu.t_s[-1])]
+               for t in start.zupt_times_s if t <= t_end_s]
     outside = 0
-    if flow is not None:
-        if camera is None:
+    if run.flow is not None:
+        if run.camera is None:
             raise ValueError("navigate: flow pairs need the camera (a FlowCamera with K and the IMU->camera transform)")
-        frames, outside = flow_frames(flow, camera, config.flow_update, t_min_s=start.t_s,
-                                      t_max_s=float(imu.t_s[-1]), name=flow.kind, jacobians=config.jacobians)
+        frames, outside = flow_frames(run.flow, run.camera, config.flow_update, t_min_s=start.t_s, t_max_s=t_end_s,
+                                      name=run.flow.kind, jacobians=config.jacobians)
         events = events + frames
+    if run.streams:
+        context = NavigationContext(t_start_s=start.t_s, t_end_s=t_end_s, frame=frame, dtype=config.dtype)
+        for name, stream in run.streams.items():
+            kind = measurement_kind(name)
+            settings = config.measurements.get(name)
+            settings = kind.settings() if settings is None else settings
+            events += [e for e in kind.events(stream, settings, context) if e.time_s >= start.t_s]
     mean0, cov0 = start.mean.to(config.dtype), start.cov.to(config.dtype)
     return NavigationSetup(mean0, cov0, events, frame, enu, outside, start, len(before))
 
 
-def navigate(
-    imu: ImuStream,
-    gnss: GnssStream | None = None,
-    *,
-    config: NavigationConfig = NavigationConfig(),
-    frame: LocalTangentPlane | None = None,
-    flow=None,
-    camera=None,
-    truth: PoseStream | None = None,
-    forward_b: Tensor | None = None,
-    start_gnss: GnssStream | None = None,
-    progress: bool = False,
-) -> NavigationResult:
-    """Run the EKF and the RTS smoother on an IMU stream, with GNSS fixes if given.
+def navigate(run: NavigationRun, *, config: NavigationConfig = NavigationConfig(),
+             progress: bool = False) -> NavigationResult:
+    """Run the EKF and the RTS smoother on one recording (:class:`NavigationRun`).
 
     The filter starts as ``config.start`` says (:func:`~flowins.start.choose_start`:
-    still, moving, from ``truth``, or auto); measurements before its start are not
+    still, moving, from ``run.truth``, or auto); measurements before its start are not
     used (the GNSS fixes left out are counted in the result). With GNSS the local ENU
-    frame has its origin at the first fix (or ``frame``). ``forward_b`` is the body
-    axis along the motion of a moving start. GNSS fixes outside the IMU time span raise.
-    Without ``gnss``, the fixes of ``start_gnss`` may set the start (a moving start's
-    velocity and heading) and are used for nothing else, so that a run without GNSS
-    starts as the run with GNSS does.
-
-    ``flow`` (a :class:`~flowins.flow.pairs.FlowPairs`, dense or sparse) with
-    ``camera`` (:class:`~flowins.measurements.flow.FlowCamera`) adds the paper's flow
-    frames (:func:`flow_frames`, settings ``config.flow_update``).
+    frame has its origin at the first fix (or ``run.frame``). Measurements after the
+    IMU's last sample raise. Flow pairs are added as the paper's flow frames
+    (:func:`flow_frames`, settings ``config.flow_update``); each of ``run.streams`` by its
+    registered kind (:mod:`flowins.measurements.registry`, settings ``config.measurements``).
 
     When no input or config tensor needs a gradient (:func:`carries_gradient`) the run is
     made in ``torch.inference_mode`` and the result's tensors are inference tensors:
     read them freely, but ``clone()`` one before changing it in place. With a tensor that
     needs a gradient the result carries the graph back to it.
     """
-    # without a gradient to carry, inference mode skips autograd's bookkeeping on every
-    # one of the filter's many small operations
-    with torch.inference_mode(not carries_gradient(imu, gnss, config, flow, camera)):
-        return _navigate(imu, gnss, config=config, frame=frame, flow=flow, camera=camera, truth=truth,
-                         forward_b=forward_b, start_gnss=start_gnss, progress=progress)
+    return navigate_batch([run], config=config, progress=progress)[0]
 
 
 def carries_gradient(*objects) -> bool:
     """Whether grad mode is on and any tensor in ``objects`` (searched through dataclasses,
-    named tuples, lists, tuples and dicts) requires a gradient."""
+    named tuples, lists, tuples and mappings) requires a gradient."""
     if not torch.is_grad_enabled():
         return False
     seen: set[int] = set()
@@ -275,7 +290,7 @@ def carries_gradient(*objects) -> bool:
         elif dataclasses.is_dataclass(obj):
             seen.add(id(obj))
             stack.extend(getattr(obj, f.name) for f in dataclasses.fields(obj))
-        elif isinstance(obj, dict):
+        elif isinstance(obj, Mapping):
             seen.add(id(obj))
             stack.extend(obj.values())
         elif isinstance(obj, (list, tuple)):
@@ -284,38 +299,20 @@ def carries_gradient(*objects) -> bool:
     return False
 
 
-def _navigate(imu, gnss, *, config, frame, flow, camera, truth, forward_b, start_gnss, progress) -> NavigationResult:
-    run = NavigationRun(imu, gnss, frame=frame, flow=flow, camera=camera, truth=truth, forward_b=forward_b,
-                        start_gnss=start_gnss)
-    return _navigate_batch([run], config=config, progress=progress)[0]
-
-
-@dataclass(frozen=True)
-class NavigationRun:
-    """One recording's inputs to :func:`navigate_batch` (the arguments of :func:`navigate`)."""
-
-    imu: ImuStream
-    gnss: GnssStream | None = None
-    frame: LocalTangentPlane | None = None
-    flow: Any = None
-    camera: Any = None
-    truth: PoseStream | None = None
-    forward_b: Tensor | None = None
-    start_gnss: GnssStream | None = None
-
-
-def navigate_batch(runs: list[NavigationRun], *, config: NavigationConfig = NavigationConfig(),
+def navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig = NavigationConfig(),
                    progress: bool = False) -> list[NavigationResult]:
     """:func:`navigate` on several recordings in one batched filter pass
     (:func:`~flowins.filter.runner.run_filters`); each result equals its recording's
     :func:`navigate` up to rounding. One ``config`` serves every run."""
+    # without a gradient to carry, inference mode skips autograd's bookkeeping on every
+    # one of the filter's many small operations
     with torch.inference_mode(not carries_gradient(runs, config)):
         return _navigate_batch(runs, config=config, progress=progress)
 
 
-def _navigate_batch(runs: list[NavigationRun], *, config: NavigationConfig, progress: bool) -> list[NavigationResult]:
-    setups = [prepare_navigation(run.imu, run.gnss, config=config, frame=run.frame, flow=run.flow, camera=run.camera,
-                                 truth=run.truth, forward_b=run.forward_b, start_gnss=run.start_gnss) for run in runs]
+def _navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig,
+                    progress: bool) -> list[NavigationResult]:
+    setups = [prepare_navigation(run, config=config) for run in runs]
     inputs = []
     for run, setup in zip(runs, setups):
         first = setup.start.index

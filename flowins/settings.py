@@ -1,28 +1,42 @@
-"""The jobs' Hydra config as flowins objects: one typed builder for both jobs.
+"""The jobs' Hydra config as flowins objects: one builder from a job's config and its
+recordings to everything the filter needs.
 
-Every value is checked against the settings it builds (:mod:`flowins.config`) before any
-work, and every error names its dotted key. ``evaluate.py`` and ``train.py`` compose the
-config; this module turns it into a :class:`~flowins.navigation.NavigationConfig`, the
-flow update, the start, and checks the jobs' own keys.
+``evaluate.py`` and ``train.py`` compose the config; :func:`evaluate_settings` and
+:func:`train_settings` check every key against the dataclass it builds (:mod:`flowins.config`:
+each error names its dotted key) before any work. Once the recordings are read,
+:func:`filter_setup` resolves the IMU preset (:func:`resolve_imu`, the one place it is
+chosen), builds the :class:`~flowins.navigation.NavigationConfig`, applies a ``train.py``
+checkpoint and gives the flow provider's config: both jobs, the training data and the
+benchmarks start from it.
+
+Data flow: ``config -> settings (checked) -> recordings -> filter_setup -> navigation``.
 """
 from __future__ import annotations
 
-from collections.abc import Mapping
-from typing import Any
+import logging
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol
 
 import torch
 
-from flowins.config import build, check_target, check_value, setting
+from flowins.config import bounded, build, check_target, setting
+from flowins.data.streams import ImuStream
 from flowins.filter.ekf import Gate
-from flowins.ins.imu_model import ImuModel
+from flowins.ins.imu_model import ImuModel, imu_model
 from flowins.ins.initialization import InitialUncertainty
 from flowins.ins.mechanization import ProcessNoise
 from flowins.measurements.flow_update import FlowUpdate
 from flowins.measurements.gnss import GnssRecovery
 from flowins.measurements.gnss_heading import HeadingAlignment
+from flowins.measurements.registry import measurement_settings
 from flowins.navigation import NavigationConfig
 from flowins.start import StartSettings
+from flowins.training.parameters import (FROZEN_BY_DEFAULT, NAMES, NOISE_NAMES, FilterParameters, ModelSettings,
+                                         starting_values)
+from flowins.training.unroll import METHODS
 
+log = logging.getLogger("flowins")
 
 #: the filter's precision: float64 only. In float32 the pose copy's nugget (1e-9) is below
 #: the rounding of the position variances and the flow update's covariances lose their
@@ -30,15 +44,198 @@ from flowins.start import StartSettings
 _DTYPES = {"float64": torch.float64}
 
 
-def start_settings(cfg: Mapping[str, Any]) -> StartSettings:
-    """:class:`~flowins.start.StartSettings` from ``filter.init`` (values checked by key)."""
-    return build(StartSettings, cfg, "filter.init")
+# ---------------------------------------------------------------------------
+# The jobs' keys: one dataclass per group, checked by flowins.config.build
+# ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, kw_only=True)
+class FlowPairSettings:
+    """``flow_pairs`` (``configs/common``): which frame pairs the flow providers see."""
+
+    step: int = bounded(1, minimum=1)
+    input_scale: float = bounded(0.5, minimum=1e-3, maximum=1.0)
+    stride_px: int = bounded(8, minimum=1)
+    border_px: int = bounded(8, minimum=0)
+    batch_size: int = bounded(4, minimum=1)
+
+
+@dataclass(frozen=True, kw_only=True)
+class SequenceSettings:
+    """``sequence`` (``configs/sequence``): a recording (``path``) or the simulated walk."""
+
+    kind: str = "simulated_walk"
+    path: str | None = None
+    max_imu_gap_s: float = bounded(0.2, minimum=1e-6)
+    crop: bool = False
+    start_s: float | None = bounded(None, minimum=0.0)
+    end_s: float | None = bounded(None, minimum=1e-6)
+    duration_s: float = bounded(300.0, minimum=1.0)
+    quick_duration_s: float = bounded(60.0, minimum=1.0)
+    seed: int = 0
+    #: one simulated walk per seed, all in one batched filter
+    seeds: tuple[int, ...] | None = bounded(None, nonempty=True)
+    imu_rate_hz: float = bounded(100.0, minimum=1.0)
+    #: the simulated camera (:class:`flowins.data.simulate.CameraConfig`'s keys)
+    camera: dict[str, Any] = bounded({})
+
+    def __post_init__(self) -> None:
+        if self.seeds is not None:
+            if self.path:
+                raise ValueError("sequence.seeds: simulated walks only; a recording (sequence.path) has no seed")
+            if len(set(self.seeds)) != len(self.seeds):
+                raise ValueError(f"sequence.seeds={list(self.seeds)!r}: a seed appears twice")
+
+
+@dataclass(frozen=True, kw_only=True)
+class JobSettings:
+    """The keys both jobs take: the groups (``sequence``, ``imu``, ``filter``, ``flow``,
+    ``sparse``; the last four checked where they are built) and ``configs/common``."""
+
+    sequence: SequenceSettings
+    imu: Any
+    filter: Any
+    flow: Any
+    sparse: Any
+    flow_pairs: FlowPairSettings
+    cache_dir: str | None = None
+    output_dir: str | None = None
+    progress: bool = True
+
+
+@dataclass(frozen=True, kw_only=True)
+class CheckpointSettings:
+    """``model`` of ``evaluate.py``: a ``train.py`` checkpoint's learned values, or none."""
+
+    checkpoint: str | None = None
+
+
+@dataclass(frozen=True, kw_only=True)
+class EvaluateSettings(JobSettings):
+    """``configs/evaluate.yaml``: the Table I rows and what the job writes."""
+
+    methods: dict[str, dict[str, bool]]
+    combinations: tuple[str, ...]
+    flow_panels: int = bounded(3, minimum=0)
+    quick: bool = False
+    plots: bool = True
+    model: CheckpointSettings = CheckpointSettings()
+
+    def __post_init__(self) -> None:
+        names = ", ".join(self.methods)
+        if not self.combinations:
+            raise ValueError(f"combinations=[]: expected a list of at least one of {names} (configs/method/)")
+        for name in self.combinations:
+            if name not in self.methods:
+                raise ValueError(f"combinations: unknown combination {name!r}; expected one of {names} "
+                                 "(configs/method/)")
+
+    def uses(self, kind: str) -> bool:
+        """Whether a chosen row fuses ``kind`` (``gnss``, ``sparse``, ``dense``)."""
+        return any(self.methods[name][kind] for name in self.combinations)
+
+
+@dataclass(frozen=True, kw_only=True)
+class SourceSettings:
+    """One of ``data.train`` / ``data.val``: a recording ``{path: DIR}`` or a simulated walk
+    ``{seed: N}``, optionally a part of it (``start_s``, ``end_s``) or, simulated, its length."""
+
+    path: str | None = None
+    seed: int | None = None
+    duration_s: float | None = bounded(None, minimum=1.0)
+    start_s: float | None = bounded(None, minimum=0.0)
+    end_s: float | None = bounded(None, minimum=1e-6)
+
+    def __post_init__(self) -> None:
+        if not self.path and self.seed is None:
+            raise ValueError("expected {path: DIR} or {seed: N} (optionally duration_s, start_s, end_s)")
+
+
+@dataclass(frozen=True, kw_only=True)
+class DataSettings:
+    """``data`` (``configs/data``): training and held-out sources, sequences per step."""
+
+    train: tuple[SourceSettings, ...] = bounded(nonempty=True)
+    val: tuple[SourceSettings, ...] = bounded(nonempty=True)
+    batch_size: int = bounded(1, minimum=1)
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrainSettings(JobSettings):
+    """``configs/train.yaml``: what is learned, on which rows and windows."""
+
+    methods: tuple[str, ...] = bounded(nonempty=True)
+    window_s: float = bounded(minimum=1e-3)
+    curriculum_window_s: tuple[float, ...] | None = bounded((), minimum=1e-3)
+    seed: int = 0
+    flow_moments: bool = True
+    data: DataSettings
+    model: ModelSettings
+    trainer: Any
+    logger: Any = None
+
+    def __post_init__(self) -> None:
+        for name in self.methods:
+            if name not in METHODS:
+                raise ValueError(f"methods: unknown {name!r}; expected names from {', '.join(METHODS)}")
+
+    @property
+    def recorded(self) -> bool:
+        """Whether any source is a recording (``path``), not a simulated walk."""
+        return any(source.path for source in (*self.data.train, *self.data.val))
+
+
+def _job(cls: type, cfg: Mapping[str, Any]) -> Any:
+    """``cls`` built from the whole job config (every key checked, errors name it)."""
+    return build(cls, cfg, "")
+
+
+def evaluate_settings(cfg: Mapping[str, Any]) -> EvaluateSettings:
+    """``evaluate.py``'s config checked and built before any work (the ``filter`` group and a
+    named ``imu`` preset too, the dense and sparse providers' keys where a row uses them)."""
+    settings = _job(EvaluateSettings, cfg)
+    check_filter_settings(cfg, recorded=bool(settings.sequence.path))
+    if settings.uses("dense"):
+        check_target(cfg["flow"], "flow")
+    if settings.uses("sparse"):
+        sparse = cfg["sparse"]
+        source = sparse.get("source")
+        if source not in ("tracker", "tracks"):
+            raise ValueError(f"sparse.source={source!r}: expected tracker (run sparse.tracker on the frames) or "
+                             "tracks (the recording's tracks.csv)")
+        if source == "tracks":
+            setting(cfg, "sparse.sigma_px", float, minimum=1e-6)
+        else:
+            check_target(sparse["tracker"], "sparse.tracker")
+    return settings
+
+
+def train_settings(cfg: Mapping[str, Any]) -> TrainSettings:
+    """``train.py``'s config checked and built before any work."""
+    settings = _job(TrainSettings, cfg)
+    setting(cfg, "trainer.max_epochs", int | None, minimum=-1, default=None)  # Lightning's own Trainer key
+    check_filter_settings(cfg, recorded=settings.recorded)
+    check_target(cfg["flow"], "flow")
+    return settings
+
+
+def check_filter_settings(cfg: Mapping[str, Any], *, recorded: bool) -> None:
+    """The ``filter`` group (and a named ``imu`` preset) checked before a recording is read:
+    the values are built once with placeholder IMU densities, which the preset replaces later."""
+    if cfg["imu"].get("name") != "auto":
+        resolve_imu(cfg["imu"], [], recorded=recorded)
+    navigation_config(cfg["filter"], ImuModel("check", 1.0, 1.0))
+
+
+# ---------------------------------------------------------------------------
+# The filter's settings
+# ---------------------------------------------------------------------------
 
 
 def navigation_config(cfg: Mapping[str, Any], imu: ImuModel | None = None) -> NavigationConfig:
     """:class:`NavigationConfig` from the ``filter`` config group; its IMU noise keys that are
-    null come from ``imu`` (the ``imu`` config group, :func:`flowins.ins.imu_model.imu_model`).
-    Every value is checked against the settings it builds; errors name the key."""
+    null come from ``imu`` (:func:`resolve_imu`). Every value is checked against the
+    settings it builds; errors name the key."""
     if cfg["dtype"] not in _DTYPES:
         raise ValueError(f"filter.dtype={cfg['dtype']!r}: expected one of {list(_DTYPES)} (float32 is not "
                          "precise enough for the pose augmentation and the flow update)")
@@ -49,7 +246,7 @@ def navigation_config(cfg: Mapping[str, Any], imu: ImuModel | None = None) -> Na
             raise ValueError(f"filter.{key} is null and no imu preset was given; set filter.{key} or choose imu=...")
     noise.update(acc_scale_walk=cfg["acc_scale_walk"], discretization=cfg["discretization"])
     simple = ("gnss_noise_scale", "gnss_correlation_s", "output_every", "scheme", "gravity_mps2", "jacobians")
-    groups = ("init", "initial", "gnss_gate", "gnss_recovery", "gnss_heading", "flow", "dtype")
+    groups = ("init", "initial", "gnss_gate", "gnss_recovery", "gnss_heading", "flow", "dtype", "measurements")
     known = (*noise, *simple, *groups)
     for key in cfg:
         if key not in known:
@@ -60,178 +257,140 @@ def navigation_config(cfg: Mapping[str, Any], imu: ImuModel | None = None) -> Na
         "filter",
         noise=build(ProcessNoise, noise, "filter"),
         initial=build(InitialUncertainty, cfg["initial"], "filter.initial"),
-        start=start_settings(cfg["init"]),
+        start=build(StartSettings, cfg["init"], "filter.init"),
         gnss_gate=build(Gate, cfg["gnss_gate"], "filter.gnss_gate"),
         gnss_recovery=build(GnssRecovery, cfg["gnss_recovery"], "filter.gnss_recovery"),
         gnss_heading=build(HeadingAlignment, cfg["gnss_heading"], "filter.gnss_heading"),
         dtype=_DTYPES[cfg["dtype"]],
-        flow_update=flow_update_config(cfg["flow"]),
+        flow_update=build(FlowUpdate, cfg["flow"], "filter.flow"),
+        measurements=measurement_settings(cfg.get("measurements") or {}),
     )
 
 
-def flow_update_config(cfg: Mapping[str, Any]) -> FlowUpdate:
-    """:class:`FlowUpdate` from ``filter.flow`` (values checked by key)."""
-    return build(FlowUpdate, cfg, "filter.flow")
+class SensorRecording(Protocol):
+    """What :func:`resolve_imu` reads of a recording: its IMU stream and the IMU preset its
+    metadata names (``metadata.yaml`` ``imu``; None: it names none)."""
+
+    @property
+    def imu(self) -> ImuStream: ...
+
+    @property
+    def sensor(self) -> str | None: ...
 
 
-def check_job_settings(cfg: Mapping[str, Any]) -> None:
-    """The job's own keys (``combinations``, ``flow_pairs``, ``sequence``, ...) checked
-    before any work: each error names the key and what was expected."""
-    combinations, methods = cfg["combinations"], cfg["methods"]
-    if isinstance(combinations, str) or not hasattr(combinations, "__len__") or not len(combinations):
-        raise ValueError(f"combinations={combinations!r}: expected a list of at least one of {', '.join(methods)} "
-                         "(configs/method/)")
-    for name in combinations:
-        if not isinstance(name, str) or name not in methods:
-            raise ValueError(f"combinations: unknown combination {name!r}; expected one of {', '.join(methods)} "
-                             "(configs/method/)")
-    for key in ("quick", "progress", "plots"):
-        setting(cfg, key, bool)
-    setting(cfg, "flow_panels", int, minimum=0)
-    setting(cfg, "model.checkpoint", str | None)
-    check_data_settings(cfg)
-    check_filter_settings(cfg)
-    flows = {kind for name in combinations for kind in ("sparse", "dense") if methods[name][kind]}
-    if "dense" in flows:
-        check_target(cfg["flow"], "flow")
-    if "sparse" in flows:
-        source = setting(cfg, "sparse.source", str)
-        if source not in ("tracker", "tracks"):
-            raise ValueError(f"sparse.source={source!r}: expected tracker (run sparse.tracker on the frames) or "
-                             "tracks (the recording's tracks.csv)")
-        if source == "tracks":
-            setting(cfg, "sparse.sigma_px", float, minimum=1e-6)
-        else:
-            check_target(cfg["sparse"]["tracker"], "sparse.tracker")
+def resolve_imu(imu_cfg: Mapping[str, Any], recordings: Sequence[SensorRecording], *, recorded: bool) -> ImuModel:
+    """The IMU's error model for a job's ``recordings``: the one place the preset is chosen.
+
+    ``imu=auto`` takes the preset the recordings' metadata name (they must agree), else
+    ``imu.recording`` when ``recorded`` (a recording read from a path) and ``imu.simulated``
+    otherwise; a named preset or ``imu=kalibr`` is taken as it is. Every reading of every
+    recording is checked against the sensor's range (:meth:`ImuModel.check_readings`)."""
+    sensors = list(dict.fromkeys(rec.sensor for rec in recordings))
+    if imu_cfg.get("name") == "auto" and len(sensors) > 1:
+        raise ValueError(f"imu=auto: the recordings name different IMU presets {sensors} (metadata.yaml imu); "
+                         "name one with imu=...")
+    imu = imu_model(imu_cfg, recording=recorded, sensor=sensors[0] if sensors else None)
+    for rec in recordings:
+        imu.check_readings(rec.imu)
+    return imu
 
 
-def check_filter_settings(cfg: Mapping[str, Any]) -> None:
-    """The ``filter`` group (and a named ``imu`` preset) checked before a recording is read:
-    the values are built once with placeholder IMU densities, which the preset replaces later."""
-    from flowins.ins.imu_model import imu_model
-
-    if cfg["imu"].get("name") != "auto":
-        imu_model(cfg["imu"], recording=bool(cfg["sequence"].get("path")))
-    navigation_config(cfg["filter"], ImuModel("check", 1.0, 1.0))
-
-
-def check_data_settings(cfg: Mapping[str, Any]) -> None:
-    """The keys both jobs share (``flow_pairs``, ``sequence``, ``cache_dir``), checked by key."""
-    setting(cfg, "cache_dir", str | None)
-    setting(cfg, "flow_pairs.step", int, minimum=1)
-    setting(cfg, "flow_pairs.input_scale", float, minimum=1e-3, maximum=1.0)
-    setting(cfg, "flow_pairs.stride_px", int, minimum=1)
-    setting(cfg, "flow_pairs.border_px", int, minimum=0)
-    setting(cfg, "flow_pairs.batch_size", int, minimum=1)
-    setting(cfg, "sequence.path", str | None)
-    setting(cfg, "sequence.max_imu_gap_s", float, minimum=1e-6)
-    setting(cfg, "sequence.crop", bool)
-    setting(cfg, "sequence.start_s", float | None, minimum=0.0, default=None)
-    setting(cfg, "sequence.end_s", float | None, minimum=1e-6, default=None)
-    if not cfg["sequence"].get("path"):
-        setting(cfg, "sequence.duration_s", float, minimum=1.0)
-        setting(cfg, "sequence.quick_duration_s", float, minimum=1.0)
-        setting(cfg, "sequence.seed", int)
-        setting(cfg, "sequence.imu_rate_hz", float, minimum=1.0)
-    seeds = cfg["sequence"].get("seeds")
-    if seeds is not None:
-        if cfg["sequence"].get("path"):
-            raise ValueError("sequence.seeds: simulated walks only; a recording (sequence.path) has no seed")
-        if isinstance(seeds, (str, bytes)) or not hasattr(seeds, "__len__") or not len(seeds):
-            raise ValueError(f"sequence.seeds={seeds!r}: expected a list of integers, e.g. [0,1,2,3]")
-        for i, seed in enumerate(seeds):
-            check_value(seed, int, f"sequence.seeds[{i}]")
-        if len(set(seeds)) != len(seeds):
-            raise ValueError(f"sequence.seeds={list(seeds)!r}: a seed appears twice")
-
-
-def parameter_sets(cfg: Mapping[str, Any], base) -> tuple[dict[str, float], dict[str, float], set[str]]:
-    """(hand-tuned values, starting values, names to learn) from the ``model`` group."""
-    from flowins.training.parameters import FROZEN_BY_DEFAULT, NAMES, NOISE_NAMES, starting_values
-
-    model = cfg["model"]
-    p = float(cfg["flow"].get("p", 0.2))
-    tuned = starting_values(base, dropout_p=p)
-    start = {**tuned, **{k: float(v) for k, v in (model.get("start") or {}).items()}}
-    unknown = sorted(set(model.get("start") or {}) - set(NAMES))
-    if unknown:
-        raise ValueError(f"model.start: unknown parameters {unknown}; expected names from {list(NAMES)}")
-    mistune = float(model.get("mistune", 1.0))
-    if not mistune > 0:
-        raise ValueError(f"model.mistune must be > 0, got {mistune}")
-    start = {k: v * mistune if k in NOISE_NAMES else v for k, v in start.items()}
-    learn = set(NAMES) - FROZEN_BY_DEFAULT if model.get("learn") is None else set(model["learn"])
-    learn -= set(model.get("freeze") or [])
-    if base.flow_update.augmentation_mode == "limit" and model.get("learn") is None:
-        learn -= {"sigma_p0", "sigma_q0"}  # the limit mode has no forgetting variances to learn
-    return tuned, start, learn
-
-
-def flow_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
-    """The flow provider config, in closed-form dropout mode where the provider has one."""
+def flow_config(cfg: Mapping[str, Any], *, moments: bool, dropout_p: float | None = None) -> dict[str, Any]:
+    """The dense flow provider's config (``flow``): with ``dropout_p`` (a checkpoint's learned
+    rate) the provider's ``p`` replaced; with ``moments`` or ``dropout_p`` SpyNet's Monte
+    Carlo dropout in closed form (``mc_mode=moments``), as training runs it: there the mean
+    flow is the deterministic one whatever the rate, and the rate only scales σ."""
     flow = dict(cfg["flow"])
-    if cfg.get("flow_moments", True) and str(flow.get("_target_", "")).endswith("SpyNetProvider"):
+    if dropout_p is not None and "p" in flow:
+        flow["p"], moments = dropout_p, True
+    if moments and str(flow.get("_target_", "")).endswith("SpyNetProvider"):
         flow["mc_mode"] = "moments"
     return flow
 
 
-def check_train_settings(cfg: Mapping[str, Any]) -> None:
-    """The training job's keys checked before any work; each error names the key."""
-    from flowins.training.parameters import NAMES
-    from flowins.training.unroll import METHODS
+@dataclass(frozen=True)
+class FilterSetup:
+    """Everything the filter needs for a job's recordings (:func:`filter_setup`)."""
 
-    methods = cfg["methods"]
-    if isinstance(methods, str) or not hasattr(methods, "__len__") or not len(methods):
-        raise ValueError(f"methods={methods!r}: expected a list of at least one of {', '.join(METHODS)}")
-    for m in methods:
-        if not isinstance(m, str) or m not in METHODS:
-            raise ValueError(f"methods: unknown {m!r}; expected names from {', '.join(METHODS)}")
-    setting(cfg, "window_s", float, minimum=1e-3)
-    setting(cfg, "seed", int)
-    setting(cfg, "data.batch_size", int, minimum=1, default=1)
-    for key in ("flow_moments", "progress"):
-        setting(cfg, key, bool, default=True)
-    for key, minimum in (("lr", 1e-12), ("lr_final", 1e-12), ("gradient_clip", 1e-12), ("nll_weight", 0.0),
-                         ("orientation_weight_m_per_rad", 0.0), ("innovation_weight", 0.0), ("mistune", 1e-12)):
-        setting(cfg, f"model.{key}", float, minimum=minimum)
-    setting(cfg, "model.warmup_steps", int, minimum=0)
-    setting(cfg, "model.accumulate_windows", int, minimum=1)
-    curriculum = cfg.get("curriculum_window_s") or []
-    if isinstance(curriculum, (str, Mapping)) or not isinstance(curriculum, (list, tuple)):
-        raise ValueError(f"curriculum_window_s={curriculum!r}: expected a list of window lengths (s), e.g. [5.0, 10.0]")
-    for i, w in enumerate(curriculum):
-        if check_value(w, float, f"curriculum_window_s[{i}]") < 1e-3:
-            raise ValueError(f"curriculum_window_s[{i}]={w!r}: expected a window length >= 0.001 s")
-    setting(cfg, "model.checkpoint", str | None)
-    start = cfg["model"].get("start") or {}
-    if not isinstance(start, Mapping):
-        raise ValueError(f"model.start={start!r}: expected a mapping of parameter name to starting value")
-    for name, value in start.items():
-        if name not in NAMES:
-            raise ValueError(f"model.start.{name}: unknown parameter; expected names from {', '.join(NAMES)}")
-        setting(cfg, f"model.start.{name}", float, minimum=0.0)
-    for key in ("learn", "freeze"):
-        names = cfg["model"].get(key)
-        if names is None and key == "learn":
-            continue
-        if isinstance(names, str) or not isinstance(names, (list, tuple)):
-            raise ValueError(f"model.{key}={names!r}: expected a list of parameter names ({', '.join(NAMES)})")
-        for name in names:
-            if not isinstance(name, str) or name not in NAMES:
-                raise ValueError(f"model.{key}: unknown parameter {name!r}; expected names from {', '.join(NAMES)}")
-    for part in ("train", "val"):
-        sources = cfg["data"][part]
-        if isinstance(sources, str) or not isinstance(sources, (list, tuple)) or not sources:
-            raise ValueError(f"data.{part}={sources!r}: expected a list of sources, each {{path: DIR}} or {{seed: N}}")
-        for i, source in enumerate(sources):
-            key = f"data.{part}[{i}]"
-            if not isinstance(source, Mapping) or not (source.get("path") or "seed" in source):
-                raise ValueError(f"{key}={source!r}: expected {{path: DIR}} or {{seed: N}} (optionally duration_s)")
-            for name, tp in (("path", str | None), ("seed", int), ("duration_s", float), ("start_s", float),
-                             ("end_s", float)):
-                if name in source:
-                    check_value(source[name], tp, f"{key}.{name}")
-    setting(cfg, "trainer.max_epochs", int | None, minimum=-1, default=None)
-    check_data_settings(cfg)
-    check_filter_settings(cfg)
-    check_target(cfg["flow"], "flow")
+    #: the IMU preset's error model
+    imu: ImuModel
+    #: the ``filter`` group with the preset's noise and a checkpoint's learned values
+    navigation: NavigationConfig
+    #: the dense flow provider's config (:func:`flow_config`)
+    flow: dict[str, Any]
+    #: a checkpoint's learned values by parameter name; None without a checkpoint
+    learned: dict[str, float] | None = None
+
+    def describe(self) -> str:
+        """One line: the preset and the densities the filter uses."""
+        noise = self.navigation.noise
+        return (f"imu: {self.imu.name} ({self.imu.source or 'config'}): filter densities acc "
+                f"{float(noise.acc_noise):.3g} m/s²/√Hz, gyro {float(noise.gyro_noise):.3g} rad/s/√Hz, walks "
+                f"{float(noise.acc_bias_walk):.3g} m/s³/√Hz, {float(noise.gyro_bias_walk):.3g} rad/s²/√Hz")
+
+
+def filter_setup(cfg: Mapping[str, Any], recordings: Sequence[SensorRecording], *, recorded: bool,
+                 checkpoint: str | None = None, moments: bool = False) -> FilterSetup:
+    """The one builder from a job's config and its recordings to the filter's settings.
+
+    The IMU preset is resolved with the recordings' sensor (:func:`resolve_imu`), the
+    ``filter`` group built on it (:func:`navigation_config`), and with ``checkpoint``
+    (``model.checkpoint``) a ``train.py`` checkpoint's learned noise, gates and flow noise written in; its dropout
+    rate goes to the flow provider, which then runs its dropout in closed form, as training
+    runs it (:func:`flow_config`). ``moments``: closed-form dropout without a checkpoint
+    (``train.py``'s ``flow_moments``)."""
+    imu = resolve_imu(cfg["imu"], recordings, recorded=recorded)
+    navigation = navigation_config(cfg["filter"], imu)
+    if not checkpoint:
+        return FilterSetup(imu, navigation, flow_config(cfg, moments=moments))
+    params = FilterParameters.from_checkpoint(checkpoint)
+    learned = params.values()
+    log.info(f"learned parameters from {checkpoint}: " + ", ".join(f"{k}={v:.4g}" for k, v in learned.items()))
+    return FilterSetup(imu, params.apply(navigation, training=False),
+                       flow_config(cfg, moments=moments, dropout_p=learned["dropout_p"]), learned)
+
+
+# ---------------------------------------------------------------------------
+# Training: the parameters' hand-tuned values, starts and what is learned
+# ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ParameterSets:
+    """The hand-tuned values, the starting values and the names learned (:func:`parameter_sets`)."""
+
+    tuned: dict[str, float]
+    start: dict[str, float]
+    learn: set[str]
+
+    def __iter__(self):
+        return iter((self.tuned, self.start, self.learn))
+
+
+def parameter_sets(cfg: Mapping[str, Any], base: NavigationConfig) -> ParameterSets:
+    """(hand-tuned values, starting values, names to learn) from the ``model`` group and the
+    filter config ``base``; unpacks as a 3-tuple."""
+    model = cfg["model"] if isinstance(cfg["model"], ModelSettings) else build(ModelSettings, cfg["model"], "model")
+    tuned = starting_values(base, dropout_p=float(cfg["flow"].get("p", 0.2)))
+    start = {**tuned, **model.start}
+    start = {k: v * model.mistune if k in NOISE_NAMES else v for k, v in start.items()}
+    learn = set(NAMES) - FROZEN_BY_DEFAULT if model.learn is None else set(model.learn)
+    learn -= set(model.freeze)
+    if base.flow_update.augmentation_mode == "limit" and model.learn is None:
+        learn -= {"sigma_p0", "sigma_q0"}  # the limit mode has no forgetting variances to learn
+    return ParameterSets(tuned, start, learn)
+
+
+@dataclass(frozen=True)
+class TrainingSetup:
+    """What learning starts from (:func:`training_setup`)."""
+
+    filter: FilterSetup
+    parameters: ParameterSets
+
+
+def training_setup(cfg: Mapping[str, Any], sequences: Sequence[SensorRecording], *, recorded: bool) -> TrainingSetup:
+    """The filter's settings for training ``sequences`` (:func:`filter_setup`, with
+    ``flow_moments``) and the parameters' hand-tuned values, starts and names learned."""
+    setup = filter_setup(cfg, sequences, recorded=recorded, moments=bool(cfg.get("flow_moments", True)))
+    return TrainingSetup(setup, parameter_sets(cfg, setup.navigation))

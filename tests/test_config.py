@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 
 from flowins.config import build, check_value, setting
 from flowins.ins.imu_model import imu_model
-from flowins.settings import check_job_settings, navigation_config
+from flowins.settings import evaluate_settings, navigation_config
 from flowins.navigation import NavigationConfig
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
@@ -32,7 +32,7 @@ def _filter(*overrides: str) -> NavigationConfig:
 
 def test_the_defaults_pass():
     assert isinstance(_filter(), NavigationConfig)
-    check_job_settings(_evaluate_config())
+    evaluate_settings(_evaluate_config())
 
 
 @pytest.mark.parametrize("override, message", [
@@ -56,6 +56,7 @@ def test_the_defaults_pass():
     ("filter.flow.gate.mode=x", r"filter\.flow\.gate\.mode must be"),
     ("filter.flow.recovery.after_frames=x", r"filter\.flow\.recovery\.after_frames='x': expected an integer"),
     ("+filter.foo=1", r"filter\.foo: unknown key"),
+    ("+filter.measurements.sonar.range_m=1", r"filter\.measurements\.sonar: unknown measurement kind 'sonar'"),
     ("+filter.init.still.foo=1", r"filter\.init\.still\.foo: unknown key; filter\.init\.still takes min_s"),
     ("imu=phone imu.inflation=abc", r"imu\.inflation='abc': expected a number"),
     ("imu=phone imu.acc_range_mps2=-3", r"imu\.acc_range_mps2 \(phone\) must be > 0"),
@@ -79,7 +80,7 @@ def test_a_bad_filter_or_imu_value_names_its_key(override, message):
 ])
 def test_a_bad_job_value_names_its_key(override, message):
     with pytest.raises(ValueError, match=message):
-        check_job_settings(_evaluate_config(override))
+        evaluate_settings(_evaluate_config(override))
 
 
 def test_check_value_converts_and_refuses():

@@ -19,7 +19,7 @@ from omegaconf import OmegaConf
 
 from flowins.ins.imu_model import imu_model
 from flowins.settings import navigation_config
-from flowins.settings import flow_settings, parameter_sets
+from flowins.settings import flow_config, parameter_sets
 from flowins.navigation import NavigationConfig
 from flowins.training.parameters import NAMES, FilterParameters
 from flowins.training.unroll import METHODS
@@ -127,7 +127,7 @@ def check_composed(primary: str, cfg, tmp_path: Path) -> None:
         for name, value in start.items():
             assert params.values()[name] == pytest.approx(value, rel=1e-12), name
         assert all(m in METHODS for m in container["methods"]), container["methods"]
-        flow = flow_settings(container)
+        flow = flow_config(container, moments=container["flow_moments"])
         if "SpyNetProvider" in str(flow.get("_target_")):  # the training provider: closed-form dropout
             provider = instantiate(flow)
             assert provider.mc_mode == "moments"

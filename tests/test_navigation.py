@@ -6,7 +6,7 @@ import torch
 
 from flowins.data.synthetic import synthetic_walk_recording
 from flowins.measurements.gnss_heading import HeadingAlignment
-from flowins.navigation import NavigationConfig, carries_gradient, navigate
+from flowins.navigation import NavigationConfig, NavigationRun, carries_gradient, navigate
 
 
 @pytest.fixture(scope="module")
@@ -31,7 +31,7 @@ def test_navigate_gradient_matches_finite_differences_and_the_fast_path_matches_
     rec = recording
 
     def final_position(scale):
-        result = navigate(rec.imu, rec.gnss, config=NavigationConfig(gnss_noise_scale=scale, gnss_heading=HeadingAlignment(enabled=False)))
+        result = navigate(NavigationRun(rec.imu, rec.gnss), config=NavigationConfig(gnss_noise_scale=scale, gnss_heading=HeadingAlignment(enabled=False)))
         return result, result.smoother.mean[-1, :2].sum() + result.filter.mean[-1, :2].sum()
 
     s0 = 1.5

@@ -16,8 +16,7 @@ from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
 from flowins.ins.imu_model import imu_model
-from flowins.settings import check_job_settings, navigation_config
-from flowins.settings import check_train_settings, parameter_sets
+from flowins.settings import evaluate_settings, navigation_config, parameter_sets, train_settings
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG_DIR = ROOT / "configs"
@@ -95,10 +94,10 @@ def validate(primary: str, cfg: dict) -> None:
     """What each job checks before its work."""
     recording = bool(cfg["sequence"].get("path"))
     if primary == "evaluate":
-        check_job_settings(cfg)
+        evaluate_settings(cfg)
         navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=recording))
     else:
-        check_train_settings(cfg)
+        train_settings(cfg)
         base = navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=recording))
         parameter_sets(cfg, base)
 

@@ -16,7 +16,7 @@ from flowins.geometry import quaternion as quat
 from flowins.geometry.geodesy import LocalTangentPlane
 from flowins.ins.initialization import InitialUncertainty
 from flowins.ins.mechanization import ProcessNoise
-from flowins.navigation import NavigationConfig, navigate
+from flowins.navigation import NavigationConfig, NavigationRun, navigate
 from flowins.start import choose_start
 from flowins.state import STATE, split
 
@@ -49,7 +49,7 @@ def mean_error(t, err, t0: float, t1: float) -> float:
 
 
 def test_a_car_starts_moving_stays_consistent_through_the_outage_and_recovers():
-    result = navigate(drive().imu, drive().gnss, config=NavigationConfig(noise=noise()))
+    result = navigate(NavigationRun(drive().imu, drive().gnss), config=NavigationConfig(noise=noise()))
     assert result.start.mode == "moving" and result.start.index == 0
     t, err, sigma = errors(result, Drive(DRIVE).position, DRIVE.origin)
     t0, t1 = DRIVE.outage()
@@ -67,7 +67,7 @@ def test_a_filter_that_drifts_off_in_the_outage_is_reset_instead_of_locked_out(r
     the outage, and its gate then rejects every later fix, unless it is reset."""
     config = NavigationConfig(noise=noise(0.1), initial=InitialUncertainty(acc_bias_mps2=3e-4, gyro_bias_rps=1e-5),
                               gnss_recovery=GnssRecovery(after_rejections=3 if recover else 0, nis_window=0))
-    result = navigate(drive().imu, drive().gnss, config=config)
+    result = navigate(NavigationRun(drive().imu, drive().gnss), config=config)
     t, err, _ = errors(result, Drive(DRIVE).position, DRIVE.origin)
     t1 = DRIVE.outage()[1]
     fixes = [e for e in result.filter.log if e.get("kind") == "gnss" and e["t_s"] > t1]
@@ -89,8 +89,9 @@ def test_inconsistent_innovations_reset_a_filter_whose_gate_is_off():
 
     base = dict(noise=noise(0.1), initial=InitialUncertainty(acc_bias_mps2=3e-4, gyro_bias_rps=1e-5),
                 gnss_gate=Gate(mode="off"))
-    quiet = navigate(drive().imu, drive().gnss, config=NavigationConfig(**base, gnss_recovery=GnssRecovery(nis_window=0)))
-    reset = navigate(drive().imu, drive().gnss, config=NavigationConfig(**base, gnss_recovery=GnssRecovery(nis_window=10)))
+    run = NavigationRun(drive().imu, drive().gnss)
+    quiet = navigate(run, config=NavigationConfig(**base, gnss_recovery=GnssRecovery(nis_window=0)))
+    reset = navigate(run, config=NavigationConfig(**base, gnss_recovery=GnssRecovery(nis_window=10)))
     resets = [e for e in reset.filter.log if e.get("kind") == "gnss_reset"]
     t1 = DRIVE.outage()[1]
     assert resets and all(e["why"] == "inconsistent" for e in resets)

@@ -45,6 +45,11 @@ class Recording:
     def truth(self) -> PoseStream | None:
         return self.sequence.groundtruth
 
+    @property
+    def sensor(self) -> str | None:
+        """The IMU preset the recording names (``metadata.yaml`` ``imu``), or None."""
+        return self.sequence.metadata.get("imu")
+
     @functools.cached_property
     def content_key(self) -> str:
         """Content key of the recording's frames, calibration and tracks, the flow cache's

@@ -23,8 +23,8 @@ import torch
 from torch import Tensor
 
 from flowins.constants import cached_constant
+from flowins.filter.chain import BatchChain, ChainBuilder
 from flowins.filter.ekf import ekf_update, linear_predict
-from flowins.filter.runner import BatchChain, ChainBuilder
 from flowins.state import CORE_DIM, STATE, STATE_DIM, normalize_quaternions, symmetrize
 
 
@@ -56,14 +56,6 @@ def augmentation_matrix(*, dtype: torch.dtype, device=None) -> Tensor:
     H[3:7, STATE.q] = eye4
     H[3:7, STATE.q_prev] = -eye4
     return H
-
-
-def forget_pose(
-    mean: Tensor, cov: Tensor, *, sigma_p0: float | Tensor, sigma_q0: float | Tensor
-) -> tuple[Tensor, Tensor]:
-    """The pose forgetting step: ``m = A⋆ m``, ``P = A⋆ P A⋆ᵀ + Q⋆``."""
-    A, Q = forgetting_matrices(sigma_p0, sigma_q0, dtype=mean.dtype, device=mean.device)
-    return linear_predict(mean, cov, A, Q)
 
 
 def augment_pose(mean: Tensor, cov: Tensor, *, nugget_var: float | Tensor) -> tuple[Tensor, Tensor]:

@@ -1,390 +1,25 @@
 """Running the EKF over a recording: IMU prediction between measurement events.
 
-The filter keeps a *chain of nodes*. A node is a time at which the filter reports
-its estimate: every ``output_every``-th IMU sample, every measurement event and the
-end of the run. Each node stores its predicted and filtered Gaussians and the
-transition ``Φ`` from the previous node's filtered state (the product of the
-step Jacobians in between). Events act on the newest node: an update replaces its
-filtered Gaussian; a linear prediction (pose forgetting) appends a new node at the
-same time. The RTS smoother (:mod:`flowins.filter.smoother`) runs on this chain,
-so it is exact through every prediction, forgetting and augmentation step.
-
-An event time between two IMU samples splits that sample's step in two (both parts
-use the sample, as the paper's ``ã_k`` drives the whole interval ``(t_{k-1}, t_k]``).
+The runs of a batch step together from event to event; the IMU propagation between
+events appends nodes to a :class:`~flowins.filter.chain.BatchChain`, and each event
+acts on its newest node (:class:`~flowins.filter.chain.Event`). An event time between
+two IMU samples splits that sample's step in two (both parts use the sample, as the
+paper's ``ã_k`` drives the whole interval ``(t_{k-1}, t_k]``).
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass, field
-from typing import Any, NamedTuple, Protocol
+from collections.abc import Hashable, Sequence
+from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 from flowins.progress import progress as track_progress
-from flowins.filter.ekf import UpdateResult, linear_predict
+from flowins.filter.chain import BatchChain, BatchEvent, Event, FilterTrack
 from flowins.filter.propagation import plan_nodes, propagate_batched, propagate_reference
 from flowins.ins.mechanization import STANDARD_GRAVITY_MPS2, ProcessNoise
-from flowins.state import NOISE_DIM, STATE_DIM, normalize_quaternions, symmetrize
-
-
-class Event(Protocol):
-    """A measurement (or any filter operation) at ``time_s``.
-
-    ``apply`` acts on one run's chain (a :class:`ChainBuilder`). An event type may also
-    offer ``batch_key()`` (a hashable; events with equal keys can act together) and a
-    classmethod ``apply_batch(chain, rows, events)`` acting on the rows ``rows`` of a
-    :class:`BatchChain` at once; :func:`run_filters` then groups such events across the
-    runs of a batch.
-    """
-
-    time_s: float
-    name: str
-
-    def apply(self, chain: ChainBuilder) -> None: ...
-
-
-class BatchChain:
-    """The node chains of ``B`` runs, grown together (:func:`run_filters`).
-
-    Nodes are stored in chunks of columns ``(B, n, ...)``: a propagation adds the nodes of
-    an IMU run at once, an event's linear prediction one column. A column is one of row
-    ``b``'s own nodes or, where the row has nothing there (fewer nodes in that run, no
-    such event, the row's run is over), padding that :meth:`finish` leaves out. The last
-    column holds the newest node of every row whose run goes on, so an update replaces
-    it without touching the rest. When an event's prediction acts on some rows only, the
-    others' newest node moves to the new column (a copy, the old one becomes padding), so
-    that stays true.
-    """
-
-    def __init__(self, rows: int, *, likelihood: bool = False) -> None:
-        self.rows = rows
-        #: whether updates add their innovation negative log-likelihood (:meth:`add_likelihood`)
-        self.likelihood = likelihood
-        self._nll: list[list[Tensor]] = [[] for _ in range(rows)]
-        self._nll_count: list[list[Tensor]] = [[] for _ in range(rows)]
-        #: per row: the times of its nodes, its log, what its events carry from one to the
-        #: next (e.g. GNSS fixes held back for the heading), its changes of frame
-        self.t_s: list[list[float]] = [[] for _ in range(rows)]
-        self.logs: list[list[dict[str, Any]]] = [[] for _ in range(rows)]
-        self.memories: list[dict[str, Any]] = [{} for _ in range(rows)]
-        self.frame_changes: list[list[tuple[int, Tensor, Tensor, Tensor]]] = [[] for _ in range(rows)]
-        self._columns: list[list[int]] = [[] for _ in range(rows)]  # each row's own node columns
-        self._current = [False] * rows  # whether the last column is the row's newest node
-        self._count = 0
-        self._transition: list[Tensor] = []  # chunks (B, n, 26, 26)
-        self._pred_mean: list[Tensor] = []  # chunks (B, n, 26)
-        self._pred_cov: list[Tensor] = []
-        self._mean: list[Tensor] = []  # chunks; the last is (B, 1, 26)
-        self._cov: list[Tensor] = []
-
-    @property
-    def mean(self) -> Tensor:
-        """Filtered mean of each row's newest node ``(B, 26)``."""
-        return self._mean[-1][:, 0]
-
-    @property
-    def cov(self) -> Tensor:
-        return self._cov[-1][:, 0]
-
-    def row(self, b: int) -> ChainBuilder:
-        """Row ``b`` as a single run's chain."""
-        return ChainBuilder(self, b)
-
-    def time_s(self, b: int) -> float:
-        return self.t_s[b][-1]
-
-    def _append(self, transition: Tensor, pred_mean: Tensor, pred_cov: Tensor, mean: Tensor, cov: Tensor) -> None:
-        """Append columns ``(B, n, ...)``; ``mean``, ``cov`` are the filtered Gaussians of the
-        last column ``(B, 1, ...)`` (the others' are their predictions)."""
-        n = pred_mean.shape[1]
-        self._transition.append(transition)
-        self._pred_mean.append(pred_mean)
-        self._pred_cov.append(pred_cov)
-        if n > 1:
-            self._mean.append(pred_mean[:, :-1])
-            self._cov.append(pred_cov[:, :-1])
-        self._mean.append(mean)
-        self._cov.append(cov)
-        self._count += n
-
-    def add_nodes(self, t_s: Sequence[Sequence[float]], transition: Tensor, mean: Tensor, cov: Tensor,
-                  real: Sequence[Sequence[bool]] | None = None) -> None:
-        """Append ``n`` predicted node columns: transitions ``(B, n, 26, 26)``, means ``(B, n, 26)``,
-        covariances; ``real[b][j]`` whether column ``j`` is one of row ``b``'s own nodes
-        (default: all), ``t_s[b]`` the times of row ``b``'s own ones, in order."""
-        n = mean.shape[1]
-        for b in range(self.rows):
-            flags = [True] * n if real is None else real[b]
-            own = [self._count + j for j in range(n) if flags[j]]
-            if len(own) != len(t_s[b]):
-                raise ValueError(f"BatchChain.add_nodes: row {b} has {len(own)} nodes but {len(t_s[b])} times")
-            self._columns[b].extend(own)
-            self.t_s[b].extend(float(t) for t in t_s[b])
-            self._current[b] = bool(flags[-1]) if n else self._current[b]
-        self._append(transition, mean, cov, mean[:, -1:], cov[:, -1:])
-
-    def newest(self, rows: Sequence[int]) -> tuple[Tensor, Tensor]:
-        """The newest filtered mean ``(r, 26)`` and covariance ``(r, 26, 26)`` of the rows ``rows``."""
-        if list(rows) == list(range(self.rows)):
-            return self.mean, self.cov
-        index = torch.tensor(rows, device=self.mean.device)
-        return self.mean[index], self.cov[index]
-
-    def _check_current(self, rows: Sequence[int]) -> None:
-        for b in rows:
-            if not self._current[b]:
-                raise RuntimeError(f"BatchChain: row {b} has no current node (its run is over)")
-
-    def update_rows(self, rows: Sequence[int], mean: Tensor, cov: Tensor,
-                    infos: Sequence[dict[str, Any]] | None = None) -> None:
-        """Replace the newest filtered Gaussian of the rows ``rows`` by ``mean`` ``(r, 26)``,
-        ``cov`` ``(r, 26, 26)``; ``infos[i]`` (when not empty) goes to row ``rows[i]``'s log."""
-        self._check_current(rows)
-        if list(rows) == list(range(self.rows)):
-            self._mean[-1], self._cov[-1] = mean.unsqueeze(1), cov.unsqueeze(1)
-        else:
-            index = torch.tensor(rows, device=mean.device)
-            self._mean[-1] = self._mean[-1].index_copy(0, index, mean.unsqueeze(1))
-            self._cov[-1] = self._cov[-1].index_copy(0, index, cov.unsqueeze(1))
-        self._log(rows, infos)
-
-    def add_likelihood(self, rows: Sequence[int], nll: Tensor, count: Tensor) -> None:
-        """Add an update's innovation negative log-likelihood ``nll`` ``(r,)`` of ``count`` ``(r,)``
-        scalar measurements to the rows ``rows`` (kept only when :attr:`likelihood`)."""
-        if not self.likelihood:
-            return
-        for i, b in enumerate(rows):
-            self._nll[b].append(nll[i])
-            self._nll_count[b].append(count[i])
-
-    def _log(self, rows: Sequence[int], infos: Sequence[dict[str, Any]] | None) -> None:
-        for b, info in zip(rows, infos or ()):
-            if info:
-                self.logs[b].append({"t_s": self.time_s(b), **info})
-
-    def linear_predict_rows(self, rows: Sequence[int], A: Tensor, Q: Tensor, b: Tensor | None = None,
-                            infos: Sequence[dict[str, Any]] | None = None, *, select: Tensor | None = None) -> None:
-        """A node at the same time on the rows ``rows``: ``m = A m + b``, ``P = A P Aᵀ + Q``
-        (``A``, ``Q`` ``(r or 1, 26, 26)``, ``b`` ``(r or 1, 26)``). ``select`` ``(26,)``: ``A`` is
-        the identity's rows ``select`` (a copy of state entries), so ``A m = m[select]`` and
-        ``A P Aᵀ = P[select][:, select]`` exactly, without matrix products."""
-        self._check_current(rows)
-        everyone = list(rows) == list(range(self.rows))
-        index = None if everyone else torch.tensor(rows, device=A.device)
-        mean, cov = self.newest(rows)
-        if select is None:
-            m, P = linear_predict(mean, cov, A, Q, None if b is None else b)
-        else:
-            m = mean[..., select] if b is None else mean[..., select] + b
-            P = cov[..., select, :][..., select] + Q
-        r = len(rows)
-        A = A.expand(r, *A.shape[-2:])
-        if everyone:
-            columns = (A, m, P, m, P)
-        else:  # the other rows' newest node moves to the new column
-            last = (self._transition[-1][:, -1], self._pred_mean[-1][:, -1], self._pred_cov[-1][:, -1], self.mean, self.cov)
-            columns = tuple(old.index_copy(0, index, new) for old, new in zip(last, (A, m, P, m, P)))
-        column = self._count
-        chosen = set(rows)
-        for row in range(self.rows):
-            if row in chosen:
-                self._columns[row].append(column)
-                self.t_s[row].append(self.t_s[row][-1])
-            elif self._current[row]:
-                self._columns[row][-1] = column
-        self._append(*(c.unsqueeze(1) for c in columns))
-        self._log(rows, infos)
-
-    def finish(self) -> list[FilterTrack]:
-        """Each row's :class:`FilterTrack` (its own nodes only)."""
-        parts = [torch.cat(chunks, dim=1) for chunks in
-                 (self._transition, self._pred_mean, self._pred_cov, self._mean, self._cov)]
-        tracks = []
-        for b in range(self.rows):
-            columns = self._columns[b]
-            if columns == list(range(self._count)):
-                own = [part[b] for part in parts]
-            else:
-                index = torch.tensor(columns, device=parts[0].device)
-                own = [part[b].index_select(0, index) for part in parts]
-            transition, pred_mean, pred_cov, mean, cov = own
-            nll = (torch.stack(self._nll[b]).sum() if self._nll[b] else mean.new_zeros(())) if self.likelihood else None
-            count = float(torch.stack(self._nll_count[b]).sum()) if self._nll_count[b] else 0.0
-            tracks.append(FilterTrack(t_s=torch.tensor(self.t_s[b], dtype=torch.float64), transition=transition,
-                                      pred_mean=pred_mean, pred_cov=pred_cov, node_mean=mean, node_cov=cov,
-                                      log=self.logs[b], frame_changes=self.frame_changes[b], nll=nll,
-                                      nll_count=count))
-        return tracks
-
-
-class ChainBuilder:
-    """One run's growing node chain; events call :meth:`update` and :meth:`linear_predict`.
-
-    A row of a :class:`BatchChain` (a chain of its own when made without one).
-    """
-
-    def __init__(self, batch: BatchChain | None = None, row: int = 0) -> None:
-        self._batch = BatchChain(1) if batch is None else batch
-        self._row = row
-
-    @property
-    def batch(self) -> BatchChain:
-        """The :class:`BatchChain` this chain is a row of (events acting on rows at once use it)."""
-        return self._batch
-
-    @property
-    def row(self) -> int:
-        """This chain's row in :attr:`batch`."""
-        return self._row
-
-    @property
-    def t_s(self) -> list[float]:
-        return self._batch.t_s[self._row]
-
-    @property
-    def log(self) -> list[dict[str, Any]]:
-        return self._batch.logs[self._row]
-
-    @property
-    def memory(self) -> dict[str, Any]:
-        """What events carry from one to the next (e.g. GNSS fixes held back for the heading)."""
-        return self._batch.memories[self._row]
-
-    @property
-    def frame_changes(self) -> list[tuple[int, Tensor, Tensor, Tensor]]:
-        """``(node, A, b, Q)`` of each change of frame (:meth:`change_frame`)."""
-        return self._batch.frame_changes[self._row]
-
-    @property
-    def mean(self) -> Tensor:
-        """Filtered mean of the newest node ``(26,)``."""
-        return self._batch.mean[self._row]
-
-    @property
-    def cov(self) -> Tensor:
-        return self._batch.cov[self._row]
-
-    @property
-    def time_s(self) -> float:
-        return self.t_s[-1]
-
-    def add_nodes(self, t_s: Sequence[float], transition: Tensor, mean: Tensor, cov: Tensor) -> None:
-        """Append ``n`` predicted nodes: times, transitions ``(n, 26, 26)``, means ``(n, 26)``, covs
-        (a chain of its own only)."""
-        if self._batch.rows != 1:
-            raise RuntimeError("ChainBuilder.add_nodes: only on a chain of its own (BatchChain.add_nodes for a batch)")
-        self._batch.add_nodes([list(t_s)], transition.unsqueeze(0), mean.unsqueeze(0), cov.unsqueeze(0))
-
-    def add_node(self, t_s: float, transition: Tensor, mean: Tensor, cov: Tensor) -> None:
-        self.add_nodes([t_s], transition.unsqueeze(0), mean.unsqueeze(0), cov.unsqueeze(0))
-
-    def update(self, result: UpdateResult | tuple[Tensor, Tensor], **info: Any) -> None:
-        """Replace the newest node's filtered Gaussian by an update's result."""
-        self._batch.update_rows([self._row], result[0].unsqueeze(0), result[1].unsqueeze(0), [info])
-
-    @property
-    def likelihood(self) -> bool:
-        """Whether updates add their innovation likelihood (:meth:`BatchChain.add_likelihood`)."""
-        return self._batch.likelihood
-
-    def add_likelihood(self, nll: Tensor, count: Tensor) -> None:
-        """:meth:`BatchChain.add_likelihood` of this row: scalars ``nll``, ``count``."""
-        self._batch.add_likelihood([self._row], nll.reshape(1), count.reshape(1))
-
-    def linear_predict(self, A: Tensor, Q: Tensor, b: Tensor | None = None, **info: Any) -> None:
-        """Append a node at the same time: ``m = A m + b``, ``P = A P Aᵀ + Q``."""
-        self._batch.linear_predict_rows([self._row], A.unsqueeze(0), Q.unsqueeze(0),
-                                        None if b is None else b.unsqueeze(0), [info])
-
-    def change_frame(self, A: Tensor, Q: Tensor, b: Tensor, **info: Any) -> None:
-        """A :meth:`linear_predict` that re-expresses the state in another frame (the heading
-        alignment): the smoother maps the nodes before it into the new frame too."""
-        self.linear_predict(A, Q, b, **info)
-        self.frame_changes.append((len(self.t_s) - 1, A, b, Q))
-
-    def finish(self) -> FilterTrack:
-        return self._batch.finish()[self._row]
-
-
-class _NodeOutputs:
-    """Outputs of a node chain: the last node at each distinct time."""
-
-    t_s: Tensor
-    node_mean: Tensor
-    node_cov: Tensor
-
-    @property
-    def output_index(self) -> Tensor:
-        """Indices of the last node at each distinct time."""
-        t = self.t_s
-        last = torch.ones_like(t, dtype=torch.bool)
-        last[:-1] = t[1:] != t[:-1]
-        return torch.nonzero(last).squeeze(-1)
-
-    @property
-    def t(self) -> Tensor:
-        return self.t_s[self.output_index]
-
-    @property
-    def mean(self) -> Tensor:
-        return self.node_mean[self.output_index]
-
-    @property
-    def cov(self) -> Tensor:
-        return self.node_cov[self.output_index]
-
-
-@dataclass
-class FilterTrack(_NodeOutputs):
-    """The filter's node chain (``J`` nodes) and its outputs.
-
-    ``node_*`` hold every node; :attr:`mean`, :attr:`cov` and :attr:`t` keep the
-    last node at each time (a pose forgetting adds a second node at a frame time).
-    """
-
-    t_s: Tensor  # (J,) float64
-    transition: Tensor  # (J, 26, 26) Φ_j from node j-1 (identity for j = 0)
-    pred_mean: Tensor  # (J, 26)
-    pred_cov: Tensor  # (J, 26, 26)
-    node_mean: Tensor  # (J, 26) filtered
-    node_cov: Tensor  # (J, 26, 26) filtered
-    log: list[dict[str, Any]]
-    #: ``(node, A, b, Q)``: node ``node`` re-expressed the state by ``x ↦ A x + b`` (noise
-    #: ``Q``); the filter's nodes before it stay in the frame they were computed in
-    frame_changes: list[tuple[int, Tensor, Tensor, Tensor]] = field(default_factory=list)
-    #: the summed innovation negative log-likelihood of the updates that report one (flow points,
-    #: GNSS fixes; ``½ (NIS + log det S)`` each, gate-weighted) over ``nll_count`` scalar
-    #: measurements; None unless the run asked for it (``run_filters(likelihood=True)``)
-    nll: Tensor | None = None
-    nll_count: float = 0.0
-
-    def in_final_frame(self) -> NodeTrack:
-        """The filtered nodes with those before each change of frame re-expressed after it
-        (``m ↦ A m + b``, ``P ↦ A P Aᵀ + Q``): each node is still the filter's estimate from
-        the data up to its time, relative to its start; only its frame is the final one."""
-        if not self.frame_changes:
-            return NodeTrack(self.t_s, self.node_mean, self.node_cov)
-        mean, cov = to_final_frame(self.node_mean, self.node_cov, self.frame_changes)
-        return NodeTrack(self.t_s, normalize_quaternions(mean), symmetrize(cov))
-
-
-@dataclass
-class NodeTrack(_NodeOutputs):
-    """Nodes ``t_s (J,)``, ``node_mean (J, 26)``, ``node_cov (J, 26, 26)`` and their outputs."""
-
-    t_s: Tensor
-    node_mean: Tensor
-    node_cov: Tensor
-
-
-def to_final_frame(mean: Tensor, cov: Tensor, frame_changes) -> tuple[Tensor, Tensor]:
-    """Nodes ``(J, 26)``, ``(J, 26, 26)`` before each change of frame ``(node, A, b, Q)``
-    re-expressed in the frame after it: ``m ↦ A m + b``, ``P ↦ A P Aᵀ + Q``."""
-    for node, A, b, Q in reversed(frame_changes):
-        mean = torch.cat(((mean[:node] @ A.T) + b, mean[node:]))
-        cov = torch.cat((A @ cov[:node] @ A.T + Q, cov[node:]))
-    return mean, cov
+from flowins.state import NOISE_DIM, STATE_DIM, symmetrize
 
 
 def _step_grid(t_imu: Tensor, event_times: Tensor) -> tuple[Tensor, Tensor]:
@@ -478,9 +113,10 @@ def run_filters(
     segment by segment (the IMU samples up to each run's next event): the shorter
     segments are padded with ``Δt = 0`` steps, which are exact identities, and every
     operation acts on a leading batch dimension. Events of the same kind at the same
-    segment are applied together where their type offers ``apply_batch``
-    (:class:`Event`), one run at a time otherwise. Each run's track equals its run
-    alone up to rounding (tests check 1e-10 in float64).
+    segment are applied together where they are batched events
+    (:class:`~flowins.filter.chain.BatchEvent`, :func:`apply_events`), one run at a time
+    otherwise. Each run's track equals its run alone up to rounding (tests check 1e-10
+    in float64).
 
     Args:
         runs: the :class:`FilterInput` of each run; every ``mean0`` has the same dtype and
@@ -562,23 +198,22 @@ def run_filters(
 def apply_events(chain: BatchChain, events: Sequence[Sequence[Event]]) -> None:
     """Apply ``events[b]`` (in order) to row ``b`` of ``chain``, for every row.
 
-    The ``i``-th events of all rows act together: those whose types offer ``batch_key``
-    and ``apply_batch`` (:class:`Event`), grouped by key, in one call per group; the rest
-    one row at a time through :meth:`BatchChain.row`.
+    The ``i``-th events of all rows act together: the :class:`BatchEvent` ones, grouped
+    by type and ``batch_key()``, in one ``apply_batch`` call per group; the others one row
+    at a time through :meth:`BatchChain.row`.
     """
     for i in range(max((len(e) for e in events), default=0)):
-        groups: dict[Any, list[tuple[int, Event]]] = {}
+        groups: dict[tuple[type, Hashable], list[tuple[int, BatchEvent]]] = {}
         for b, row_events in enumerate(events):
             if i >= len(row_events):
                 continue
             event = row_events[i]
-            key = event.batch_key() if hasattr(event, "batch_key") else None
-            if key is None:
-                event.apply(chain.row(b))
+            if isinstance(event, BatchEvent):
+                groups.setdefault((type(event), event.batch_key()), []).append((b, event))
             else:
-                groups.setdefault(key, []).append((b, event))
-        for members in groups.values():
-            type(members[0][1]).apply_batch(chain, [b for b, _ in members], [e for _, e in members])
+                event.apply(chain.row(b))
+        for (kind, _), members in groups.items():
+            kind.apply_batch(chain, [b for b, _ in members], [e for _, e in members])
 
 
 def _prepare(run: FilterInput, output_every: int, dtype: torch.dtype, device: torch.device,

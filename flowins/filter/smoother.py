@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from flowins.filter.runner import FilterTrack, NodeTrack, to_final_frame
+from flowins.filter.chain import FilterTrack, NodeTrack, to_final_frame
 from flowins.state import normalize_quaternions, symmetrize
 
 

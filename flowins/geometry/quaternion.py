@@ -304,12 +304,6 @@ def skew(a: Tensor) -> Tensor:
     )
 
 
-def rotation_vector_jacobian(theta: Tensor) -> Tensor:
-    """``∂𝒬{θ}/∂θ`` ``(..., 4, 3)``, branch-free and finite at ``θ = 0``
-    (:func:`from_rotation_vector_with_jacobian`)."""
-    return from_rotation_vector_with_jacobian(theta)[1]
-
-
 def from_rotation_vector_with_jacobian(theta: Tensor) -> tuple[Tensor, Tensor]:
     """``𝒬{θ}`` ``(..., 4)`` and ``∂𝒬{θ}/∂θ`` ``(..., 4, 3)`` from shared terms.
 

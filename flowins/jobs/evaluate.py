@@ -28,13 +28,12 @@ from flowins.evaluation.metrics import truth_extent_problem
 from flowins.evaluation.report import Row, format_table
 from flowins.flow.load import load_flow
 from flowins.flow.pairs import FlowPairs, read_frame, run_provider
-from flowins.ins.imu_model import imu_model
 from flowins.ins.initialization import forward_axis
 from flowins.jobs.cli import console_logging
 from flowins.measurements.flow import FlowCamera
 from flowins.navigation import (NavigationConfig, NavigationResult, NavigationRun, flow_statistics, navigate_batch,
                                 run_warnings)
-from flowins.settings import check_job_settings, navigation_config
+from flowins.settings import evaluate_settings, filter_setup
 from flowins.state import STATE
 
 log = logging.getLogger("flowins")
@@ -47,10 +46,10 @@ def run(cfg: Mapping[str, Any]) -> list[Row]:
     all seeds in one batched filter pass, and the table gives the mean ± standard deviation
     over the seeds (each seed's tracks and metrics under ``seed_<n>/``)."""
     console_logging()
-    check_job_settings(cfg)
+    settings = evaluate_settings(cfg)
     out = Path(cfg["output_dir"])
     out.mkdir(parents=True, exist_ok=True)
-    seeds = cfg["sequence"].get("seeds")
+    seeds = settings.sequence.seeds
     if seeds is None:
         recs, outs = [_load(cfg)], [out]
     else:
@@ -58,7 +57,10 @@ def run(cfg: Mapping[str, Any]) -> list[Row]:
         outs = [out / f"seed_{int(seed)}" for seed in seeds]
         for path in outs:
             path.mkdir(exist_ok=True)
-    nav_cfg, cfg = _filter_config(cfg, recs)
+    setup = filter_setup(cfg, recs, recorded=bool(settings.sequence.path), checkpoint=settings.model.checkpoint)
+    log.info(setup.describe())
+    cfg = {**cfg, "flow": setup.flow}
+    nav_cfg = setup.navigation
     flows = [_flows(cfg, rec) for rec in recs]
     unscored = [truth_extent_problem(rec.truth) for rec in recs]  # a ground truth that can't score a track, or None
     for problem in dict.fromkeys(u for u in unscored if u):
@@ -90,26 +92,6 @@ def _load(cfg: Mapping[str, Any]) -> Recording:
     return rec
 
 
-def _filter_config(cfg: Mapping[str, Any], recs: list[Recording]) -> tuple[NavigationConfig, Mapping[str, Any]]:
-    """The filter's settings: the IMU preset (its range checked against each recording's
-    readings), the ``filter`` group, and a ``train.py`` checkpoint's learned values when one
-    is given."""
-    imu = imu_model(cfg["imu"], recording=bool(cfg["sequence"].get("path")),
-                    sensor=recs[0].sequence.metadata.get("imu"))
-    for rec in recs:
-        imu.check_readings(rec.imu)
-    nav_cfg = navigation_config(cfg["filter"], imu)
-    if cfg["model"].get("checkpoint"):
-        from flowins.training.parameters import learned_settings
-
-        nav_cfg, cfg = learned_settings(cfg["model"]["checkpoint"], nav_cfg, cfg)
-    noise = nav_cfg.noise
-    log.info(f"imu: {imu.name} ({imu.source or 'config'}): filter densities acc {float(noise.acc_noise):.3g} m/s²/√Hz, "
-             f"gyro {float(noise.gyro_noise):.3g} rad/s/√Hz, walks {float(noise.acc_bias_walk):.3g} m/s³/√Hz, "
-             f"{float(noise.gyro_bias_walk):.3g} rad/s²/√Hz")
-    return nav_cfg, cfg
-
-
 def _flows(cfg: Mapping[str, Any], rec: Recording) -> dict[str, FlowPairs | str]:
     """The sparse and dense flow pairs the combinations use (or why they can't be had)."""
     flows: dict[str, FlowPairs | str] = {}
@@ -128,11 +110,11 @@ def _combination(name: str, cfg: Mapping[str, Any], recs: list[Recording], nav_c
     """One row of the table: navigate every recording with the combination's sources (one
     batched pass), export, score; several recordings give the mean ± std over them."""
     m_cfg = cfg["methods"][name]
-    sources = (bool(m_cfg["gnss"]), bool(m_cfg["sparse"]), bool(m_cfg["dense"]))
-    reason = "the sequence has no GNSS" if sources[0] and any(rec.gnss is None for rec in recs) else None
+    sources = frozenset(key for key, used in m_cfg.items() if used)
+    reason = "the sequence has no GNSS" if "gnss" in sources and any(rec.gnss is None for rec in recs) else None
     pairs: list[FlowPairs | None] = [None] * len(recs)
-    for kind, used in (("sparse", sources[1]), ("dense", sources[2])):
-        if used:
+    for kind in ("sparse", "dense"):
+        if kind in sources:
             pairs = [rec_flows[kind] for rec_flows in flows]
             reason = next((p for p in pairs if isinstance(p, str)), reason)
     if reason is not None:
@@ -143,7 +125,7 @@ def _combination(name: str, cfg: Mapping[str, Any], recs: list[Recording], nav_c
         calibration = rec.sequence.imu_to_camera
         forward_b = forward_axis(nav_cfg.start.moving.forward_axis,
                                  None if calibration is None else calibration.rotation_matrix)
-        runs.append(NavigationRun(rec.imu, rec.gnss if sources[0] else None, flow=flow,
+        runs.append(NavigationRun(rec.imu, rec.gnss if "gnss" in sources else None, flow=flow,
                                   camera=FlowCamera.from_sequence(rec.sequence) if flow is not None else None,
                                   truth=rec.truth, forward_b=forward_b, start_gnss=rec.gnss))
     results = navigate_batch(runs, config=nav_cfg, progress=cfg["progress"])
@@ -162,11 +144,12 @@ def _combination(name: str, cfg: Mapping[str, Any], recs: list[Recording], nav_c
     if seeds is None:
         m = per_run[0]
         fr = "n/a" if m["filter_rmse_m"] is None else f"{m['filter_rmse_m']:.2f} m"
-        log.info(f"  {name:<16} filter RMSE {fr} ({m['seconds']:.1f} s); {result.start.describe()}")
+        log.info(f"  {name:<16} filter RMSE {fr} ({m['seconds']:.1f} s)")
         for entry in m.get("heading_alignment", []):
             if entry["status"] == "never set":
                 log.info(f"  {'':<16} GNSS: {entry['fixes']} fixes held for the heading to the end: {entry['reason']}")
-        return Row(name, sources, m["filter_rmse_m"], m["smoother_rmse_m"], note, seconds=m["seconds"]), m
+        return Row(name, sources, m["filter_rmse_m"], m["smoother_rmse_m"], note, seconds=m["seconds"],
+                   start=result.start.describe() if result.start is not None else ""), m
     summary: dict[str, Any] = {"seeds": [int(s) for s in seeds], "seconds": seconds}
     for kind in ("filter", "smoother"):
         values = [m[f"{kind}_rmse_m"] for m in per_run]
@@ -238,6 +221,26 @@ def flow_panels(rec: Recording, cfg: Mapping[str, Any], out: Path, count: int) -
     return paths
 
 
+def _report_starts(rows: list[Row], per_run: dict[str, list[dict[str, Any]]], mode: str) -> None:
+    """How the filter started, once under the table: one line when every row started the
+    same way, else one line per way with the rows that started so (over several seeds: the
+    modes; each seed's start is in metrics.json)."""
+    groups: dict[str, list[str]] = {}
+    for row in rows:
+        if row.start:
+            groups.setdefault(row.start, []).append(row.name)
+    if len(groups) == 1:
+        log.info(f"\n{next(iter(groups))} (every row; filter.init.mode={mode})")
+    elif groups:
+        log.info(f"\nstart (filter.init.mode={mode}):")
+        for line, names in groups.items():
+            log.info(f"  {', '.join(names)}: {line.removeprefix('start: ')}")
+    else:
+        modes = {m["start"]["mode"] for ms in per_run.values() for m in ms if "start" in m}
+        if modes:
+            log.info(f"\nstart: {', '.join(sorted(modes))} (filter.init.mode={mode}; per row in metrics.json)")
+
+
 def _report(rows: list[Row], metrics: dict[str, Any], cfg: Mapping[str, Any], recs: list[Recording],
             nav_cfg: NavigationConfig, unscored: list[str | None], seeds: list[int] | None) -> None:
     """Print the table, how the filter started, the warnings and the GNSS floor (into ``metrics``)."""
@@ -246,9 +249,7 @@ def _report(rows: list[Row], metrics: dict[str, Any], cfg: Mapping[str, Any], re
     log.info(format_table(rows))
     per_run = {n: ([m] if seeds is None else list(m["per_seed"].values())) for n, m in metrics.items()
                if isinstance(m, dict) and m.get("status") != "not applicable"}
-    starts = {m["start"]["mode"] for ms in per_run.values() for m in ms if "start" in m}
-    if starts:
-        log.info(f"\nstart: {', '.join(sorted(starts))} (filter.init.mode={nav_cfg.start.mode}; per row in metrics.json)")
+    _report_starts(rows, per_run, nav_cfg.start.mode)
     labels = [""] if seeds is None else [f"seed {int(s)}: " for s in seeds]
     warned = [(n, label + w) for n, ms in per_run.items() for label, m in zip(labels, ms) for w in m.get("warnings", [])]
     if warned:

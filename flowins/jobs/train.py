@@ -16,9 +16,8 @@ from typing import Any
 import pytorch_lightning as pl
 
 from flowins.config import instantiate
-from flowins.ins.imu_model import imu_model
 from flowins.jobs.cli import console_logging
-from flowins.settings import check_train_settings, flow_settings, navigation_config, parameter_sets
+from flowins.settings import flow_config, train_settings, training_setup
 from flowins.training.data import SequenceDataModule
 from flowins.training.module import FilterLearner, selection_table
 from flowins.training.parameters import FilterParameters
@@ -29,30 +28,24 @@ log = logging.getLogger("flowins")
 def run(cfg: Mapping[str, Any]) -> dict[str, Any]:
     """Fit, test on the held-out sequences, and return the held-out results."""
     console_logging()
-    check_train_settings(cfg)
-    pl.seed_everything(int(cfg.get("seed", 0)), workers=True)
+    settings = train_settings(cfg)
+    pl.seed_everything(settings.seed, workers=True)
     out = Path(cfg["output_dir"])
     out.mkdir(parents=True, exist_ok=True)
-    methods = list(cfg["methods"])
-    recording = any(item.get("path") for part in ("train", "val") for item in cfg["data"][part])
-    base = navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=recording))
-    tuned, start, learn = parameter_sets(cfg, base)
+    methods = list(settings.methods)
+    data = SequenceDataModule(train=cfg["data"]["train"], val=cfg["data"]["val"],
+                              config={**cfg, "flow": flow_config(cfg, moments=settings.flow_moments)},
+                              methods=methods, batch_size=settings.data.batch_size, progress=settings.progress,
+                              seed=settings.seed)
+    data.setup()
+    setup = training_setup(cfg, [*data.sequences["train"], *data.sequences["val"]], recorded=settings.recorded)
+    log.info(setup.filter.describe())
+    tuned, start, learn = setup.parameters
     params = FilterParameters(start, learn)
     log.info(f"learning {len(params.learned)} parameters: {', '.join(params.learned)}")
-    data_cfg = {**cfg, "flow": flow_settings(cfg)}
-    data = SequenceDataModule(train=cfg["data"]["train"], val=cfg["data"]["val"], config=data_cfg, methods=methods,
-                              batch_size=int(cfg["data"].get("batch_size", 1)), progress=bool(cfg.get("progress", True)),
-                              seed=int(cfg.get("seed", 0)))
-    model = cfg["model"]
-    module = FilterLearner(
-        params, base, methods=methods, window_s=float(cfg["window_s"]),
-        curriculum_window_s=[float(w) for w in cfg.get("curriculum_window_s") or []],
-        nll_weight=float(model["nll_weight"]), orientation_weight_m_per_rad=float(model["orientation_weight_m_per_rad"]),
-        innovation_weight=float(model["innovation_weight"]),
-        lr=float(model["lr"]), lr_final=float(model["lr_final"]), warmup_steps=int(model["warmup_steps"]),
-        accumulate_windows=int(model["accumulate_windows"]), gradient_clip=float(model["gradient_clip"]),
-        reference={"start": start, "hand-tuned": tuned}, output_dir=str(out),
-    )
+    module = FilterLearner(params, setup.filter.navigation, methods=methods, model=settings.model,
+                           window_s=settings.window_s, curriculum_window_s=settings.curriculum_window_s or (),
+                           reference={"start": start, "hand-tuned": tuned}, output_dir=str(out))
     logger = instantiate(cfg["logger"], "logger") if cfg.get("logger") else False
     checkpoints = out / "checkpoints"
     with _without_lightning_noise():

@@ -11,12 +11,13 @@ from torch import Tensor
 
 from flowins.constants import cached_constant
 from flowins.filter.augmentation import augment_pose_rows
-from flowins.filter.ekf import Gate, ekf_update
-from flowins.filter.runner import BatchChain, ChainBuilder
+from flowins.filter.chain import BatchChain, ChainBuilder
+from flowins.filter.ekf import Gate
+from flowins.filter.updater import commit_rows, step_rows
 from flowins.flow.points import FlowPoints
 from flowins.measurements.flow import FlowCamera, epipolar_update, flow_measurements
 from flowins.measurements.selection import select_points
-from flowins.state import STATE, normalize_quaternions
+from flowins.state import STATE
 
 
 @dataclass(frozen=True)
@@ -56,8 +57,8 @@ class FlowRecovery:
     def inflation(self, mean: Tensor) -> Tensor:
         """``Q (D, D)``: the covariance added to the state ``mean`` ``(D,)``."""
         Q = mean.new_zeros(mean.shape[-1], mean.shape[-1])
-        Q[STATE.v, STATE.v] = self.velocity_sigma_mps**2 * torch.eye(3, dtype=mean.dtype)
-        Q[STATE.b_w, STATE.b_w] = self.gyro_bias_sigma_rps**2 * torch.eye(3, dtype=mean.dtype)
+        Q[STATE.v, STATE.v] = self.velocity_sigma_mps**2 * torch.eye(3, dtype=mean.dtype, device=mean.device)
+        Q[STATE.b_w, STATE.b_w] = self.gyro_bias_sigma_rps**2 * torch.eye(3, dtype=mean.dtype, device=mean.device)
         return Q
 
 
@@ -170,8 +171,9 @@ class FlowFrame:
         gated = chain.memory.get("flow_gated", 0) + 1 if r.gated(valid, accepted) else 0
         chain.memory["flow_gated"] = gated
         if gated >= r.after_frames:
-            eye = torch.eye(chain.mean.shape[-1], dtype=chain.mean.dtype)
-            chain.linear_predict(eye, r.inflation(chain.mean), kind="flow_inflate", name=self.name, frames=gated)
+            mean = chain.mean
+            eye = torch.eye(mean.shape[-1], dtype=mean.dtype, device=mean.device)
+            chain.linear_predict(eye, r.inflation(mean), kind="flow_inflate", name=self.name, frames=gated)
             chain.memory["flow_gated"] = 0
 
 
@@ -201,14 +203,11 @@ def _flow_update(chain: BatchChain, rows: list[int], frames: list[FlowFrame]) ->
                               jacobians=first.jacobians)
         upd = epipolar_update(m, sigma, parallax_inflation=u.parallax_inflation)
         innovation = upd.innovation if iteration == 0 else upd.innovation - (upd.H @ (mean - x_i)[:, None, :, None]).squeeze(-1)
-        likelihood = chain.likelihood and iteration == 0  # the likelihood of the prior's prediction
-        step = ekf_update(mean, cov, innovation=innovation, H=upd.H, noise_cov=upd.noise_cov, gate=u.gate,
-                          sequential=u.sequential, normalize=normalize_quaternions, likelihood=likelihood)
+        # the likelihood of the prior's prediction: the first iteration's only
+        step = step_rows(chain, rows, H=upd.H, residual=innovation, noise_cov=upd.noise_cov, gate=u.gate,
+                         sequential=u.sequential, valid=m.valid, likelihood=iteration == 0, prior=(mean, cov))
         counts_now = torch.stack((m.valid.sum(-1), m.n_degenerate, m.n_behind, m.n_low_parallax), -1)
-        kept = step.weight * m.valid
-        accepted = kept.sum(-1)
-        if likelihood:  # the accepted valid points', each weighed by its (constant) gate weight
-            chain.add_likelihood(rows, (kept.detach() * step.nll).sum(-1), accepted.detach())
+        accepted = step.weight.sum(-1)
         if iteration == 0:
             new_mean, new_cov, counts, weight = step.mean, step.cov, counts_now, accepted
             updated = going = None if u.iterations == 1 else m.valid.any(-1)
@@ -229,16 +228,7 @@ def _flow_update(chain: BatchChain, rows: list[int], frames: list[FlowFrame]) ->
                          points=candidates[i] if u.n_points is None else min(u.n_points, candidates[i]),
                          valid=int(valid), degenerate=int(degenerate), behind=int(behind), low_parallax=int(low),
                          accepted=float(accepted) if has else 0.0))
-    if all(done):
-        chain.update_rows(rows, new_mean, new_cov, logs)
-    else:
-        which = [i for i, has in enumerate(done) if has]
-        if which:
-            picked = torch.tensor(which, device=new_mean.device)
-            chain.update_rows([rows[i] for i in which], new_mean[picked], new_cov[picked], [logs[i] for i in which])
-        for i, has in enumerate(done):
-            if not has:
-                chain.logs[rows[i]].append({"t_s": chain.time_s(rows[i]), **logs[i]})
+    commit_rows(chain, rows, new_mean, new_cov, logs, updated=done)
     for b, frame, log in zip(rows, frames, logs):
         frame._recover(chain.row(b), valid=log["valid"], accepted=log["accepted"])
 

@@ -22,8 +22,9 @@ import torch
 from torch import Tensor
 from torch.func import jacrev, vmap
 
-from flowins.filter.ekf import Gate, chi2_quantile, ekf_update
-from flowins.filter.runner import ChainBuilder
+from flowins.filter.chain import ChainBuilder
+from flowins.filter.ekf import Gate, chi2_quantile
+from flowins.filter.updater import update
 from flowins.geometry import quaternion as quat
 from flowins.measurements.gnss_heading import (
     HeadingAlignment,
@@ -33,7 +34,7 @@ from flowins.measurements.gnss_heading import (
     heading_noise,
     heading_transform,
 )
-from flowins.state import STATE, normalize_quaternions, split
+from flowins.state import STATE, split
 
 
 def gnss_position(x: Tensor, lever_arm_m: Tensor) -> Tensor:
@@ -142,12 +143,12 @@ def reset_matrices(mean: Tensor, fixes: list[tuple[float, Tensor, Tensor]], reco
     """``(A (26, 26), b (26,), Q (26, 26), velocity_reset)`` of the reset to the last of
     ``fixes`` ``[(t_s, z (3,), R (3, 3)), ...]`` (:class:`GnssRecovery`)."""
     dim = mean.shape[-1]
-    A = torch.eye(dim, dtype=mean.dtype)
+    A = torch.eye(dim, dtype=mean.dtype, device=mean.device)
     b = mean.new_zeros(dim)
     Q = mean.new_zeros(dim, dim)
     t_last, z, R = fixes[-1]
     A[STATE.p, STATE.p] = 0.0
-    A[STATE.p_prev, STATE.p] = -torch.eye(3, dtype=mean.dtype)
+    A[STATE.p_prev, STATE.p] = -torch.eye(3, dtype=mean.dtype, device=mean.device)
     for rows in (STATE.p, STATE.p_prev):
         b[rows] = z
         for cols in (STATE.p, STATE.p_prev):
@@ -159,9 +160,9 @@ def reset_matrices(mean: Tensor, fixes: list[tuple[float, Tensor, Tensor]], reco
         A[STATE.v, STATE.v] = 0.0
         b[STATE.v] = (z - z_first) / span
         Q[STATE.v, STATE.v] = (R + R_first) / span**2 + (0.5 * recovery.acceleration_sigma_mps2 * span) ** 2 * torch.eye(
-            3, dtype=mean.dtype)
-    Q[STATE.b_a, STATE.b_a] = recovery.acc_bias_sigma_mps2**2 * torch.eye(3, dtype=mean.dtype)
-    Q[STATE.b_w, STATE.b_w] = recovery.gyro_bias_sigma_rps**2 * torch.eye(3, dtype=mean.dtype)
+            3, dtype=mean.dtype, device=mean.device)
+    Q[STATE.b_a, STATE.b_a] = recovery.acc_bias_sigma_mps2**2 * torch.eye(3, dtype=mean.dtype, device=mean.device)
+    Q[STATE.b_w, STATE.b_w] = recovery.gyro_bias_sigma_rps**2 * torch.eye(3, dtype=mean.dtype, device=mean.device)
     return A, b, Q, with_velocity
 
 
@@ -186,28 +187,15 @@ class GnssFix:
     def apply(self, chain: ChainBuilder) -> None:
         if self.heading is not None and self.heading.enabled and self._held_for_heading(chain):
             return
-        mean, cov = chain.mean, chain.cov
+        mean = chain.mean
         lever = None if self.lever_arm_m is None else self.lever_arm_m.to(mean)
         H = gnss_jacobian_analytic(mean, lever)
         predicted = mean[STATE.p] if lever is None else gnss_position(mean, lever)
         innovation = self.position_m.to(mean) - predicted
-        result = ekf_update(
-            mean,
-            cov,
-            innovation=innovation.reshape(1, 3),
-            H=H.reshape(1, 3, -1),
-            noise_cov=self.noise_cov.to(mean).reshape(1, 3, 3),
-            gate=self.gate,
-            normalize=normalize_quaternions,
-            likelihood=chain.likelihood,
-        )
-        if chain.likelihood:  # weighed by the (constant) gate weight, over 3 scalar measurements
-            kept = result.weight[0].detach()
-            chain.add_likelihood(kept * result.nll[0], 3.0 * kept)
-        accepted = float(result.weight[0].detach())
-        nis = float(result.nis[0].detach())
-        chain.update(result, kind="gnss", name=self.name, nis=nis, accepted=accepted)
-        self._recover(chain, rejected=accepted < 0.5, nis=nis)
+        update(chain, H=H.reshape(1, 3, -1), residual=innovation.reshape(1, 3),
+               noise_cov=self.noise_cov.to(mean).reshape(1, 3, 3), gate=self.gate, kind="gnss", name=self.name)
+        entry = chain.log[-1]
+        self._recover(chain, rejected=entry["accepted"] < 0.5, nis=entry["nis"])
 
     def _recover(self, chain: ChainBuilder, *, rejected: bool, nis: float) -> None:
         """Reset after ``after_rejections`` consecutive rejections, or when the last
@@ -285,9 +273,8 @@ class GnssFix:
             return True
         # 1. condition on the filter's own heading; 2. rotate into the fixes' frame
         h = heading_jacobian(mean).reshape(1, 1, -1)
-        sigma_c = torch.as_tensor(a.condition_sigma_rad, dtype=mean.dtype)
-        chain.update(ekf_update(mean, cov, innovation=mean.new_zeros(1, 1), H=h, noise_cov=(sigma_c**2).reshape(1, 1, 1),
-                                normalize=normalize_quaternions))
+        sigma_c = torch.as_tensor(a.condition_sigma_rad, dtype=mean.dtype, device=mean.device)
+        update(chain, H=h, residual=mean.new_zeros(1, 1), noise_cov=(sigma_c**2).reshape(1, 1, 1), likelihood=False)
         A, b = heading_transform(fit, dtype=mean.dtype)
         Q = heading_noise(A @ chain.mean + b, fit)
         chain.change_frame(A, Q, b, kind="heading", name=self.name, status="aligned", yaw_rad=float(fit.yaw_rad.detach()),

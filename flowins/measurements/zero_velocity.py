@@ -6,9 +6,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from flowins.filter.ekf import ekf_update
-from flowins.filter.runner import ChainBuilder
-from flowins.state import STATE, normalize_quaternions
+from flowins.filter.chain import ChainBuilder
+from flowins.filter.updater import update
+from flowins.state import STATE
 
 
 @dataclass(frozen=True)
@@ -20,11 +20,10 @@ class ZeroVelocity:
     name: str = "zero velocity"
 
     def apply(self, chain: ChainBuilder) -> None:
-        mean, cov = chain.mean, chain.cov
+        mean = chain.mean
         H = torch.zeros(1, 3, mean.shape[-1], dtype=mean.dtype, device=mean.device)
         H[0, :, STATE.v] = torch.eye(3, dtype=mean.dtype, device=mean.device)
         sigma = torch.as_tensor(self.sigma_mps, dtype=mean.dtype, device=mean.device)
-        result = ekf_update(mean, cov, innovation=-mean[STATE.v].reshape(1, 3), H=H,
-                            noise_cov=(sigma**2 * torch.eye(3, dtype=mean.dtype, device=mean.device)).reshape(1, 3, 3),
-                            normalize=normalize_quaternions)
-        chain.update(result, kind="zero_velocity", name=self.name)
+        update(chain, H=H, residual=-mean[STATE.v].reshape(1, 3),
+               noise_cov=(sigma**2 * torch.eye(3, dtype=mean.dtype, device=mean.device)).reshape(1, 3, 3),
+               likelihood=False, kind="zero_velocity", name=self.name)

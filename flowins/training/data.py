@@ -52,11 +52,6 @@ def load_training_sequence(
     ``sparse``, ``flow_pairs`` and ``cache_dir``, as in ``configs/train.yaml``.
     """
     rec = load_recording(_sequence_config(source, cfg["sequence"]), quick=False, progress=progress)
-    if "imu" in cfg:  # every reading within the sensor's range, as the evaluation checks
-        from flowins.ins.imu_model import imu_model
-
-        sensor = None if rec.sequence is None else rec.sequence.metadata.get("imu")
-        imu_model(cfg["imu"], recording=bool(source.get("path")), sensor=sensor).check_readings(rec.imu)
     if rec.truth is None:
         raise ValueError(f"{rec.name}: training needs ground truth; the sequence has none")
     pairs: dict[str, FlowPairs | None] = {"dense": None, "sparse": None}
@@ -67,7 +62,7 @@ def load_training_sequence(
                 raise ValueError(f"{rec.name}: {kind} flow unavailable: {flow}")
             pairs[kind] = flow
     return TrainingSequence(rec.name, rec.imu, rec.gnss, rec.truth, FlowCamera.from_sequence(rec.sequence),
-                            pairs["dense"], pairs["sparse"])
+                            pairs["dense"], pairs["sparse"], rec.sensor)
 
 
 class _Sequences(Dataset):

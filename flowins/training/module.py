@@ -34,7 +34,7 @@ import torch
 from pytorch_lightning.trainer.states import TrainerFn
 
 from flowins.navigation import NavigationConfig
-from flowins.training.parameters import FilterParameters
+from flowins.training.parameters import FilterParameters, ModelSettings
 from flowins.training.schedule import learning_rate, window_length
 from flowins.training.unroll import TrainingSequence, run_windows, sequence_rmse, window_bounds, window_loss
 
@@ -49,14 +49,9 @@ class FilterLearner(pl.LightningModule):
         base: the filter configuration the parameters are written into (everything
             that is not learned: point selection, gating mode, output rate, ...).
         methods: rows of Table I to train on, e.g. ``["ins_dense", "ins_gnss_dense"]``.
+        model: the loss and the optimiser's schedule (:class:`ModelSettings`).
         window_s: window length (s) of the truncated backpropagation.
-        nll_weight: weight of the Gaussian negative log-likelihood in the loss.
-        orientation_weight_m_per_rad: weight of the orientation RMSE (rad) in the loss
-            (metres per radian; 0: position only).
-        innovation_weight: weight of the innovation negative log-likelihood per scalar
-            measurement (metres per nat; :func:`~flowins.training.unroll.window_loss`).
-        lr, gradient_clip: Adam's learning rate (in log-parameter units) and the
-            gradient-norm clip of each step.
+        curriculum_window_s: the first epochs' shorter windows (s).
         reference: named parameter values the held-out test compares with (e.g. the
             starting values and the hand-tuned defaults).
     """
@@ -67,16 +62,9 @@ class FilterLearner(pl.LightningModule):
         base: NavigationConfig,
         *,
         methods: Sequence[str],
+        model: ModelSettings = ModelSettings(),
         window_s: float = 20.0,
         curriculum_window_s: Sequence[float] = (),
-        nll_weight: float = 0.0,
-        orientation_weight_m_per_rad: float = 0.0,
-        innovation_weight: float = 0.0,
-        lr: float = 0.1,
-        lr_final: float | None = None,
-        warmup_steps: int = 0,
-        accumulate_windows: int = 1,
-        gradient_clip: float = 1.0,
         reference: Mapping[str, Mapping[str, float]] | None = None,
         output_dir: str | None = None,
     ) -> None:
@@ -87,16 +75,14 @@ class FilterLearner(pl.LightningModule):
         self.methods = list(methods)
         self.window_s = float(window_s)
         self.curriculum = [float(w) for w in curriculum_window_s]
-        self.nll_weight = float(nll_weight)
-        self.orientation_weight = float(orientation_weight_m_per_rad)
-        self.innovation_weight = float(innovation_weight)
-        self.lr = float(lr)
-        self.lr_final = self.lr if lr_final is None else float(lr_final)
-        self.warmup_steps = int(warmup_steps)
-        if int(accumulate_windows) < 1:
-            raise ValueError(f"model.accumulate_windows={accumulate_windows!r}: expected an integer >= 1")
-        self.accumulate = int(accumulate_windows)
-        self.gradient_clip = float(gradient_clip)
+        self.nll_weight = model.nll_weight
+        self.orientation_weight = model.orientation_weight_m_per_rad
+        self.innovation_weight = model.innovation_weight
+        self.lr = model.lr
+        self.lr_final = self.lr if model.lr_final is None else model.lr_final
+        self.warmup_steps = model.warmup_steps
+        self.accumulate = model.accumulate_windows
+        self.gradient_clip = model.gradient_clip
         self.reference = {k: dict(v) for k, v in (reference or {}).items()}
         self.output_dir = output_dir
         self.skipped_windows = 0

@@ -26,16 +26,15 @@ The parameters (units of the filter config, ``configs/filter/default.yaml``):
 """
 from __future__ import annotations
 
-import logging
 import math
 from collections.abc import Iterable, Mapping
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
 
 import torch
 from torch import Tensor, nn
 
+from flowins.config import bounded
 from flowins.filter.ekf import Gate
 from flowins.ins.initialization import InitialUncertainty
 from flowins.navigation import NavigationConfig
@@ -75,6 +74,52 @@ NOISE_NAMES: tuple[str, ...] = (
 )  # fmt: skip
 #: frozen unless the config says otherwise
 FROZEN_BY_DEFAULT = frozenset({"initial_position_m", "initial_yaw_rad"})
+
+
+@dataclass(frozen=True)
+class ModelSettings:
+    """The ``model`` config group (``configs/model/filter.yaml``): the loss, the optimiser's
+    schedule and which parameters start where and are learned.
+
+    Attributes:
+        lr, lr_final, warmup_steps: Adam's learning rate (log-parameter units), the end of its
+            cosine decay, and the linear warm-up's optimiser steps.
+        accumulate_windows: window groups whose gradients are summed into one step.
+        gradient_clip: the gradient-norm clip of each step.
+        nll_weight: weight of the Gaussian negative log-likelihood of the position errors.
+        innovation_weight: weight of the innovation negative log-likelihood per scalar
+            measurement (metres per nat; :func:`~flowins.training.unroll.window_loss`).
+        orientation_weight_m_per_rad: weight of the orientation RMSE (rad) in the loss.
+        mistune: every noise parameter's start multiplied by this.
+        start: starting values replacing the filter config's, by parameter name.
+        learn, freeze: the names learned (None: all but the frozen-by-default ones) and kept.
+        checkpoint: a ``train.py`` checkpoint whose learned values the filter uses.
+    """
+
+    lr: float = bounded(0.1, minimum=1e-12)
+    lr_final: float | None = bounded(None, minimum=1e-12)
+    warmup_steps: int = bounded(0, minimum=0)
+    accumulate_windows: int = bounded(1, minimum=1)
+    gradient_clip: float = bounded(1.0, minimum=1e-12)
+    nll_weight: float = bounded(0.0, minimum=0.0)
+    innovation_weight: float = bounded(0.0, minimum=0.0)
+    orientation_weight_m_per_rad: float = bounded(0.0, minimum=0.0)
+    mistune: float = bounded(1.0, minimum=1e-12)
+    start: dict[str, float] = bounded({})
+    learn: tuple[str, ...] | None = None
+    freeze: tuple[str, ...] = ()
+    checkpoint: str | None = None
+
+    def __post_init__(self) -> None:
+        for name, value in self.start.items():
+            if name not in NAMES:
+                raise ValueError(f"model.start.{name}: unknown parameter; expected names from {', '.join(NAMES)}")
+            if not value >= 0.0:
+                raise ValueError(f"model.start.{name}={value!r}: expected a number >= 0")
+        for key in ("learn", "freeze"):
+            for name in getattr(self, key) or ():
+                if name not in NAMES:
+                    raise ValueError(f"model.{key}: unknown parameter {name!r}; expected names from {', '.join(NAMES)}")
 
 
 def _to_raw(name: str, value: float) -> float:
@@ -207,22 +252,3 @@ class FilterParameters(nn.Module):
 
     def extra_repr(self) -> str:
         return ", ".join(f"{n}={v:.4g}" for n, v in self.values().items())
-
-
-def learned_settings(checkpoint: str, nav_cfg: NavigationConfig, cfg: Mapping[str, Any]) -> tuple[NavigationConfig, dict]:
-    """The filter config and job config with a ``train.py`` checkpoint's learned parameters
-    (noise, gates, flow noise; the dropout rate goes to the flow provider when it has one).
-
-    SpyNet's Monte Carlo dropout then runs in closed form (``mc_mode="moments"``), as
-    training runs it: there the mean flow is the deterministic one whatever the rate, and
-    the rate only scales σ. With sampled passes the mean is an average of a few dropped-out
-    passes, whose noise grows with the rate and which training never saw."""
-    from flowins.settings import flow_settings
-
-    params = FilterParameters.from_checkpoint(checkpoint)
-    values = params.values()
-    cfg = dict(cfg)
-    if "p" in cfg["flow"]:
-        cfg["flow"] = flow_settings({**cfg, "flow_moments": True, "flow": {**cfg["flow"], "p": values["dropout_p"]}})
-    logging.getLogger("flowins").info(f"learned parameters from {checkpoint}: " + ", ".join(f"{k}={v:.4g}" for k, v in values.items()))
-    return params.apply(nav_cfg, training=False), cfg

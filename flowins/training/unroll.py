@@ -28,10 +28,11 @@ from flowins.evaluation.metrics import (
     interpolate_positions,
     interpolate_quaternions,
 )
-from flowins.filter.runner import FilterInput, NodeTrack, run_filters
+from flowins.filter.chain import NodeTrack
+from flowins.filter.runner import FilterInput, run_filters
 from flowins.flow.pairs import FlowPairs
 from flowins.measurements.flow import FlowCamera
-from flowins.navigation import NavigationConfig, prepare_navigation
+from flowins.navigation import NavigationConfig, NavigationRun, prepare_navigation
 from flowins.state import STATE
 
 #: the rows of Table I as (GNSS, sparse, dense) sources
@@ -56,6 +57,8 @@ class TrainingSequence:
     camera: FlowCamera | None = None
     dense: FlowPairs | None = None
     sparse: FlowPairs | None = None
+    #: the IMU preset the recording names (its metadata's ``imu``), or None
+    sensor: str | None = None
 
     def sources(self, method: str) -> tuple[GnssStream | None, FlowPairs | None]:
         """The GNSS stream and flow pairs ``method`` uses; a clear error when one is missing."""
@@ -88,12 +91,12 @@ def window_bounds(t_s: Tensor, window_s: float) -> list[tuple[int, int]]:
 
 class WindowResult(NamedTuple):
     #: the filtered nodes, all in the window's final frame (a heading alignment re-expresses
-    #: the nodes before it, :meth:`~flowins.filter.runner.FilterTrack.in_final_frame`)
+    #: the nodes before it, :meth:`~flowins.filter.chain.FilterTrack.in_final_frame`)
     track: NodeTrack
     mean: Tensor  # (26,) the state at the window's end (with the graph)
     cov: Tensor  # (26, 26)
     #: the window's summed innovation negative log-likelihood and its number of scalar
-    #: measurements (:attr:`~flowins.filter.runner.FilterTrack.nll`); None unless asked for
+    #: measurements (:attr:`~flowins.filter.chain.FilterTrack.nll`); None unless asked for
     nll: Tensor | None = None
     nll_count: float = 0.0
 
@@ -145,7 +148,8 @@ def run_windows(
             flow = flow.select((flow.t2_s > t_a - 1.0) & (flow.t2_s <= t_b))
             if dropout_p is not None:
                 flow = flow.at_dropout_rate(dropout_p)
-        setup = prepare_navigation(imu, gnss, config=config, flow=flow, camera=seq.camera if flow is not None else None)
+        setup = prepare_navigation(NavigationRun(imu, gnss, flow=flow, camera=seq.camera if flow is not None else None),
+                                   config=config)
         if setup.start.index != 0:
             raise ValueError(f"training starts the filter at the first IMU sample; filter.init.mode={setup.start.mode} "
                              f"starts it at row {setup.start.index}: use filter.init.mode=still or moving")

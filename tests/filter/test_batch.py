@@ -5,14 +5,13 @@ import torch
 from flowins.data.synthetic import ImuErrors, Walk, WalkConfig, corrupt_imu, gnss_track, sample_times
 from flowins.filter.augmentation import PoseAugmentation
 from flowins.filter.ekf import Gate
-from flowins.filter.runner import BatchChain, FilterInput, run_filter, run_filters
+from flowins.filter.runner import FilterInput, run_filter, run_filters
 from flowins.filter.smoother import rts_smooth
 from flowins.geometry import quaternion as quat
 from flowins.ins.initialization import stationary_initialization
 from flowins.ins.mechanization import ProcessNoise
 from flowins.measurements.gnss import GnssRecovery, gnss_fixes, gnss_noise
 from flowins.measurements.zero_velocity import ZeroVelocity
-from flowins.state import STATE_DIM
 
 F64 = torch.float64
 NOISE = ProcessNoise(acc_bias_walk=1e-4, gyro_bias_walk=1e-5)
@@ -86,26 +85,6 @@ def test_runs_of_different_dtypes_are_refused():
         run_filters([run, other], noise=NOISE)
 
 
-def test_a_prediction_on_some_rows_moves_the_others_newest_node():
-    """An event's linear prediction on row 0 only: row 1's node stays the same node (its
-    prediction, transition and filtered Gaussian), and row 1's next update lands on it."""
-    gen = torch.Generator().manual_seed(0)
-    chain = BatchChain(2)
-    mean = torch.randn(2, 1, STATE_DIM, generator=gen, dtype=F64)
-    cov = torch.eye(STATE_DIM, dtype=F64).expand(2, 1, STATE_DIM, STATE_DIM) * 2.0
-    chain.add_nodes([[0.0], [0.0]], torch.eye(STATE_DIM, dtype=F64).expand(2, 1, STATE_DIM, STATE_DIM), mean, cov)
-    A = 0.5 * torch.eye(STATE_DIM, dtype=F64)
-    chain.linear_predict_rows([0], A.unsqueeze(0), torch.eye(STATE_DIM, dtype=F64).unsqueeze(0))
-    new_mean = torch.zeros(1, STATE_DIM, dtype=F64)
-    chain.update_rows([1], new_mean, torch.eye(STATE_DIM, dtype=F64).unsqueeze(0))
-    first, second = chain.finish()
-    assert first.t_s.tolist() == [0.0, 0.0] and second.t_s.tolist() == [0.0]
-    torch.testing.assert_close(first.node_mean[1], 0.5 * mean[0, 0], rtol=0, atol=0)
-    torch.testing.assert_close(first.node_cov[1], 0.5 * torch.eye(STATE_DIM, dtype=F64) + torch.eye(STATE_DIM, dtype=F64))
-    assert torch.equal(first.transition[1], A)
-    assert torch.equal(second.node_mean[0], new_mean[0]) and torch.equal(second.pred_mean[0], mean[1, 0])
-
-
 def test_the_cholesky_jitter_one_covariance_needs_leaves_the_others_of_the_batch_alone():
     from flowins.filter.ekf import _cholesky_psd
 
@@ -119,21 +98,3 @@ def test_the_cholesky_jitter_one_covariance_needs_leaves_the_others_of_the_batch
     both = _cholesky_psd(torch.stack((good, bad)))
     assert torch.equal(both[0], _cholesky_psd(good)) and torch.equal(both[1], _cholesky_psd(bad))
     assert not torch.equal(both[0], torch.linalg.cholesky(good + 1e-14 * good.diagonal().max() * torch.eye(6, dtype=F64)))
-
-
-def test_the_pose_copy_by_index_is_the_matrix_step_exactly():
-    """The limit augmentation on a chain (entries copied by index) equals T m, T P Tᵀ + Q."""
-    from flowins.filter.augmentation import copy_matrices
-    from flowins.filter.runner import ChainBuilder
-
-    gen = torch.Generator().manual_seed(3)
-    mean = torch.randn(STATE_DIM, generator=gen, dtype=F64)
-    A = torch.randn(STATE_DIM, STATE_DIM, generator=gen, dtype=F64)
-    cov = A @ A.T
-    chain = ChainBuilder()
-    chain.add_node(0.0, torch.eye(STATE_DIM, dtype=F64), mean, cov)
-    PoseAugmentation(0.0, nugget_var=1e-6, mode="limit").apply(chain)
-    T, Q = copy_matrices(1e-6, dtype=F64)
-    assert torch.equal(chain.mean, T @ mean)
-    assert torch.equal(chain.cov, T @ cov @ T.T + Q)
-    assert torch.equal(chain.finish().transition[1], T)

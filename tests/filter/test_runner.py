@@ -1,5 +1,7 @@
-"""The filter runner: analytic vs autodiff paths, event timing, GNSS gating, long-run health, smoothing."""
+"""The filter runner: analytic vs autodiff paths, event timing and dispatch, GNSS gating, long-run health,
+smoothing."""
 import math
+from dataclasses import dataclass, field
 
 import pytest
 import torch
@@ -15,6 +17,7 @@ from flowins.data.synthetic import (
 from flowins.filter.ekf import Gate
 from flowins.measurements.gnss import gnss_fixes, GnssFix
 from flowins.filter.augmentation import PoseAugmentation
+from flowins.filter.chain import BatchEvent
 from flowins.filter.runner import FilterInput, run_filter, run_filters
 from flowins.filter.smoother import rts_smooth
 from flowins.geometry import quaternion as quat
@@ -136,6 +139,47 @@ def test_event_outside_imu_span_raises_naming_it(short_run, offset_s):
     ok = GnssFix(float(t[10]) + 1e-3, torch.zeros(3, dtype=F64), torch.eye(3, dtype=F64), name="GNSS row 1")
     with pytest.raises(ValueError, match="GNSS row 42"):
         run_filter(t_s=t, acc_mps2=acc, gyro_rps=gyro, mean0=mean0, cov0=cov0, noise=ProcessNoise(), events=[ok, fix])
+
+
+# --------------------------------------------------------------------------- event dispatch
+
+
+@dataclass(frozen=True)
+class _Plain:
+    """A toy event that records the rows it is applied to."""
+
+    time_s: float
+    calls: list = field(compare=False)
+    name: str = "plain"
+
+    def apply(self, chain):
+        self.calls.append(("apply", chain.row))
+
+
+@dataclass(frozen=True)
+class _Batched(_Plain):
+    """A toy batched event that records each ``apply_batch`` call."""
+
+    name: str = "batched"
+
+    def apply(self, chain):
+        raise AssertionError("a batched event is applied by apply_batch")
+
+    def batch_key(self):
+        return "toy"
+
+    @classmethod
+    def apply_batch(cls, chain, rows, events):
+        events[0].calls.append(("apply_batch", list(rows), [e.time_s for e in events]))
+
+
+def test_a_batched_event_gets_its_rows_in_one_call_and_a_plain_one_each_row_alone():
+    t, acc, gyro, _, mean0, cov0 = resting_device()
+    calls = []
+    assert isinstance(_Batched(0.5, calls), BatchEvent) and not isinstance(_Plain(0.5, calls), BatchEvent)
+    runs = [FilterInput(t, acc, gyro, mean0, cov0, [_Plain(0.25, calls), _Batched(0.5, calls)]) for _ in range(2)]
+    run_filters(runs, noise=ProcessNoise())
+    assert calls == [("apply", 0), ("apply", 1), ("apply_batch", [0, 1], [0.5, 0.5])]
 
 
 # --------------------------------------------------------------------------- GNSS gating

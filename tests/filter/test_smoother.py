@@ -15,7 +15,7 @@ from flowins.filter.augmentation import (
 )
 from flowins.filter.ekf import ekf_update, linear_predict
 from flowins.filter.augmentation import PoseAugmentation
-from flowins.filter.runner import ChainBuilder
+from flowins.filter.chain import ChainBuilder
 from flowins.filter.smoother import rts_smooth
 from flowins.geometry import quaternion as quat
 from flowins.state import CORE_DIM, STATE, STATE_DIM, make_state
@@ -317,10 +317,10 @@ def test_rts_through_long_prediction_runs_equals_batch_posterior(run_length):
 def test_key_node_smoother_equals_node_by_node_recursion_on_ins_gnss():
     from flowins.data.synthetic import synthetic_walk_recording
     from flowins.filter.smoother import rts_smooth_sequential
-    from flowins.navigation import NavigationConfig, navigate
+    from flowins.navigation import NavigationConfig, NavigationRun, navigate
 
     rec = synthetic_walk_recording(duration_s=20.0, seed=3)
-    result = navigate(rec.imu, rec.gnss, config=NavigationConfig())
+    result = navigate(NavigationRun(rec.imu, rec.gnss), config=NavigationConfig())
     fast = rts_smooth(result.filter)
     slow = rts_smooth_sequential(result.filter)
     assert_close_scaled(fast.node_mean, slow.node_mean, 1e-9)

@@ -148,7 +148,7 @@ def test_a_filter_started_at_a_wrong_heading_is_aligned_and_its_early_track_re_e
     from flowins.geometry.geodesy import LocalTangentPlane
     from flowins.ins.initialization import InitialUncertainty
     from flowins.ins.mechanization import ProcessNoise
-    from flowins.navigation import NavigationConfig, navigate
+    from flowins.navigation import NavigationConfig, NavigationRun, navigate
     from flowins.start import StartSettings
 
     origin = (60.1699, 24.9384, 20.0)
@@ -158,7 +158,7 @@ def test_a_filter_started_at_a_wrong_heading_is_aligned_and_its_early_track_re_e
     config = NavigationConfig(noise=ProcessNoise(acc_noise=2e-4, gyro_noise=1e-5),
                               initial=InitialUncertainty(acc_bias_mps2=0.005, gyro_bias_rps=1e-4, acc_scale=1e-3),
                               start=StartSettings(yaw_rad=2.0), gnss_heading=HeadingAlignment(enabled=True, baseline_m=15.0, max_sigma_rad=0.5))
-    result = navigate(rec.imu, rec.gnss, config=config, frame=LocalTangentPlane(*origin))
+    result = navigate(NavigationRun(rec.imu, rec.gnss, frame=LocalTangentPlane(*origin)), config=config)
     (entry,) = [e for e in result.filter.log if e.get("kind") == "heading"]
     assert entry["status"] == "aligned"
     held = [e for e in result.filter.log if e.get("status") == "held for heading"]
@@ -183,11 +183,11 @@ def test_giving_up_the_heading_applies_the_fix_that_gives_up_and_every_later_one
     can set the heading. The held fixes are left out (counted); the fix that gives up and
     all later ones update the filter, so every fix is either held or applied, once."""
     from flowins.data.synthetic import synthetic_walk_recording
-    from flowins.navigation import NavigationConfig, navigate
+    from flowins.navigation import NavigationConfig, NavigationRun, navigate
     from flowins.start import StartSettings
 
     rec = synthetic_walk_recording(duration_s=60.0, seed=1)
-    result = navigate(rec.imu, rec.gnss, config=NavigationConfig(start=StartSettings(yaw_rad=2.0)))
+    result = navigate(NavigationRun(rec.imu, rec.gnss), config=NavigationConfig(start=StartSettings(yaw_rad=2.0)))
     (entry,) = [e for e in result.filter.log if e.get("kind") == "heading"]
     assert entry["status"] == "given up"
     gnss = [e for e in result.filter.log if e.get("kind") == "gnss"]
@@ -203,18 +203,18 @@ def test_fixes_still_held_when_the_run_ends_are_reported_as_never_set():
     baseline: every fix is held to the end and the result says so, with the count."""
     from flowins.data.synthetic import ImuErrors, synthetic_walk_recording
     from flowins.ins.mechanization import ProcessNoise
-    from flowins.navigation import NavigationConfig, navigate
+    from flowins.navigation import NavigationConfig, NavigationRun, navigate
     from flowins.start import StartSettings
 
     rec = synthetic_walk_recording(duration_s=12.0, seed=4, imu_errors=ImuErrors(
         acc_noise=2e-4, gyro_noise=1e-5, acc_bias_std=0.002, gyro_bias_std=2e-5, acc_bias_walk=0.0,
         gyro_bias_walk=0.0, acc_scale_std=0.0))
     config = NavigationConfig(noise=ProcessNoise(acc_noise=2e-4, gyro_noise=1e-5), start=StartSettings(yaw_rad=2.0))
-    result = navigate(rec.imu, rec.gnss, config=config)
+    result = navigate(NavigationRun(rec.imu, rec.gnss), config=config)
     gnss = [e for e in result.filter.log if e.get("kind") == "gnss"]
     assert len(gnss) == len(rec.gnss) and not any("nis" in e for e in gnss)
     (status,) = result.heading_status
     assert status["status"] == "never set" and status["fixes"] == len(rec.gnss)
     # with the heading known from the start nothing is held and nothing is reported
-    known = navigate(rec.imu, rec.gnss, config=dataclasses.replace(config, gnss_heading=HeadingAlignment(enabled=False)))
+    known = navigate(NavigationRun(rec.imu, rec.gnss), config=dataclasses.replace(config, gnss_heading=HeadingAlignment(enabled=False)))
     assert known.heading_status == []

@@ -3,7 +3,7 @@ import torch
 
 from flowins.measurements.flow_update import FlowFrame, FlowUpdate
 from flowins.measurements.zero_velocity import ZeroVelocity
-from flowins.filter.runner import ChainBuilder
+from flowins.filter.chain import ChainBuilder
 from flowins.flow.pairs import FlowPairs
 from flowins.flow.points import FlowPoints
 from flowins.measurements.flow import FlowCamera

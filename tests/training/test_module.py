@@ -41,7 +41,7 @@ def test_accumulated_windows_take_one_adam_step_on_their_mean_gradient(tmp_path)
 
     from flowins.ins.imu_model import imu_model
     from flowins.jobs.train import run
-    from flowins.settings import flow_settings, navigation_config
+    from flowins.settings import flow_config, navigation_config
     from flowins.training.data import load_training_sequence
     from flowins.training.unroll import run_window, window_bounds, window_loss
 
@@ -56,7 +56,7 @@ def test_accumulated_windows_take_one_adam_step_on_their_mean_gradient(tmp_path)
             resolve=True)
     result = run(cfg)
     # the reference: both windows' losses from the start values, their mean's gradient, Adam's first step
-    seq = load_training_sequence(source, {**cfg, "flow": flow_settings(cfg)}, methods=["ins_gnss"])
+    seq = load_training_sequence(source, {**cfg, "flow": flow_config(cfg, moments=True)}, methods=["ins_gnss"])
     base = navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=False))
     learn = [n for n in NAMES if n not in ("initial_position_m", "initial_yaw_rad")]
     params = FilterParameters(result["start"], learn=learn)

@@ -1,6 +1,7 @@
 """The learned filter parameters: unconstrained coordinates, writing them into the filter
 config, reading the defaults, freezing, and the train.py checkpoint layout."""
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -14,7 +15,6 @@ from flowins.training.parameters import (
     FROZEN_BY_DEFAULT,
     NAMES,
     FilterParameters,
-    learned_settings,
     starting_values,
 )
 
@@ -230,20 +230,31 @@ def test_from_checkpoint_round_trips_the_lightning_layout(tmp_path):
     assert FilterParameters.from_checkpoint(path2).values() == params.values()
 
 
-def test_learned_settings_run_spynet_dropout_in_closed_form_at_the_learned_rate(tmp_path):
-    """evaluate.py with a checkpoint: SpyNet's dropout at the learned rate in closed form (the mode
-    training uses, whose mean flow does not depend on the rate); a provider without a rate is
-    left as it is."""
+def test_a_checkpoint_runs_spynet_dropout_in_closed_form_at_the_learned_rate(tmp_path):
+    """evaluate.py with a checkpoint (:func:`flowins.settings.filter_setup`): SpyNet's dropout at
+    the learned rate in closed form (the mode training uses, whose mean flow does not depend on
+    the rate); a provider without a rate is left as it is."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    from flowins.settings import filter_setup
+
+    configs = Path(__file__).resolve().parents[2] / "configs"
+    with initialize_config_dir(config_dir=str(configs), version_base="1.3"):
+        cfg = OmegaConf.to_container(compose(config_name="evaluate", overrides=["output_dir=/tmp/unused"]), resolve=True)
+
     params = FilterParameters(some_start())
     path = tmp_path / "best.ckpt"
     torch.save({"state_dict": {"params." + k: v for k, v in params.state_dict().items()}}, path)
     spynet = {"_target_": "flowins.flow.spynet.SpyNetProvider", "mc_passes": 10, "p": 0.2}
-    nav, cfg = learned_settings(str(path), NavigationConfig(), {"flow": spynet, "flow_moments": False})
-    assert cfg["flow"] == {**spynet, "p": pytest.approx(0.37, rel=1e-12), "mc_mode": "moments"}
+    setup = filter_setup({**cfg, "flow": spynet}, [], recorded=False, checkpoint=str(path))
+    assert setup.flow == {**spynet, "p": pytest.approx(0.37, rel=1e-12), "mc_mode": "moments"}
     assert spynet["p"] == 0.2 and "mc_mode" not in spynet  # the caller's config is not changed
-    assert nav.flow_update.sigma_scale == pytest.approx(params.values()["flow_sigma_scale"], rel=1e-12)
+    assert setup.navigation.flow_update.sigma_scale == pytest.approx(params.values()["flow_sigma_scale"], rel=1e-12)
+    assert setup.learned == pytest.approx(params.values(), rel=1e-12)
     dis = {"_target_": "flowins.flow.classical.DisProvider"}
-    assert learned_settings(str(path), NavigationConfig(), {"flow": dis})[1]["flow"] == dis
+    assert filter_setup({**cfg, "flow": dis}, [], recorded=False, checkpoint=str(path)).flow == dis
+    assert filter_setup({**cfg, "flow": spynet}, [], recorded=False).flow == spynet  # no checkpoint: as configured
 
 
 def test_from_checkpoint_names_missing_keys_and_missing_files(tmp_path):

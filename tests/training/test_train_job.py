@@ -15,7 +15,7 @@ from omegaconf import OmegaConf
 from flowins.ins.imu_model import imu_model
 from flowins.settings import navigation_config
 from flowins.jobs.train import run
-from flowins.settings import flow_settings, parameter_sets
+from flowins.settings import flow_config, parameter_sets
 from flowins.training.data import load_training_sequence
 from flowins.training.parameters import NOISE_NAMES, FilterParameters
 from flowins.training.unroll import run_window, window_bounds, window_loss
@@ -95,7 +95,7 @@ def test_train_job_writes_a_checkpoint_that_evaluate_reads(workdir, recwarn, cap
 @pytest.mark.slow
 def test_a_few_steps_from_a_mistuned_start_reduce_the_loss(workdir):
     cfg = _cfg(workdir, "experiment=mistuned", *TINY)
-    seq = load_training_sequence({"seed": 1, "duration_s": 20.0}, {**cfg, "flow": flow_settings(cfg)},
+    seq = load_training_sequence({"seed": 1, "duration_s": 20.0}, {**cfg, "flow": flow_config(cfg, moments=True)},
                                  methods=["ins_dense"])
     base = navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=False))
     _, start, learn = parameter_sets(cfg, base)
@@ -136,9 +136,9 @@ def test_a_training_recording_with_an_impossible_reading_is_refused(tmp_path):
     acc[321, 2] = 1e6
     imu = ImuStream(rec.imu.t_s, acc, rec.imu.gyro_rps)
     folder = write_folder(Sequence(imu, name="spiked", groundtruth=rec.truth), tmp_path / "spiked")
-    cfg = _cfg(tmp_path)
+    cfg = _cfg(tmp_path, "methods=[ins]", f"data.train=[{{path: {folder}}}]", f"data.val=[{{path: {folder}}}]")
     with pytest.raises(ValueError, match=r"imu\.csv: sample 321 .*accelerometer reading 1e\+06 m/s².*imu\.acc_range_mps2"):
-        load_training_sequence({"path": str(folder)}, cfg, methods=["ins_gnss"])
+        run(cfg)  # the recordings are read, then checked against the preset the job resolves
 
 
 def test_a_batch_of_windows_has_the_mean_loss_and_gradient_of_its_sequences_windows(workdir):
@@ -147,7 +147,7 @@ def test_a_batch_of_windows_has_the_mean_loss_and_gradient_of_its_sequences_wind
     from flowins.training.unroll import run_windows
 
     cfg = _cfg(workdir, "experiment=mistuned", *TINY)
-    seqs = [load_training_sequence({"seed": seed, "duration_s": 20.0}, {**cfg, "flow": flow_settings(cfg)},
+    seqs = [load_training_sequence({"seed": seed, "duration_s": 20.0}, {**cfg, "flow": flow_config(cfg, moments=True)},
                                    methods=["ins_gnss"]) for seed in (1, 2)]
     base = navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=False))
     _, start, learn = parameter_sets(cfg, base)

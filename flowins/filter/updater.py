@@ -1,0 +1,190 @@
+"""The update helper every measurement hands its linearisation to.
+
+A measurement model builds, at the filter's newest mean ``m``, ``M`` blocks of dimension
+``d``: the Jacobian ``H (..., M, d, D)``, the residual ``v = z - h(m)`` ``(..., M, d)`` (or
+``-h(m, δ)`` for an implicit model) and the noise ``R = H_r R H_rᵀ`` ``(..., M, d, d)``, and
+calls :func:`update` (one run, a :class:`~flowins.filter.chain.ChainBuilder`) or
+:func:`update_rows` (rows of a :class:`~flowins.filter.chain.BatchChain`), as OpenVINS'
+updaters hand theirs to ``StateHelper::EKFUpdate``. The helper owns the rest:
+
+* the gated update of the newest node (:func:`flowins.filter.ekf.ekf_update`, each block
+  gated on its NIS, the quaternions re-normalised after it);
+* the innovation likelihood, when the chain keeps one
+  (:attr:`~flowins.filter.chain.BatchChain.likelihood`): ``Σ_i w_i ½ (v_iᵀ S_i⁻¹ v_i +
+  log det S_i)`` over the valid blocks, the gate weights ``w_i`` held constant, without
+  the constant ``½ d log 2π`` (:func:`flowins.filter.ekf.block_nll`), over ``d Σ_i w_i``
+  scalar measurements;
+* writing the node with a log entry: the caller's facts plus ``nis`` (summed over the
+  valid blocks, before the gate) and ``accepted`` (the gate weights summed over them).
+
+A block that ``valid`` marks invalid carries no measurement (its rows of ``H`` and ``v``
+are zero); it counts neither as accepted nor in the likelihood, and a row without a
+valid block keeps its node (its log entry is still written). An iterated update
+relinearises and calls :func:`step_rows` once per iteration, then :func:`commit_rows`.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from flowins.filter.chain import BatchChain, ChainBuilder
+from flowins.filter.ekf import Gate, UpdateResult, ekf_update
+from flowins.state import normalize_quaternions
+
+
+def update(
+    chain: ChainBuilder,
+    *,
+    H: Tensor,
+    residual: Tensor,
+    noise_cov: Tensor,
+    gate: Gate | None = None,
+    sequential: bool = False,
+    valid: Tensor | None = None,
+    likelihood: bool = True,
+    **info: Any,
+) -> UpdateResult:
+    """Update one run's newest node with ``M`` measurement blocks of dimension ``d``.
+
+    Args:
+        chain: the run's chain; its newest node ``(D,)``, ``(D, D)`` is the prior.
+        H ``(M, d, D)``, residual ``(M, d)``, noise_cov ``(M, d, d)``: the blocks,
+            linearised at the prior mean.
+        gate: the innovation gate of each block (default: none).
+        sequential: the blocks one after another (:func:`~flowins.filter.ekf.ekf_update`).
+        valid ``(M,)`` bool: the blocks that carry a measurement (default: all).
+        likelihood: whether the update adds its innovation likelihood when the chain keeps
+            one; False for a pseudo-measurement, whose residual is no data.
+        info: the log entry's facts (``kind``, ``name``, ...); none: no log entry.
+
+    Returns the :class:`~flowins.filter.ekf.UpdateResult`, its ``weight`` zero on invalid
+    blocks.
+    """
+    if residual.ndim != 2:
+        raise ValueError(f"update: residual must be (M, d) for one run, got {tuple(residual.shape)} "
+                         "(update_rows updates rows of a batch)")
+    keep = likelihood and chain.likelihood
+    result = _step(chain.mean, chain.cov, H=H, residual=residual, noise_cov=noise_cov, gate=gate,
+                   sequential=sequential, valid=valid, likelihood=keep)
+    if keep:
+        chain.add_likelihood(*_likelihood(result, residual.shape[-1]))
+    if info:
+        nis, accepted = _summary(result, valid).tolist()
+        info = {**info, "nis": nis, "accepted": accepted}
+    if valid is not None and not bool(valid.any()):
+        chain.batch.log_rows([chain.row], [info])
+    else:
+        chain.update(result, **info)
+    return result
+
+
+def update_rows(
+    chain: BatchChain,
+    rows: Sequence[int],
+    *,
+    H: Tensor,
+    residual: Tensor,
+    noise_cov: Tensor,
+    gate: Gate | None = None,
+    sequential: bool = False,
+    valid: Tensor | None = None,
+    likelihood: bool = True,
+    infos: Sequence[dict[str, Any]] | None = None,
+) -> UpdateResult:
+    """:func:`update` of the rows ``rows`` of ``chain`` at once (``r`` of them).
+
+    Shapes carry the rows first: H ``(r, M, d, D)``, residual ``(r, M, d)``, noise_cov
+    ``(r, M, d, d)``, valid ``(r, M)``; ``infos[i]`` is row ``rows[i]``'s log entry. A row
+    without a valid block keeps its node and is only logged.
+    """
+    result = step_rows(chain, rows, H=H, residual=residual, noise_cov=noise_cov, gate=gate, sequential=sequential,
+                       valid=valid, likelihood=likelihood)
+    if infos is not None:
+        summary = _summary(result, valid).tolist()
+        infos = [{**info, "nis": nis, "accepted": accepted} if info else info
+                 for info, (nis, accepted) in zip(infos, summary)]
+    updated = None if valid is None else valid.any(-1).tolist()
+    commit_rows(chain, rows, result.mean, result.cov, infos, updated=updated)
+    return result
+
+
+def step_rows(
+    chain: BatchChain,
+    rows: Sequence[int],
+    *,
+    H: Tensor,
+    residual: Tensor,
+    noise_cov: Tensor,
+    gate: Gate | None = None,
+    sequential: bool = False,
+    valid: Tensor | None = None,
+    likelihood: bool = True,
+    prior: tuple[Tensor, Tensor] | None = None,
+) -> UpdateResult:
+    """The update of :func:`update_rows` without writing the chain: one step of an
+    iterated update, whose result the caller writes with :func:`commit_rows`.
+
+    ``prior``: the rows' newest mean ``(r, D)`` and covariance ``(r, D, D)`` when the caller
+    holds them already (default: read from ``chain``); with ``likelihood`` (and the chain
+    keeping one) the step adds its innovation likelihood to the chain.
+    """
+    if residual.ndim != 3 or residual.shape[0] != len(rows):
+        raise ValueError(f"update_rows: residual must be (r, M, d) for the r = {len(rows)} rows, "
+                         f"got {tuple(residual.shape)}")
+    mean, cov = chain.newest(rows) if prior is None else prior
+    keep = likelihood and chain.likelihood
+    result = _step(mean, cov, H=H, residual=residual, noise_cov=noise_cov, gate=gate, sequential=sequential,
+                   valid=valid, likelihood=keep)
+    if keep:
+        chain.add_likelihood(rows, *_likelihood(result, residual.shape[-1]))
+    return result
+
+
+def commit_rows(
+    chain: BatchChain,
+    rows: Sequence[int],
+    mean: Tensor,
+    cov: Tensor,
+    infos: Sequence[dict[str, Any]] | None,
+    *,
+    updated: Sequence[bool] | None = None,
+) -> None:
+    """Write the updated Gaussians ``mean`` ``(r, D)``, ``cov`` ``(r, D, D)`` as the newest
+    nodes of the rows ``rows``, with their log entries ``infos``; a row with
+    ``updated[i]`` False keeps its node and only gets its log entry."""
+    if updated is None or all(updated):
+        chain.update_rows(rows, mean, cov, infos)
+        return
+    infos = infos or [{}] * len(rows)
+    which = [i for i, has in enumerate(updated) if has]
+    if which:
+        picked = torch.tensor(which, device=mean.device)
+        chain.update_rows([rows[i] for i in which], mean[picked], cov[picked], [infos[i] for i in which])
+    skipped = [i for i, has in enumerate(updated) if not has]
+    chain.log_rows([rows[i] for i in skipped], [infos[i] for i in skipped])
+
+
+def _step(mean: Tensor, cov: Tensor, *, H: Tensor, residual: Tensor, noise_cov: Tensor, gate: Gate | None,
+          sequential: bool, valid: Tensor | None, likelihood: bool) -> UpdateResult:
+    """The gated update; the weight of invalid blocks set to zero."""
+    if valid is not None and valid.shape != residual.shape[:-1]:
+        raise ValueError(f"update: valid must be {tuple(residual.shape[:-1])} (one flag per block of the "
+                         f"residual {tuple(residual.shape)}), got {tuple(valid.shape)}")
+    result = ekf_update(mean, cov, innovation=residual, H=H, noise_cov=noise_cov, gate=gate, sequential=sequential,
+                        normalize=normalize_quaternions, likelihood=likelihood)
+    return result if valid is None else result._replace(weight=result.weight * valid)
+
+
+def _likelihood(result: UpdateResult, dim: int) -> tuple[Tensor, Tensor]:
+    """``(nll, count)`` ``(...)``: the gate-weighted block likelihoods and scalar measurements."""
+    kept = result.weight.detach()
+    return (kept * result.nll).sum(-1), dim * kept.sum(-1)
+
+
+def _summary(result: UpdateResult, valid: Tensor | None) -> Tensor:
+    """``(..., 2)``: the NIS summed over the valid blocks and the accepted weight."""
+    nis = result.nis if valid is None else torch.where(valid, result.nis, 0.0)
+    return torch.stack((nis.sum(-1), result.weight.sum(-1)), -1).detach()

@@ -1,0 +1,67 @@
+"""The node chain: a batch's rows grow, update and predict apart, and each row's track
+holds its own nodes, log and innovation likelihood."""
+import torch
+
+from flowins.filter.augmentation import PoseAugmentation, copy_matrices
+from flowins.filter.chain import BatchChain, ChainBuilder
+from flowins.state import STATE_DIM
+
+F64 = torch.float64
+
+
+def test_a_prediction_on_some_rows_moves_the_others_newest_node():
+    """An event's linear prediction on row 0 only: row 1's node stays the same node (its
+    prediction, transition and filtered Gaussian), and row 1's next update lands on it."""
+    gen = torch.Generator().manual_seed(0)
+    chain = BatchChain(2)
+    mean = torch.randn(2, 1, STATE_DIM, generator=gen, dtype=F64)
+    cov = torch.eye(STATE_DIM, dtype=F64).expand(2, 1, STATE_DIM, STATE_DIM) * 2.0
+    chain.add_nodes([[0.0], [0.0]], torch.eye(STATE_DIM, dtype=F64).expand(2, 1, STATE_DIM, STATE_DIM), mean, cov)
+    A = 0.5 * torch.eye(STATE_DIM, dtype=F64)
+    chain.linear_predict_rows([0], A.unsqueeze(0), torch.eye(STATE_DIM, dtype=F64).unsqueeze(0))
+    new_mean = torch.zeros(1, STATE_DIM, dtype=F64)
+    chain.update_rows([1], new_mean, torch.eye(STATE_DIM, dtype=F64).unsqueeze(0))
+    first, second = chain.finish()
+    assert first.t_s.tolist() == [0.0, 0.0] and second.t_s.tolist() == [0.0]
+    torch.testing.assert_close(first.node_mean[1], 0.5 * mean[0, 0], rtol=0, atol=0)
+    torch.testing.assert_close(first.node_cov[1], 0.5 * torch.eye(STATE_DIM, dtype=F64) + torch.eye(STATE_DIM, dtype=F64))
+    assert torch.equal(first.transition[1], A)
+    assert torch.equal(second.node_mean[0], new_mean[0]) and torch.equal(second.pred_mean[0], mean[1, 0])
+
+
+def test_the_pose_copy_by_index_is_the_matrix_step_exactly():
+    """The limit augmentation on a chain (entries copied by index) equals T m, T P Tᵀ + Q."""
+    gen = torch.Generator().manual_seed(3)
+    mean = torch.randn(STATE_DIM, generator=gen, dtype=F64)
+    A = torch.randn(STATE_DIM, STATE_DIM, generator=gen, dtype=F64)
+    cov = A @ A.T
+    chain = ChainBuilder()
+    chain.add_node(0.0, torch.eye(STATE_DIM, dtype=F64), mean, cov)
+    PoseAugmentation(0.0, nugget_var=1e-6, mode="limit").apply(chain)
+    T, Q = copy_matrices(1e-6, dtype=F64)
+    assert torch.equal(chain.mean, T @ mean)
+    assert torch.equal(chain.cov, T @ cov @ T.T + Q)
+    assert torch.equal(chain.finish().transition[1], T)
+
+
+def test_each_row_sums_its_own_likelihood_and_a_chain_without_one_keeps_none():
+    gen = torch.Generator().manual_seed(2)
+    eye = torch.eye(STATE_DIM, dtype=F64).expand(3, 1, STATE_DIM, STATE_DIM)
+    tracks = {}
+    for likelihood in (True, False):
+        chain = BatchChain(3, likelihood=likelihood)
+        chain.add_nodes([[0.0]] * 3, eye, torch.randn(3, 1, STATE_DIM, generator=gen, dtype=F64), eye)
+        chain.add_likelihood([0, 2], torch.tensor([1.5, -0.25], dtype=F64), torch.tensor([3.0, 1.0], dtype=F64))
+        chain.add_likelihood([2], torch.tensor([2.0], dtype=F64), torch.tensor([0.5], dtype=F64))
+        tracks[likelihood] = chain.finish()
+    assert [float(t.nll) for t in tracks[True]] == [1.5, 0.0, 1.75]
+    assert [t.nll_count for t in tracks[True]] == [3.0, 0.0, 1.5]
+    assert all(t.nll is None and t.nll_count == 0.0 for t in tracks[False])
+
+
+def test_a_log_entry_goes_to_its_row_with_the_node_time_and_an_empty_one_is_left_out():
+    chain = BatchChain(2)
+    eye = torch.eye(STATE_DIM, dtype=F64).expand(2, 1, STATE_DIM, STATE_DIM)
+    chain.add_nodes([[0.5], [0.75]], eye, torch.zeros(2, 1, STATE_DIM, dtype=F64), eye)
+    chain.log_rows([1, 0], [{"kind": "toy"}, {}])
+    assert chain.logs == [[], [{"t_s": 0.75, "kind": "toy"}]]
