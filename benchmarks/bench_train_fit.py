@@ -81,11 +81,12 @@ def main() -> None:
         return [sequence_rmse(seq, args.method, params.apply(base, training=False), dropout_p=p) for _, seq in seqs]
 
     chosen = json.loads(selection_file.read_text())["chosen"]
-    hand_params = FilterParameters(tuned, learn=())
-    hand_raw = {n: float(hand_params.raw[n].detach()) for n in hand}
-    rows = {"hand-tuned": scored(hand_params)}
+    hand_values = {n: tuned[n] for n in hand}
+    rows = {"hand-tuned": scored(FilterParameters(tuned, learn=()))}
     for entry in history if args.all else [e for e in history if e["label"] in ("start", chosen)] + history[-1:]:
-        rows[entry["label"]] = scored(FilterParameters.from_raw({**entry["raw"], **hand_raw}))
+        # each validation's values (a selection.json without them: log/logit coordinates)
+        learned = entry["values"] if "values" in entry else FilterParameters.from_raw(entry["raw"]).values()
+        rows[entry["label"]] = scored(FilterParameters({**learned, **hand_values}, learn=()))
     print(f"{args.method} filter RMSE (m, Table I alignment) per sequence of {args.run}")
     if hand:
         print(f"  learned rows with {', '.join(hand)} hand-tuned")

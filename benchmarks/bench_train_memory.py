@@ -43,7 +43,7 @@ def measure(mode: str, window_s: float, points: int, method: str) -> dict:
     setup = training_setup(cfg, [seq], recorded=False)
     base = setup.filter.navigation
     _, start, learn = setup.parameters
-    params = FilterParameters(start, learn)
+    params = FilterParameters(start, learn, bounds=setup.parameters.bounds)
     t = seq.imu.t_s
     i_b = int(torch.searchsorted(t, t[0] + window_s))
     baseline = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6

@@ -153,11 +153,13 @@ class SourceSettings:
 
 @dataclass(frozen=True, kw_only=True)
 class DataSettings:
-    """``data`` (``configs/data``): training and held-out sources, sequences per step."""
+    """``data`` (``configs/data``): training and held-out sources, sequences per step, and
+    the long held-out sources ``select`` that choose the checkpoint (empty: ``val`` chooses)."""
 
     train: tuple[SourceSettings, ...] = bounded(nonempty=True)
     val: tuple[SourceSettings, ...] = bounded(nonempty=True)
     batch_size: int = bounded(1, minimum=1)
+    select: tuple[SourceSettings, ...] = ()
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -182,7 +184,7 @@ class TrainSettings(JobSettings):
     @property
     def recorded(self) -> bool:
         """Whether any source is a recording (``path``), not a simulated walk."""
-        return any(source.path for source in (*self.data.train, *self.data.val))
+        return any(source.path for source in (*self.data.train, *self.data.val, *self.data.select))
 
 
 def _job(cls: type, cfg: Mapping[str, Any]) -> Any:
@@ -297,15 +299,32 @@ def resolve_imu(imu_cfg: Mapping[str, Any], recordings: Sequence[SensorRecording
 
 def flow_config(cfg: Mapping[str, Any], *, moments: bool, dropout_p: float | None = None) -> dict[str, Any]:
     """The dense flow provider's config (``flow``): with ``dropout_p`` (a checkpoint's learned
-    rate) the provider's ``p`` replaced; with ``moments`` or ``dropout_p`` SpyNet's Monte
-    Carlo dropout in closed form (``mc_mode=moments``), as training runs it: there the mean
-    flow is the deterministic one whatever the rate, and the rate only scales σ."""
+    rate) the provider's ``p`` replaced; with ``moments`` SpyNet's Monte Carlo dropout in
+    closed form (``mc_mode=moments``), as training runs it: the mean flow is the
+    deterministic one whatever the rate, and the rate only scales σ."""
     flow = dict(cfg["flow"])
-    if dropout_p is not None and "p" in flow:
-        flow["p"], moments = dropout_p, True
+    if dropout_p is not None and "p" in flow and abs(dropout_p - float(flow["p"])) > 1e-9 * float(flow["p"]):
+        flow["p"] = dropout_p  # a rate learned away from the configured one (not its float round trip)
     if moments and str(flow.get("_target_", "")).endswith("SpyNetProvider"):
         flow["mc_mode"] = "moments"
     return flow
+
+
+def describe_flow(flow: Mapping[str, Any], configured: Mapping[str, Any]) -> str:
+    """One line: the dense provider, its dropout mode and rate, and whether that is the flow
+    a run with the configured provider (no checkpoint) computes."""
+    name = str(flow.get("_target_", "?")).rpartition(".")[2]
+    if "p" in flow:
+        mode = ("closed-form dropout" if flow.get("mc_mode") == "moments" else
+                f"{flow.get('mc_passes', '?')} Monte Carlo dropout passes")
+        name += f", {mode} at p = {float(flow['p']):.4g}"
+    same = dict(flow) == dict(configured)
+    return f"dense flow: {name} ({'the configured flow' if same else 'differs from the configured flow: ' + _changes(flow, configured)})"
+
+
+def _changes(flow: Mapping[str, Any], configured: Mapping[str, Any]) -> str:
+    keys = [k for k in dict.fromkeys([*configured, *flow]) if flow.get(k) != configured.get(k)]
+    return ", ".join(f"{k} {configured.get(k)!r} -> {flow.get(k)!r}" for k in keys)
 
 
 @dataclass(frozen=True)
@@ -321,6 +340,10 @@ class FilterSetup:
     #: a checkpoint's learned values by parameter name; None without a checkpoint
     learned: dict[str, float] | None = None
 
+    def describe_flow(self, configured: Mapping[str, Any]) -> str:
+        """:func:`describe_flow` of this setup's provider against the ``configured`` one."""
+        return describe_flow(self.flow, configured)
+
     def describe(self) -> str:
         """One line: the preset and the densities the filter uses."""
         noise = self.navigation.noise
@@ -335,10 +358,11 @@ def filter_setup(cfg: Mapping[str, Any], recordings: Sequence[SensorRecording], 
 
     The IMU preset is resolved with the recordings' sensor (:func:`resolve_imu`), the
     ``filter`` group built on it (:func:`navigation_config`), and with ``checkpoint``
-    (``model.checkpoint``) a ``train.py`` checkpoint's learned noise, gates and flow noise written in; its dropout
-    rate goes to the flow provider, which then runs its dropout in closed form, as training
-    runs it (:func:`flow_config`). ``moments``: closed-form dropout without a checkpoint
-    (``train.py``'s ``flow_moments``)."""
+    (``model.checkpoint``) a ``train.py`` checkpoint's learned noise, gates and flow noise
+    written in, its dropout rate given to the flow provider. The provider otherwise runs as
+    configured, so a run with a checkpoint and one without compute the same flow when the
+    rate was not learned (the default); ``moments`` (``train.py``'s ``flow_moments``, or
+    ``flow.mc_mode=moments``) runs SpyNet's dropout in closed form (:func:`flow_config`)."""
     imu = resolve_imu(cfg["imu"], recordings, recorded=recorded)
     navigation = navigation_config(cfg["filter"], imu)
     if not checkpoint:
@@ -357,19 +381,22 @@ def filter_setup(cfg: Mapping[str, Any], recordings: Sequence[SensorRecording], 
 
 @dataclass(frozen=True)
 class ParameterSets:
-    """The hand-tuned values, the starting values and the names learned (:func:`parameter_sets`)."""
+    """The hand-tuned values, the starting values, the names learned and each parameter's
+    bound in decades around its start (None: unbounded) (:func:`parameter_sets`); unpacks
+    as ``(tuned, start, learn)``."""
 
     tuned: dict[str, float]
     start: dict[str, float]
     learn: set[str]
+    bounds: dict[str, float | None]
 
     def __iter__(self):
         return iter((self.tuned, self.start, self.learn))
 
 
 def parameter_sets(cfg: Mapping[str, Any], base: NavigationConfig) -> ParameterSets:
-    """(hand-tuned values, starting values, names to learn) from the ``model`` group and the
-    filter config ``base``; unpacks as a 3-tuple."""
+    """(hand-tuned values, starting values, names to learn) and the bounds from the ``model``
+    group and the filter config ``base``; unpacks as a 3-tuple."""
     model = cfg["model"] if isinstance(cfg["model"], ModelSettings) else build(ModelSettings, cfg["model"], "model")
     tuned = starting_values(base, dropout_p=float(cfg["flow"].get("p", 0.2)))
     start = {**tuned, **model.start}
@@ -378,7 +405,7 @@ def parameter_sets(cfg: Mapping[str, Any], base: NavigationConfig) -> ParameterS
     learn -= set(model.freeze)
     if base.flow_update.augmentation_mode == "limit" and model.learn is None:
         learn -= {"sigma_p0", "sigma_q0"}  # the limit mode has no forgetting variances to learn
-    return ParameterSets(tuned, start, learn)
+    return ParameterSets(tuned, start, learn, model.parameter_bounds())
 
 
 @dataclass(frozen=True)

@@ -59,7 +59,9 @@ def run(cfg: Mapping[str, Any]) -> list[Row]:
             path.mkdir(exist_ok=True)
     setup = filter_setup(cfg, recs, recorded=bool(settings.sequence.path), checkpoint=settings.model.checkpoint)
     log.info(setup.describe())
-    cfg = {**cfg, "flow": setup.flow}
+    if settings.uses("dense"):
+        log.info(setup.describe_flow(cfg["flow"]))
+    configured_flow, cfg = cfg["flow"], {**cfg, "flow": setup.flow}
     nav_cfg = setup.navigation
     flows = [_flows(cfg, rec) for rec in recs]
     unscored = [truth_extent_problem(rec.truth) for rec in recs]  # a ground truth that can't score a track, or None
@@ -72,6 +74,8 @@ def run(cfg: Mapping[str, Any]) -> list[Row]:
     if cfg["plots"] and isinstance(flows[0].get("dense"), FlowPairs) and cfg["flow_panels"] > 0:
         flow_panels(recs[0], cfg, outs[0], cfg["flow_panels"])
     _report(rows, metrics, cfg, recs, nav_cfg, unscored, seeds)
+    if settings.uses("dense"):  # which flow the dense rows used, and whether it is the configured one
+        metrics["dense_flow"] = {"provider": setup.flow, "as_configured": setup.flow == configured_flow}
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=float))
     log.info(f"\nwrote {out}/metrics.json, *.tum" + (", *.png" if cfg["plots"] else ""))
     for r in rows:

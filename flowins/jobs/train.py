@@ -34,14 +34,16 @@ def run(cfg: Mapping[str, Any]) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     methods = list(settings.methods)
     data = SequenceDataModule(train=cfg["data"]["train"], val=cfg["data"]["val"],
+                              select=cfg["data"].get("select") or [],
                               config={**cfg, "flow": flow_config(cfg, moments=settings.flow_moments)},
                               methods=methods, batch_size=settings.data.batch_size, progress=settings.progress,
                               seed=settings.seed)
     data.setup()
-    setup = training_setup(cfg, [*data.sequences["train"], *data.sequences["val"]], recorded=settings.recorded)
+    setup = training_setup(cfg, [*data.sequences["train"], *data.sequences["val"], *data.select_sequences],
+                           recorded=settings.recorded)
     log.info(setup.filter.describe())
     tuned, start, learn = setup.parameters
-    params = FilterParameters(start, learn)
+    params = FilterParameters(start, learn, bounds=setup.parameters.bounds)
     log.info(f"learning {len(params.learned)} parameters: {', '.join(params.learned)}")
     module = FilterLearner(params, setup.filter.navigation, methods=methods, model=settings.model,
                            window_s=settings.window_s, curriculum_window_s=settings.curriculum_window_s or (),

@@ -23,19 +23,22 @@ from flowins.measurements.flow import FlowCamera
 from flowins.training.unroll import METHODS, TrainingSequence
 
 
-def _sequence_config(source: Mapping[str, Any], base: Mapping[str, Any]) -> dict[str, Any]:
+def _sequence_config(source: Mapping[str, Any], base: Mapping[str, Any], key: str = "data source") -> dict[str, Any]:
+    """The ``sequence`` config of one source (``base`` with its keys); errors name ``key``."""
+    if not isinstance(source, Mapping):
+        raise ValueError(f"{key}={source!r}: expected {{path: DIR}} or {{seed: N}}")
     window = {k: source[k] for k in ("start_s", "end_s") if k in source}
     if "path" in source and source["path"]:
         unknown = set(source) - {"path", "start_s", "end_s"}
         if unknown:
-            raise ValueError(f"data source {dict(source)}: a recording takes path, start_s and end_s; "
+            raise ValueError(f"{key} {dict(source)}: a recording takes path, start_s and end_s; "
                              f"unknown keys {sorted(unknown)}")
         return {**base, "path": str(source["path"]), **window}
     unknown = set(source) - {"seed", "duration_s", "path", "start_s", "end_s"}
     if unknown or "seed" not in source:
         raise ValueError(
-            f"data source {dict(source)}: expected {{path: DIR}} or {{seed: N}} (optionally duration_s); "
-            f"unknown keys {sorted(unknown)}" if unknown else f"data source {dict(source)} has neither path nor seed"
+            f"{key} {dict(source)}: expected {{path: DIR}} or {{seed: N}} (optionally duration_s); "
+            f"unknown keys {sorted(unknown)}" if unknown else f"{key} {dict(source)} has neither path nor seed"
         )
     cfg = {**base, "path": None, "seed": int(source["seed"]), **window}
     if "duration_s" in source:
@@ -87,8 +90,10 @@ def _as_list(batch: list[TrainingSequence]) -> list[TrainingSequence]:
 class SequenceDataModule(pl.LightningDataModule):
     """Training and held-out sequences. A training batch is a list of ``batch_size`` whole
     sequences (the module cuts them into windows and runs their windows together); a
-    held-out batch is one sequence. ``prepare_data`` simulates and runs the flow network
-    once (cached)."""
+    held-out batch is one sequence. The ``select`` sequences (long held-out walks, possibly
+    none) have no loader: :class:`~flowins.training.module.FilterLearner` runs them all at
+    once at each validation (:attr:`select_sequences`). ``prepare_data`` simulates and runs
+    the flow network once (cached)."""
 
     def __init__(
         self,
@@ -100,6 +105,7 @@ class SequenceDataModule(pl.LightningDataModule):
         batch_size: int = 1,
         progress: bool = True,
         seed: int = 0,
+        select: Sequence[Mapping[str, Any]] = (),
     ) -> None:
         super().__init__()
         if not train or not val:
@@ -108,7 +114,10 @@ class SequenceDataModule(pl.LightningDataModule):
             raise ValueError(f"data.batch_size={batch_size!r}: expected an integer >= 1")
         self.batch_size = batch_size
         self.seed = int(seed)
-        self.sources = {"train": list(train), "val": list(val)}
+        self.sources = {"train": list(train), "val": list(val), "select": list(select)}
+        for split, sources in self.sources.items():
+            for i, source in enumerate(sources):
+                _sequence_config(source, {}, f"data.{split}[{i}]")
         self.config = config
         self.methods = list(methods)
         self.progress = progress
@@ -123,6 +132,11 @@ class SequenceDataModule(pl.LightningDataModule):
                 self.sequences[split] = [
                     load_training_sequence(s, self.config, methods=self.methods, progress=self.progress) for s in sources
                 ]
+
+    @property
+    def select_sequences(self) -> list[TrainingSequence]:
+        """The ``select`` sequences (after :meth:`setup`; empty without ``select`` sources)."""
+        return list(self.sequences.get("select", []))
 
     def _loader(self, split: str, shuffle: bool) -> DataLoader:
         return DataLoader(_Sequences(self.sequences[split]), batch_size=None, shuffle=shuffle, collate_fn=_identity)

@@ -18,8 +18,13 @@ Validation runs every method over each held-out sequence in inference mode (hard
 gates) and logs the filter RMSE after the Table I alignment. Each validation is kept in
 :attr:`FilterLearner.history` with the parameters it scored; the training job validates
 the start before the first step, and :meth:`FilterLearner.select_best` takes the best of
-the start and every epoch. ``trainer.test`` prints the held-out table of the starting,
-the learned (selected) and the hand-tuned parameters.
+the start and every epoch. With long held-out sequences ``data.select``
+(:attr:`~flowins.training.data.SequenceDataModule.select_sequences`), each validation also
+runs every method over all of them (one batched filter pass per method), and the best
+validation is the one with the lowest mean RMSE over those sequences and methods, not the
+``data.val`` score: parameters that fit short windows best may drift most over long walks.
+``trainer.test`` prints the held-out table of the starting, the learned (selected) and the
+hand-tuned parameters, with the ``select`` sequences' mean ± std beside the ``val`` means.
 """
 from __future__ import annotations
 
@@ -36,7 +41,7 @@ from pytorch_lightning.trainer.states import TrainerFn
 from flowins.navigation import NavigationConfig
 from flowins.training.parameters import FilterParameters, ModelSettings
 from flowins.training.schedule import learning_rate, window_length
-from flowins.training.unroll import TrainingSequence, run_windows, sequence_rmse, window_bounds, window_loss
+from flowins.training.unroll import TrainingSequence, run_windows, sequences_rmse, window_bounds, window_loss
 
 log = logging.getLogger("flowins")
 
@@ -88,10 +93,13 @@ class FilterLearner(pl.LightningModule):
         self.skipped_windows = 0
         self.trained_windows = 0
         self.optimizer_steps = 0
-        #: every held-out validation: {"label", "epoch", "step", "rmse_m" {method: mean}, "score", "raw" {name: value}}
+        #: every held-out validation: {"label", "step", "rmse_m" {method: mean}, "score",
+        #: "raw" {name: the optimiser's coordinate}, "values" {name: value}},
+        #: with ``data.select`` also "select_rmse_m" {method: [RMSE of each select sequence]} and "select_score"
         self.history: list[dict] = []
         self._val: dict[str, list[float]] = {}
         self._heldout: dict[str, dict[str, list[float]]] = {}
+        self._heldout_select: dict[str, dict[str, list[float]]] = {}
         self.save_hyperparameters({"methods": self.methods, "window_s": self.window_s,
                                    "curriculum_window_s": self.curriculum, "nll_weight": self.nll_weight,
                                    "orientation_weight_m_per_rad": self.orientation_weight,
@@ -227,8 +235,32 @@ class FilterLearner(pl.LightningModule):
 
     # ------------------------------------------------------------------ held-out
     def _rmse(self, seq: TrainingSequence, method: str, params: FilterParameters) -> float:
-        p = float(params.value("dropout_p").detach()) if _has_moments(seq, method) else None
-        return sequence_rmse(seq, method, params.apply(self.base, training=False), dropout_p=p)
+        return self._batch_rmse([seq], method, params)[0]
+
+    def _batch_rmse(self, seqs: Sequence[TrainingSequence], method: str, params: FilterParameters) -> list[float]:
+        """The filter RMSE (m) of ``method`` over each whole sequence of ``seqs`` with ``params``
+        (hard gates, no gradient) after the SE(3) alignment of Table I, as
+        :func:`~flowins.training.unroll.sequence_rmse` computes it for one; the sequences of
+        one kind of flow (with or without dropout moments) run in one batched filter pass
+        (:func:`~flowins.training.unroll.run_windows`)."""
+        config = params.apply(self.base, training=False)
+        rmse = [math.nan] * len(seqs)
+        for moments in (False, True):
+            rows = [k for k, seq in enumerate(seqs) if _has_moments(seq, method) == moments]
+            if not rows:
+                continue
+            p = float(params.value("dropout_p").detach()) if moments else None
+            for k, value in zip(rows, sequences_rmse([seqs[k] for k in rows], method, config, dropout_p=p)):
+                rmse[k] = value
+        return rmse
+
+    def _select_sequences(self) -> list[TrainingSequence]:
+        return list(getattr(self.trainer.datamodule, "select_sequences", []))
+
+    def _select_rmse(self, params: FilterParameters) -> dict[str, list[float]]:
+        """``{method: [RMSE of each select sequence]}`` with ``params``; empty without select sequences."""
+        seqs = self._select_sequences()
+        return {method: self._batch_rmse(seqs, method, params) for method in self.methods} if seqs else {}
 
     def validation_step(self, batch: TrainingSequence, batch_idx: int) -> None:
         for method in self.methods:
@@ -243,47 +275,69 @@ class FilterLearner(pl.LightningModule):
         if self.trainer.sanity_checking or not per_method:
             return
         means = {m: sum(v) / len(v) for m, v in per_method.items()}
-        score = sum(means.values()) / len(means)
-        score = score if math.isfinite(score) else math.inf  # a diverged filter is never the best
+        score = _mean_score(per_method)
         self.log("val/rmse_mean_m", score, prog_bar=True, batch_size=1, sync_dist=True)
         fitting = self.trainer.state.fn == TrainerFn.FITTING
-        self.history.append({
+        entry = {
             "label": f"epoch {self.current_epoch + 1}" if fitting else "start",
             "step": self.optimizer_steps, "rmse_m": means, "score": score,
             "raw": {n: float(q.detach()) for n, q in self.params.raw.items()},
-        })
+            "values": self.params.values(),
+        }
+        select = self._select_rmse(self.params)
+        if select:
+            for method, values in select.items():
+                self.log(f"select/{method}/filter_rmse_m", sum(values) / len(values), batch_size=1, sync_dist=True)
+            entry["select_rmse_m"] = select
+            entry["select_score"] = _mean_score(select)
+            self.log("select/rmse_mean_m", entry["select_score"], batch_size=1, sync_dist=True)
+        self.history.append(entry)
 
     def select_best(self) -> dict:
-        """Load the parameters of the best validation so far (the lowest mean held-out RMSE; the
-        earliest on a tie, so the start wins over an epoch that is no better) and return it."""
+        """Load the parameters of the best validation so far and return it: the lowest mean RMSE
+        over the ``select`` sequences and methods where the validations ran them
+        (``select_score``), the lowest mean held-out (``val``) RMSE otherwise (``score``); the
+        earliest on a tie, so the start wins over an epoch that is no better."""
         if not self.history:
             raise ValueError("select_best: no validation has run (trainer.validate before fit scores the start)")
-        best = min(self.history, key=lambda entry: entry["score"])
+        best = min(self.history, key=_selection_score)
         with torch.no_grad():
             for name, value in best["raw"].items():
                 self.params.raw[name].fill_(value)
         return best
 
-    def test_step(self, batch: TrainingSequence, batch_idx: int) -> None:
+    def _candidates(self) -> dict[str, FilterParameters]:
+        """The parameter sets the held-out test compares: the learned ones and the references."""
         candidates = {"learned": self.params}
         for name, values in self.reference.items():
             candidates[name] = FilterParameters(values, learn=())
-        for label, params in candidates.items():
+        return candidates
+
+    def test_step(self, batch: TrainingSequence, batch_idx: int) -> None:
+        for label, params in self._candidates().items():
             for method in self.methods:
                 rmse = self._rmse(batch, method, params)
                 self._heldout.setdefault(label, {}).setdefault(method, []).append(rmse)
                 self.log(f"test/{label}/{method}/filter_rmse_m", rmse, on_epoch=True, batch_size=1, sync_dist=True)
 
     def on_test_epoch_end(self) -> None:
-        table = heldout_table(self._heldout, self.methods)
-        log.info("\nheld-out filter RMSE (m, Table I alignment), mean over the held-out sequences\n")
+        if self._select_sequences():
+            for label, params in self._candidates().items():
+                self._heldout_select[label] = self._select_rmse(params)
+                for method, values in self._heldout_select[label].items():
+                    self.log(f"test/{label}/select/{method}/filter_rmse_m", sum(values) / len(values), batch_size=1,
+                             sync_dist=True)
+        table = heldout_table(self._heldout, self.methods, self._heldout_select)
+        log.info("\nheld-out filter RMSE (m, Table I alignment), mean over the held-out sequences"
+                 + ("; select: mean ± std over the data.select sequences" if self._heldout_select else "") + "\n")
         log.info(table)
         if self.output_dir and self.trainer.is_global_zero:
             out = Path(self.output_dir)
             out.mkdir(parents=True, exist_ok=True)
-            (out / "heldout.json").write_text(json.dumps(
-                {"rmse_m": self._heldout, "learned_values": self.params.values(), "reference": self.reference},
-                indent=2))
+            report = {"rmse_m": self._heldout, "learned_values": self.params.values(), "reference": self.reference}
+            if self._heldout_select:
+                report["select_rmse_m"] = self._heldout_select
+            (out / "heldout.json").write_text(json.dumps(report, indent=2))
             (out / "heldout.txt").write_text(table + "\n")
 
 
@@ -292,32 +346,69 @@ def _has_moments(seq: TrainingSequence, method: str) -> bool:
     return flow is not None and bool(flow.points) and flow.points[0].dropout_unit_px is not None
 
 
-def heldout_table(results: Mapping[str, Mapping[str, list[float]]], methods: Sequence[str]) -> str:
-    """Fixed-width table: one row per parameter set, one column per method (mean RMSE)."""
-    lines = [f"{'parameters':<14}" + "".join(f"{m:>18}" for m in methods)]
-    for label, per_method in results.items():
+def _mean_score(per_method: Mapping[str, Sequence[float]]) -> float:
+    """The mean over methods of each method's mean; ``inf`` when not finite (a diverged
+    filter is never the best)."""
+    score = sum(sum(v) / len(v) for v in per_method.values()) / len(per_method)
+    return score if math.isfinite(score) else math.inf
+
+
+def _selection_score(entry: Mapping) -> float:
+    """What :meth:`FilterLearner.select_best` minimises: the ``select`` score where there is one."""
+    return entry.get("select_score", entry["score"])
+
+
+def _mean_std(values: Sequence[float]) -> str:
+    """``mean ± std`` (the population standard deviation) of ``values``, 2 decimals, in m
+    (``nan`` where a value is not finite)."""
+    mean = sum(values) / len(values)
+    std = math.sqrt(sum((v - mean) ** 2 for v in values) / len(values)) if math.isfinite(mean) else math.nan
+    return f"{mean:.2f} ± {std:.2f} m"
+
+
+def heldout_table(results: Mapping[str, Mapping[str, list[float]]], methods: Sequence[str],
+                  select: Mapping[str, Mapping[str, list[float]]] | None = None) -> str:
+    """Fixed-width table: one row per parameter set, one column per method (mean RMSE over
+    the held-out sequences) and, with ``select`` (``{label: {method: [RMSE]}}``), one more
+    column per method: mean ± std over the ``select`` sequences."""
+    select = select or {}
+    extra = [m for m in methods if any(m in per_method for per_method in select.values())]
+    lines = [f"{'parameters':<14}" + "".join(f"{m:>18}" for m in methods)
+             + "".join(f"{'select ' + m:>26}" for m in extra)]
+    for label in list(dict.fromkeys([*results, *select])):
+        per_method, long = results.get(label, {}), select.get(label, {})
         cells = []
         for m in methods:
             v = per_method.get(m, [])
             cells.append(f"{sum(v) / len(v):>16.2f} m" if v else f"{'n/a':>18}")
+        cells += [f"{_mean_std(long[m]):>26}" if long.get(m) else f"{'n/a':>26}" for m in extra]
         lines.append(f"{label:<14}" + "".join(cells))
-    if "start" in results and "learned" in results:
-        change = []
-        for m in methods:
-            a, b = results["start"].get(m), results["learned"].get(m)
-            change.append(f"{100 * (1 - (sum(b) / len(b)) / (sum(a) / len(a))):>16.1f} %" if a and b else f"{'':>18}")
+    change = []
+    for columns, width in ((results, 18), (select, 26)):
+        for m in (methods if columns is results else extra):
+            a, b = columns.get("start", {}).get(m), columns.get("learned", {}).get(m)
+            change.append(f"{100 * (1 - (sum(b) / len(b)) / (sum(a) / len(a))):>{width - 2}.1f} %" if a and b
+                          else f"{'':>{width}}")
+    if ("start" in results and "learned" in results) or ("start" in select and "learned" in select):
         lines.append(f"{'reduction':<14}" + "".join(change))
     return "\n".join(lines)
 
 
 def selection_table(history: list[dict], chosen: dict) -> str:
-    """The held-out RMSE of every validation (the start, then each epoch), the chosen one marked."""
+    """The held-out RMSE of every validation (the start, then each epoch), the chosen one
+    marked; with ``data.select``, each method's mean ± std over the select sequences and
+    their mean (the score the choice minimises) beside the ``val`` columns."""
     methods = list(history[0]["rmse_m"])
-    lines = ["held-out filter RMSE (m) at each validation; the checkpoint is the best of them",
-             f"{'':<10}" + "".join(f"{m:>18}" for m in methods) + f"{'mean':>10}"]
+    select = [m for m in history[0].get("select_rmse_m", {})]
+    title = ("held-out filter RMSE (m) at each validation; the checkpoint is the lowest select mean"
+             if select else "held-out filter RMSE (m) at each validation; the checkpoint is the best of them")
+    lines = [title, f"{'':<10}" + "".join(f"{m:>18}" for m in methods) + f"{'mean':>10}"
+             + "".join(f"{'select ' + m:>26}" for m in select) + (f"{'select mean':>14}" if select else "")]
     for entry in history:
         mark = "  <- chosen" if entry is chosen else ""
+        long = "".join(f"{_mean_std(entry['select_rmse_m'][m]):>26}" for m in select)
+        if select:
+            long += f"{entry['select_score']:>14.3f}"
         lines.append(f"{entry['label']:<10}" + "".join(f"{entry['rmse_m'][m]:>18.3f}" for m in methods)
-                     + f"{entry['score']:>10.3f}{mark}")
+                     + f"{entry['score']:>10.3f}" + long + mark)
     return "\n".join(lines)
-

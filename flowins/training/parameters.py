@@ -1,10 +1,29 @@
-"""The filter's free parameters as one ``nn.Module``, in unconstrained coordinates.
+"""The filter's free parameters as one ``nn.Module``: each a start value times a bounded factor.
 
-Every positive quantity is stored as its logarithm and the dropout rate as its
-logit, so any step of the optimiser keeps them valid. :meth:`FilterParameters.apply`
-writes the current values (tensors with a gradient) into a
-:class:`~flowins.navigation.NavigationConfig`; the filter then runs unchanged, and
-the gradient of a loss on its output reaches every parameter.
+Each parameter ``θ`` has a start ``θ₀`` (the hand-tuned value, or ``model.start``), a bound
+of ``b`` decades (``model.bound_decades``, per name ``model.bounds``) and one unconstrained
+coordinate ``a`` (``raw.<name>``, 0 at the start), which the optimiser moves. With
+``B = b ln 10``:
+
+* a positive parameter is ``θ = θ₀ · exp(B · tanh(a / B))``, within
+  ``[θ₀ · 10^-b, θ₀ · 10^b]`` whatever ``a`` is;
+* the dropout rate is ``logit θ = logit θ₀ + B · tanh(a / B)``: its odds within
+  ``10^±b`` of the start's, the rate in ``(0, 1)``.
+
+Near the start ``d ln θ / d a = sech²(a / B) ≈ 1``, so the learning rate is in units of
+``ln θ`` (of ``logit θ`` for the dropout rate): ai-imu-dr's factor ``10^tanh(a)`` on its
+learned covariances, widened to ``b`` decades and with a slope of 1 at the start. A bound
+of ``None`` (``null``) is ``B = ∞``: ``θ = θ₀ · exp(a)``, plain log (logit) space without
+a prior. A parameter that starts at 0 stays 0 (a random walk switched off): it cannot be
+learned.
+
+The start and the bound of each parameter are buffers (``center.<name>``,
+``bound.<name>`` in decades, ``inf`` for none), so a checkpoint's ``state_dict`` alone gives
+the values (:meth:`FilterParameters.from_checkpoint`). A checkpoint with ``raw.<name>``
+only (no ``center.<name>``) holds each value's log (logit) and loads as those values.
+:meth:`FilterParameters.apply` writes the current values (tensors with a gradient) into a
+:class:`~flowins.navigation.NavigationConfig`; the filter then runs unchanged, and the
+gradient of a loss on its output reaches every learned coordinate.
 
 The parameters (units of the filter config, ``configs/filter/default.yaml``):
 
@@ -74,6 +93,8 @@ NOISE_NAMES: tuple[str, ...] = (
 )  # fmt: skip
 #: frozen unless the config says otherwise
 FROZEN_BY_DEFAULT = frozenset({"initial_position_m", "initial_yaw_rad"})
+#: how far a learned value may go from its start, in decades each way (``model.bound_decades``)
+DEFAULT_BOUND_DECADES = 2.0
 
 
 @dataclass(frozen=True)
@@ -82,8 +103,8 @@ class ModelSettings:
     schedule and which parameters start where and are learned.
 
     Attributes:
-        lr, lr_final, warmup_steps: Adam's learning rate (log-parameter units), the end of its
-            cosine decay, and the linear warm-up's optimiser steps.
+        lr, lr_final, warmup_steps: Adam's learning rate (units of log(parameter) near the
+            start), the end of its cosine decay, and the linear warm-up's optimiser steps.
         accumulate_windows: window groups whose gradients are summed into one step.
         gradient_clip: the gradient-norm clip of each step.
         nll_weight: weight of the Gaussian negative log-likelihood of the position errors.
@@ -93,6 +114,9 @@ class ModelSettings:
         mistune: every noise parameter's start multiplied by this.
         start: starting values replacing the filter config's, by parameter name.
         learn, freeze: the names learned (None: all but the frozen-by-default ones) and kept.
+        bound_decades: how far a learned value may go from its start, in decades each way
+            (the module docstring); None: unbounded.
+        bounds: ``bound_decades`` replaced for these names (a number > 0, or None).
         checkpoint: a ``train.py`` checkpoint whose learned values the filter uses.
     """
 
@@ -108,6 +132,8 @@ class ModelSettings:
     start: dict[str, float] = bounded({})
     learn: tuple[str, ...] | None = None
     freeze: tuple[str, ...] = ()
+    bound_decades: float | None = bounded(DEFAULT_BOUND_DECADES, minimum=1e-12)
+    bounds: dict[str, float | None] = bounded({})
     checkpoint: str | None = None
 
     def __post_init__(self) -> None:
@@ -120,16 +146,51 @@ class ModelSettings:
             for name in getattr(self, key) or ():
                 if name not in NAMES:
                     raise ValueError(f"model.{key}: unknown parameter {name!r}; expected names from {', '.join(NAMES)}")
+        for name, decades in self.bounds.items():
+            if name not in NAMES:
+                raise ValueError(f"model.bounds.{name}: unknown parameter; expected names from {', '.join(NAMES)}")
+            if decades is not None and not decades > 0.0:
+                raise ValueError(f"model.bounds.{name}={decades!r}: expected a number > 0 or null (unbounded)")
+
+    def parameter_bounds(self) -> dict[str, float | None]:
+        """Every parameter's bound in decades (None: unbounded): ``bounds``, else ``bound_decades``."""
+        return {n: self.bounds.get(n, self.bound_decades) for n in NAMES}
 
 
-def _to_raw(name: str, value: float) -> float:
+def _check_start(name: str, value: float) -> float:
+    """``value`` as the start of ``name``: in (0, 1) for the dropout rate, finite and >= 0 otherwise."""
     if name == "dropout_p":
         if not 0.0 < value < 1.0:
             raise ValueError(f"dropout_p must be in (0, 1), got {value}")
-        return math.log(value) - math.log1p(-value)
-    if not value >= 0.0 or not math.isfinite(value):
+    elif not value >= 0.0 or not math.isfinite(value):
         raise ValueError(f"{name} must be finite and >= 0, got {value}")
-    return math.log(value) if value > 0 else -math.inf
+    return value
+
+
+def _check_bound(name: str, decades: float | None) -> float:
+    """The bound of ``name`` in decades, ``inf`` for None (unbounded)."""
+    if decades is None:
+        return math.inf
+    decades = float(decades)
+    if not decades > 0.0:  # NaN too
+        raise ValueError(f"FilterParameters: the bound of {name} must be a number of decades > 0 or None, "
+                         f"got {decades}")
+    return decades
+
+
+def _bounded_value(name: str, a: Tensor, center: Tensor, bound_decades: Tensor) -> Tensor:
+    """The value of parameter ``name`` at the coordinate ``a`` around the start ``center``
+    within ``bound_decades`` (``inf``: unbounded): the module docstring's maps, for tensors of
+    any (broadcast) shape. Exactly ``center`` at ``a = 0``; free of NaN for every ``a``."""
+    unbounded = torch.isinf(bound_decades)
+    scale = torch.where(unbounded, torch.ones_like(bound_decades), bound_decades * math.log(10.0))
+    s = torch.where(unbounded, a, scale * torch.tanh(a / scale))  # B tanh(a / B); a itself for B = ∞
+    if name != "dropout_p":
+        return center * torch.exp(s)
+    # sigmoid(logit p0 + s), in the form without overflow for either sign of s and = p0 at s = 0
+    p0, q0 = center, 1.0 - center
+    up, down = torch.exp(-s.clamp(min=0.0)), torch.exp(s.clamp(max=0.0))
+    return torch.where(s >= 0, p0 / (p0 + q0 * up), p0 * down / (p0 * down + q0))
 
 
 def starting_values(config: NavigationConfig, *, dropout_p: float = 0.2) -> dict[str, float]:
@@ -154,36 +215,64 @@ def starting_values(config: NavigationConfig, *, dropout_p: float = 0.2) -> dict
     return out
 
 
+class _Tensors(nn.Module):
+    """Named buffers (``<attribute>.<name>`` in the owner's ``state_dict``)."""
+
+    def __init__(self, values: Mapping[str, Tensor]) -> None:
+        super().__init__()
+        for name, value in values.items():
+            self.register_buffer(name, value)
+
+    def __getitem__(self, name: str) -> Tensor:
+        return getattr(self, name)
+
+
 class FilterParameters(nn.Module):
     """The learnable filter parameters (see the module docstring).
 
     Args:
-        start: a value for every name of :data:`NAMES` (e.g. :func:`starting_values`).
+        start: a value for every name of :data:`NAMES` (e.g. :func:`starting_values`): the
+            values at ``a = 0`` and the centres of the bounds.
         learn: the names to learn; the others are kept at their start (default: all
             but :data:`FROZEN_BY_DEFAULT`). A parameter that starts at 0 (a random
-            walk switched off) can't move in log space: learning it raises.
+            walk switched off) can't move from it: learning it raises.
+        bounds: decades each way from the start by name (None: unbounded;
+            :meth:`ModelSettings.parameter_bounds`); names left out take
+            :data:`DEFAULT_BOUND_DECADES`.
+
+    Attributes:
+        raw: the coordinates ``a``, one 0-dim float64 ``nn.Parameter`` each (0 at the start).
+        center, bound: the starts and the bounds (decades, ``inf`` for none), as buffers.
     """
 
-    def __init__(self, start: Mapping[str, float], learn: Iterable[str] | None = None) -> None:
+    def __init__(self, start: Mapping[str, float], learn: Iterable[str] | None = None, *,
+                 bounds: Mapping[str, float | None] | None = None) -> None:
         super().__init__()
+        bounds = dict(bounds or {})
         missing = [n for n in NAMES if n not in start]
         unknown = [n for n in start if n not in _FIELDS]
         if missing or unknown:
             raise ValueError(f"FilterParameters: missing values for {missing}, unknown names {unknown}; expected {list(NAMES)}")
+        if unknown := [n for n in bounds if n not in _FIELDS]:
+            raise ValueError(f"FilterParameters: bounds for unknown parameters {unknown}; expected names from {list(NAMES)}")
         learn = set(NAMES) - FROZEN_BY_DEFAULT if learn is None else set(learn)
         if unknown := sorted(learn - set(NAMES)):
             raise ValueError(f"FilterParameters: cannot learn unknown parameters {unknown}; expected names from {list(NAMES)}")
+        f64 = {"dtype": torch.float64}
+        centers, decades = {}, {}
         self.raw = nn.ParameterDict()
         for name in NAMES:
-            value = float(start[name])
-            if name in learn and value == 0.0 and name != "dropout_p":
+            value = _check_start(name, float(start[name]))
+            if name in learn and value == 0.0:
                 raise ValueError(
-                    f"FilterParameters: {name} starts at 0 and is learned in log space, where 0 is out of reach; "
-                    f"give it a positive start (model.params.{name}.start) or freeze it"
+                    f"FilterParameters: {name} starts at 0, which a factor on its start cannot leave; "
+                    f"give it a positive start (model.start.{name}) or freeze it"
                 )
-            self.raw[name] = nn.Parameter(
-                torch.tensor(_to_raw(name, value), dtype=torch.float64), requires_grad=name in learn
-            )
+            centers[name] = torch.tensor(value, **f64)
+            decades[name] = torch.tensor(_check_bound(name, bounds.get(name, DEFAULT_BOUND_DECADES)), **f64)
+            self.raw[name] = nn.Parameter(torch.zeros((), **f64), requires_grad=name in learn)
+        self.center = _Tensors(centers)
+        self.bound = _Tensors(decades)
 
     @property
     def learned(self) -> list[str]:
@@ -191,11 +280,14 @@ class FilterParameters(nn.Module):
 
     def value(self, name: str) -> Tensor:
         """The parameter in its own units (a 0-dim float64 tensor with a gradient)."""
-        raw = self.raw[name]
-        return torch.sigmoid(raw) if name == "dropout_p" else torch.exp(raw)
+        return _bounded_value(name, self.raw[name], self.center[name], self.bound[name])
 
     def values(self) -> dict[str, float]:
         return {n: float(self.value(n).detach()) for n in NAMES}
+
+    def bounds(self) -> dict[str, float | None]:
+        """Each parameter's bound in decades (None: unbounded)."""
+        return {n: None if math.isinf(b := float(self.bound[n])) else b for n in NAMES}
 
     def apply(self, config: NavigationConfig, *, training: bool) -> NavigationConfig:
         """``config`` with this module's values: tensors with a gradient; the gates soft
@@ -220,35 +312,60 @@ class FilterParameters(nn.Module):
 
     @classmethod
     def from_checkpoint(cls, path: str | Path) -> FilterParameters:
-        """The parameters of a ``train.py`` checkpoint (a Lightning ``.ckpt``)."""
+        """The parameters of a ``train.py`` checkpoint (a Lightning ``.ckpt``), frozen at its
+        values: ``raw``, ``center`` and ``bound`` of each name, or ``raw`` alone (each
+        value's log, logit for the dropout rate; :meth:`from_raw`)."""
         expected = "a .ckpt written by train.py"
         ckpt = load_tensors(path, argument="model.checkpoint", expected=expected)
         state = ckpt.get("state_dict", ckpt) if isinstance(ckpt, dict) else None
         if not isinstance(state, dict):
             raise ValueError(f"model.checkpoint: {path} is not a train.py checkpoint (no state_dict); expected {expected}")
-        raw = {k.rsplit("raw.", 1)[1]: v for k, v in state.items() if "raw." in k}
-        missing = [n for n in NAMES if n not in raw]
-        if missing:
-            raise ValueError(f"model.checkpoint: {path} is not a train.py checkpoint of the filter parameters; "
-                             f"missing {missing}")
+        found: dict[str, dict[str, object]] = {"raw": {}, "center": {}, "bound": {}}
+        for key, tensor in state.items():  # "params.raw.acc_noise": kind "raw", name "acc_noise"
+            *_, kind, name = ("." + str(key)).split(".")
+            if kind in found and name in _FIELDS:
+                found[kind][name] = tensor
+        raw = found["raw"]
+        layouts = [kind for kind in ("center", "bound") if found[kind]]
+        missing = {kind: [n for n in NAMES if n not in found[kind]] for kind in ("raw", *layouts)}
+        if missing := {kind: names for kind, names in missing.items() if names}:
+            what = "; ".join(f"missing {names}" if kind == "raw" else f"missing the {kind} of {names}"
+                             for kind, names in missing.items())
+            raise ValueError(f"model.checkpoint: {path} is not a train.py checkpoint of the filter parameters; {what}")
 
-        def plausible(x: object) -> bool:  # one float; -inf in log space is a value of 0 (a switched-off walk)
+        def plausible(x: object, *, low: float = -math.inf) -> bool:  # one float, no NaN, no +inf, >= low
             return (isinstance(x, Tensor) and x.numel() == 1 and x.is_floating_point()
-                    and not bool(torch.isnan(x).any() or torch.isposinf(x).any()))
+                    and not bool(torch.isnan(x).any() or torch.isposinf(x).any()) and float(x) >= low)
 
         if bad := [n for n in NAMES if not plausible(raw[n])]:
             raise ValueError(f"model.checkpoint: {path}: the parameters {bad} are not single finite numbers "
                              "(stored in log space; -inf stands for 0)")
-        return cls.from_raw({n: raw[n].reshape(()) for n in NAMES})
+        if not layouts:
+            return cls.from_raw({n: raw[n].reshape(()) for n in NAMES})
+        center, bound = found["center"], found["bound"]
+        bad = [f"center.{n}" for n in NAMES if not plausible(center[n], low=0.0) or not math.isfinite(float(center[n]))]
+        bad += [f"bound.{n}" for n in NAMES if not (isinstance(bound[n], Tensor) and bound[n].numel() == 1
+                                                    and bound[n].is_floating_point() and float(bound[n]) > 0)]
+        if bad:
+            raise ValueError(f"model.checkpoint: {path}: {bad} are not single numbers (a start >= 0; "
+                             "a bound > 0 decades, inf for none)")
+        module = cls({n: float(center[n]) for n in NAMES}, learn=(),
+                     bounds={n: None if math.isinf(float(bound[n])) else float(bound[n]) for n in NAMES})
+        with torch.no_grad():
+            for n in NAMES:
+                module.raw[n].copy_(raw[n].reshape(()))
+        return module
 
     @classmethod
     def from_raw(cls, raw: Mapping[str, float | Tensor]) -> FilterParameters:
-        """Frozen parameters with these unconstrained values (log, or logit for ``dropout_p``), one per name."""
-        module = cls({n: 0.5 if n == "dropout_p" else 1.0 for n in NAMES}, learn=())
-        with torch.no_grad():
-            for n in NAMES:
-                module.raw[n].copy_(torch.as_tensor(raw[n], dtype=torch.float64))
-        return module
+        """Frozen parameters at the values whose log (logit for ``dropout_p``) is ``raw``, one per
+        name (-inf: a value of 0): the layout of checkpoints and ``selection.json`` histories
+        without start values and bounds."""
+        values = {}
+        for n in NAMES:
+            x = torch.as_tensor(raw[n], dtype=torch.float64)
+            values[n] = float(torch.sigmoid(x) if n == "dropout_p" else torch.exp(x))
+        return cls(values, learn=(), bounds={n: None for n in NAMES})
 
     def extra_repr(self) -> str:
         return ", ".join(f"{n}={v:.4g}" for n, v in self.values().items())

@@ -250,10 +250,16 @@ def window_loss(
 def sequence_rmse(seq: TrainingSequence, method: str, config: NavigationConfig, *, dropout_p: float | None = None) -> float:
     """Filter RMSE (m) of ``method`` over the whole sequence after the SE(3) Procrustes
     alignment of Table I (:func:`~flowins.evaluation.metrics.trajectory_errors`), no gradient."""
+    return sequences_rmse([seq], method, config, dropout_p=dropout_p)[0]
+
+
+def sequences_rmse(seqs: Sequence[TrainingSequence], method: str, config: NavigationConfig, *,
+                   dropout_p: float | None = None) -> list[float]:
+    """:func:`sequence_rmse` of each of ``seqs``, their filters run as one batch (:func:`run_windows`)."""
     from flowins.evaluation.metrics import trajectory_errors
 
     with torch.no_grad():
-        result = run_window(seq, method, config, (0, seq.imu.t_s.shape[0] - 1), dropout_p=dropout_p)
-        track = result.track
-        err = trajectory_errors(track.t, track.mean[:, STATE.p], seq.truth.t_s, seq.truth.pos_m, align="se3")
-    return float(err.rmse_m)
+        results = run_windows(list(seqs), method, config, [(0, seq.imu.t_s.shape[0] - 1) for seq in seqs],
+                              dropout_p=dropout_p)
+        return [float(trajectory_errors(result.track.t, result.track.mean[:, STATE.p], seq.truth.t_s, seq.truth.pos_m,
+                                        align="se3").rmse_m) for seq, result in zip(seqs, results)]

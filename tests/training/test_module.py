@@ -1,10 +1,11 @@
-"""The learner's selection of the best validation: the start competes with every epoch."""
+"""The learner's selection of the best validation: the start competes with every epoch, on
+the held-out (``val``) score or, with ``data.select``, on the long sequences' mean."""
 import math
 
 import pytest
 
 from flowins.navigation import NavigationConfig
-from flowins.training.module import FilterLearner
+from flowins.training.module import FilterLearner, heldout_table, selection_table
 from flowins.training.parameters import NAMES, FilterParameters
 
 
@@ -29,6 +30,50 @@ def test_select_best_loads_the_lowest_validation_and_prefers_the_earliest_on_a_t
     learner.history = [_entry("start", 0.7, start), _entry("epoch 1", 0.7, moved), _entry("epoch 2", 0.9, other)]
     assert learner.select_best()["label"] == "start"
     assert {n: float(params.raw[n].detach()) for n in NAMES} == start
+
+
+def _long(entry, rmse):
+    """``entry`` with the RMSE of two ``data.select`` sequences and their mean, as a validation records them."""
+    return {**entry, "select_rmse_m": {"ins_gnss": rmse}, "select_score": sum(rmse) / len(rmse)}
+
+
+def test_select_best_chooses_on_the_select_sequences_not_on_the_val_score():
+    params = FilterParameters({n: 0.3 if n == "dropout_p" else 0.5 + i for i, n in enumerate(NAMES)})
+    learner = FilterLearner(params, NavigationConfig(), methods=["ins_gnss"])
+    start = {n: float(params.raw[n].detach()) for n in NAMES}
+    moved = {n: v + 0.5 for n, v in start.items()}
+    other = {n: v - 0.25 for n, v in start.items()}
+    # val ranks epoch 1 first; the long sequences rank epoch 2 first (epoch 3 ties it, later)
+    learner.history = [_long(_entry("start", 1.0, start), [2.0, 4.0]), _long(_entry("epoch 1", 0.5, moved), [3.0, 5.0]),
+                       _long(_entry("epoch 2", 0.9, other), [1.0, 3.0]), _long(_entry("epoch 3", 0.8, moved), [2.5, 1.5])]
+    chosen = learner.select_best()
+    assert chosen["label"] == "epoch 2"
+    assert {n: float(params.raw[n].detach()) for n in NAMES} == other
+    table = selection_table(learner.history, chosen)
+    assert "lowest select mean" in table
+    row = next(line for line in table.splitlines() if line.startswith("epoch 2"))
+    assert row.split()[2:] == ["0.900", "0.900", "2.00", "±", "1.00", "m", "2.000", "<-", "chosen"]
+    assert "chosen" not in next(line for line in table.splitlines() if line.startswith("epoch 1"))
+    # the start competes and wins a tie with a later epoch, however much better that epoch's val score is
+    learner.history = [_long(_entry("start", 2.0, start), [1.0, 1.0]), _long(_entry("epoch 1", 0.1, moved), [0.5, 1.5]),
+                       _long(_entry("epoch 2", 0.1, other), [math.inf, 0.5])]
+    learner.history[2]["select_score"] = math.inf  # a filter diverged on one long sequence
+    assert learner.select_best()["label"] == "start"
+    assert {n: float(params.raw[n].detach()) for n in NAMES} == start
+
+
+def test_the_heldout_table_puts_the_select_mean_and_std_beside_the_val_mean():
+    val = {"learned": {"ins_gnss": [1.0, 2.0]}, "start": {"ins_gnss": [2.0, 4.0]}}
+    select = {"learned": {"ins_gnss": [3.0, 5.0, 7.0]}, "start": {"ins_gnss": [5.0, 5.0, 5.0]}}
+    lines = heldout_table(val, ["ins_gnss"], select).splitlines()
+    assert lines[0].split() == ["parameters", "ins_gnss", "select", "ins_gnss"]
+    # population std of 3, 5, 7: sqrt(8 / 3) = 1.633
+    assert lines[1].split() == ["learned", "1.50", "m", "5.00", "±", "1.63", "m"]
+    assert lines[2].split() == ["start", "3.00", "m", "5.00", "±", "0.00", "m"]
+    assert lines[3].split() == ["reduction", "50.0", "%", "0.0", "%"]
+    # without select sequences the table has the val columns only
+    assert heldout_table(val, ["ins_gnss"], {}) == heldout_table(val, ["ins_gnss"])
+    assert "select" not in heldout_table(val, ["ins_gnss"])
 
 
 def test_accumulated_windows_take_one_adam_step_on_their_mean_gradient(tmp_path):

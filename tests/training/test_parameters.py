@@ -1,6 +1,7 @@
 """The learned filter parameters: unconstrained coordinates, writing them into the filter
 config, reading the defaults, freezing, and the train.py checkpoint layout."""
 import math
+import re
 from pathlib import Path
 
 import pytest
@@ -30,32 +31,24 @@ def some_start() -> dict[str, float]:
     return start
 
 
-def test_values_round_trip_through_log_and_logit_space():
+def test_values_are_the_start_exactly_at_zero_coordinates():
     start = some_start()
     params = FilterParameters(start)
-    values = params.values()
-    assert set(values) == set(NAMES)
+    assert set(params.values()) == set(NAMES)
+    assert params.values() == start  # exactly: start · exp(0), and the dropout rate's form at s = 0
     for name in NAMES:
-        assert values[name] == pytest.approx(start[name], rel=1e-12), name
-    # the stored coordinates are the log, and the logit for the dropout rate
-    for name in NAMES:
-        raw = float(params.raw[name].detach())
-        expect = math.log(start[name] / (1 - start[name])) if name == "dropout_p" else math.log(start[name])
-        assert raw == pytest.approx(expect, rel=1e-12, abs=1e-12), name
+        assert float(params.raw[name].detach()) == 0.0, name
         assert params.raw[name].dtype == torch.float64
-    # any raw value is valid: the dropout rate stays in (0, 1), the others positive
-    with torch.no_grad():
-        for name in NAMES:
-            params.raw[name].fill_(-40.0)
-    assert all(v > 0 for v in params.values().values())
-    assert 0 < params.values()["dropout_p"] < 1e-15
+        assert float(params.center[name]) == start[name] and float(params.bound[name]) == 2.0, name
+    assert params.bounds() == {n: 2.0 for n in NAMES}
 
 
-@pytest.mark.parametrize("p", [1e-6, 0.2, 0.5, 0.93])
-def test_dropout_rate_round_trips_anywhere_in_the_open_interval(p):
+@pytest.mark.parametrize("p", [1e-6, 0.2, 0.37, 0.5, 0.93, 1 - 1e-9])
+def test_dropout_rate_is_its_start_exactly_anywhere_in_the_open_interval(p):
     start = some_start()
     start["dropout_p"] = p
-    assert FilterParameters(start).values()["dropout_p"] == pytest.approx(p, rel=1e-12)
+    assert FilterParameters(start).values()["dropout_p"] == p
+    assert FilterParameters(start, bounds={"dropout_p": None}).values()["dropout_p"] == p
 
 
 @pytest.mark.parametrize("p", [0.0, 1.0, -0.1])
@@ -95,7 +88,7 @@ def test_apply_while_training_writes_tensors_with_a_gradient_into_every_field():
     for name, value in fields.items():
         assert isinstance(value, torch.Tensor) and value.requires_grad, name
         assert float(value.detach()) == pytest.approx(start[name], rel=1e-12), name
-    # the gradient of a field reaches its own raw parameter only: d value / d raw = value (log space)
+    # the gradient of a field reaches its own raw parameter only: d value / d a = value at a = 0
     fields["acc_noise"].backward()
     assert float(params.raw["acc_noise"].grad) == pytest.approx(start["acc_noise"], rel=1e-12)
     assert all(params.raw[n].grad is None for n in NAMES if n != "acc_noise")
@@ -230,31 +223,41 @@ def test_from_checkpoint_round_trips_the_lightning_layout(tmp_path):
     assert FilterParameters.from_checkpoint(path2).values() == params.values()
 
 
-def test_a_checkpoint_runs_spynet_dropout_in_closed_form_at_the_learned_rate(tmp_path):
-    """evaluate.py with a checkpoint (:func:`flowins.settings.filter_setup`): SpyNet's dropout at
-    the learned rate in closed form (the mode training uses, whose mean flow does not depend on
-    the rate); a provider without a rate is left as it is."""
+def test_a_checkpoint_keeps_the_configured_flow_and_takes_only_a_learned_rate(tmp_path):
+    """evaluate.py with a checkpoint (:func:`flowins.settings.filter_setup`): the flow provider
+    runs as configured, so a run with the checkpoint and one without compute the same flow;
+    a dropout rate the checkpoint learned away from the configured one replaces it, one it
+    kept (its float round trip) does not; ``flow.mc_mode=moments`` still gives closed form."""
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    from flowins.settings import filter_setup
+    from flowins.settings import describe_flow, filter_setup
 
     configs = Path(__file__).resolve().parents[2] / "configs"
     with initialize_config_dir(config_dir=str(configs), version_base="1.3"):
         cfg = OmegaConf.to_container(compose(config_name="evaluate", overrides=["output_dir=/tmp/unused"]), resolve=True)
-
-    params = FilterParameters(some_start())
-    path = tmp_path / "best.ckpt"
-    torch.save({"state_dict": {"params." + k: v for k, v in params.state_dict().items()}}, path)
     spynet = {"_target_": "flowins.flow.spynet.SpyNetProvider", "mc_passes": 10, "p": 0.2}
-    setup = filter_setup({**cfg, "flow": spynet}, [], recorded=False, checkpoint=str(path))
-    assert setup.flow == {**spynet, "p": pytest.approx(0.37, rel=1e-12), "mc_mode": "moments"}
-    assert spynet["p"] == 0.2 and "mc_mode" not in spynet  # the caller's config is not changed
-    assert setup.navigation.flow_update.sigma_scale == pytest.approx(params.values()["flow_sigma_scale"], rel=1e-12)
-    assert setup.learned == pytest.approx(params.values(), rel=1e-12)
+
+    def checkpoint(start: dict[str, float], name: str) -> str:
+        params = FilterParameters(start)
+        path = tmp_path / name
+        torch.save({"state_dict": {"params." + k: v for k, v in params.state_dict().items()}}, path)
+        return str(path)
+
+    learned = checkpoint(some_start(), "learned.ckpt")  # dropout_p 0.37
+    setup = filter_setup({**cfg, "flow": spynet}, [], recorded=False, checkpoint=learned)
+    assert setup.flow == {**spynet, "p": pytest.approx(0.37, rel=1e-12)} and "mc_mode" not in setup.flow
+    assert spynet["p"] == 0.2  # the caller's config is not changed
+    assert "differs from the configured flow: p 0.2 -> 0.37" in describe_flow(setup.flow, spynet)
+    assert setup.navigation.flow_update.sigma_scale == pytest.approx(FilterParameters(some_start()).values()[
+        "flow_sigma_scale"], rel=1e-12)
+    kept = checkpoint({**some_start(), "dropout_p": 0.2}, "kept.ckpt")
+    same = filter_setup({**cfg, "flow": spynet}, [], recorded=False, checkpoint=kept)
+    assert same.flow == spynet and "(the configured flow)" in describe_flow(same.flow, spynet)
+    moments = {**spynet, "mc_mode": "moments"}
+    assert filter_setup({**cfg, "flow": moments}, [], recorded=False, checkpoint=kept).flow == moments
     dis = {"_target_": "flowins.flow.classical.DisProvider"}
-    assert filter_setup({**cfg, "flow": dis}, [], recorded=False, checkpoint=str(path)).flow == dis
-    assert filter_setup({**cfg, "flow": spynet}, [], recorded=False).flow == spynet  # no checkpoint: as configured
+    assert filter_setup({**cfg, "flow": dis}, [], recorded=False, checkpoint=learned).flow == dis
 
 
 def test_from_checkpoint_names_missing_keys_and_missing_files(tmp_path):
@@ -281,7 +284,241 @@ def test_from_checkpoint_refuses_values_that_are_not_single_numbers(tmp_path):
         torch.save({"state_dict": {**state, "params.raw." + name: bad}}, path)
         with pytest.raises(ValueError, match=rf"model\.checkpoint: .*{name}\.ckpt: the parameters \['{name}'\] are not"):
             FilterParameters.from_checkpoint(path)
-    # -inf in log space is a value of 0 (a random walk switched off): accepted
+    # a = -inf is the lower limit of the bound
+    minus_inf = torch.tensor(float("-inf"), dtype=torch.float64)
+    path = tmp_path / "low.ckpt"
+    torch.save({"state_dict": {**state, "params.raw.acc_scale_walk": minus_inf}}, path)
+    assert FilterParameters.from_checkpoint(path).values()["acc_scale_walk"] == pytest.approx(
+        some_start()["acc_scale_walk"] * 1e-2, rel=1e-12)
+    # in the layout with raw values only, -inf in log space is a value of 0 (a random walk switched off)
+    legacy = {"params.raw." + n: torch.tensor(math.log(v), dtype=torch.float64) for n, v in some_start().items()
+              if n != "dropout_p"}
+    legacy["params.raw.dropout_p"] = torch.tensor(0.0, dtype=torch.float64)
     path = tmp_path / "zero.ckpt"
-    torch.save({"state_dict": {**state, "params.raw.acc_scale_walk": torch.tensor(float("-inf"), dtype=torch.float64)}}, path)
+    torch.save({"state_dict": {**legacy, "params.raw.acc_scale_walk": minus_inf}}, path)
     assert FilterParameters.from_checkpoint(path).values()["acc_scale_walk"] == 0.0
+    # starts and bounds that are not numbers of their kind
+    for key, bad in (("center.acc_noise", torch.tensor(-1.0, dtype=torch.float64)),
+                     ("center.gyro_noise", torch.tensor(float("inf"), dtype=torch.float64)),
+                     ("bound.sigma_p0", torch.tensor(0.0, dtype=torch.float64))):
+        path = tmp_path / "bad.ckpt"
+        torch.save({"state_dict": {**state, "params." + key: bad}}, path)
+        with pytest.raises(ValueError, match=rf"model\.checkpoint: .*bad\.ckpt: \['{re.escape(key)}'\] are not"):
+            FilterParameters.from_checkpoint(path)
+
+
+# ---------------------------------------------------------------------------
+# the prior: each value is its start times a bounded factor
+# ---------------------------------------------------------------------------
+
+POSITIVE = [n for n in NAMES if n != "dropout_p"]
+
+
+def _at(params: FilterParameters, a: dict[str, float]) -> FilterParameters:
+    with torch.no_grad():
+        for name, value in a.items():
+            params.raw[name].fill_(value)
+    return params
+
+
+def _logit(p: float) -> float:
+    return math.log(p) - math.log1p(-p)
+
+
+@pytest.mark.parametrize("decades", [0.5, 2.0, 3.0])
+def test_values_stay_within_the_bound_and_approach_its_limits(decades):
+    start = some_start()
+    params = FilterParameters(start, bounds={n: decades for n in NAMES})
+    for a, factor in ((1e3, 10.0 ** decades), (-1e3, 10.0 ** -decades)):
+        values = _at(params, {n: a for n in NAMES}).values()
+        for name in POSITIVE:
+            assert start[name] * 10.0 ** -decades <= values[name] * (1 + 1e-15), name
+            assert values[name] <= start[name] * 10.0 ** decades * (1 + 1e-15), name
+            assert values[name] == pytest.approx(start[name] * factor, rel=1e-12), name  # the limit is reached
+        # the dropout rate: in (0, 1), its logit within ±B of the start's, the limit reached
+        p = values["dropout_p"]
+        assert 0.0 < p < 1.0
+        assert _logit(p) == pytest.approx(_logit(start["dropout_p"]) + math.copysign(decades * math.log(10), a),
+                                          rel=1e-9)
+    # inside: start · exp(B tanh(a / B)), an independent evaluation in plain floats
+    scale = decades * math.log(10)
+    for a in (-7.0, -0.3, 0.25, 1.5, 9.0):
+        values = _at(params, {n: a for n in NAMES}).values()
+        for name in POSITIVE:
+            assert values[name] == pytest.approx(start[name] * math.exp(scale * math.tanh(a / scale)), rel=1e-13)
+        expected = 1 / (1 + math.exp(-(_logit(start["dropout_p"]) + scale * math.tanh(a / scale))))
+        assert values["dropout_p"] == pytest.approx(expected, rel=1e-13)
+
+
+@pytest.mark.parametrize("name", ["acc_noise", "initial_roll_pitch_rad", "flow_gate_threshold", "dropout_p"])
+@pytest.mark.parametrize("decades", [1.0, 2.0, None])
+def test_the_gradient_is_the_closed_form_and_the_finite_difference(name, decades):
+    """d value / d a: value · sech²(a / B) for a positive parameter (value for B = ∞), and
+    p (1 - p) sech²(a / B) for the dropout rate, by autograd and by central differences."""
+    params = FilterParameters(some_start(), bounds={name: decades})
+    scale = math.inf if decades is None else decades * math.log(10)
+    for a in (-6.0, -1.0, 0.0, 0.4, 3.0, 8.0):
+        _at(params, {name: a})
+        value = params.value(name)
+        (grad,) = torch.autograd.grad(value, params.raw[name])
+        v = float(value.detach())
+        sech2 = 1.0 if math.isinf(scale) else 1.0 / math.cosh(a / scale) ** 2
+        closed = (v * (1 - v) if name == "dropout_p" else v) * sech2
+        assert float(grad) == pytest.approx(closed, rel=1e-12, abs=1e-300), (a, decades)
+        h = 1e-6
+        with torch.no_grad():
+            difference = (float(_at(params, {name: a + h}).value(name)) - float(_at(params, {name: a - h}).value(name)))
+        assert float(grad) == pytest.approx(difference / (2 * h), rel=1e-7, abs=1e-9), (a, decades)
+
+
+def test_unbounded_is_log_and_logit_space():
+    """``bound_decades: null``: start · exp(a), sigmoid(logit p0 + a): the log-space
+    parameters ``log start + a`` of an unbounded module, for any a."""
+    start = some_start()
+    params = FilterParameters(start, bounds={n: None for n in NAMES})
+    assert params.bounds() == {n: None for n in NAMES}
+    for a in (-40.0, -2.5, 0.7, 30.0):
+        values = _at(params, {n: a for n in NAMES}).values()
+        for name in POSITIVE:
+            assert values[name] == pytest.approx(math.exp(math.log(start[name]) + a), rel=1e-12), (name, a)
+        expected = 1 / (1 + math.exp(-(_logit(start["dropout_p"]) + a)))
+        assert values["dropout_p"] == pytest.approx(expected, rel=1e-12, abs=1e-300), a
+    # far out the dropout rate saturates without NaN, in value and gradient
+    for a in (-1e3, 1e3):
+        _at(params, {"dropout_p": a})
+        p = params.value("dropout_p")
+        (grad,) = torch.autograd.grad(p, params.raw["dropout_p"])
+        assert float(p.detach()) == (0.0 if a < 0 else 1.0) and float(grad) == 0.0
+
+
+def test_unbounded_training_takes_the_steps_of_log_space_parameters():
+    """The same Adam steps on a loss of the values give the same values as parameters
+    stored as their logarithm and logit (the layout without a prior), to rounding."""
+    start = some_start()
+    learn = ["acc_noise", "gyro_noise", "flow_sigma_scale", "initial_roll_pitch_rad", "dropout_p"]
+    target = {n: start[n] * 3.0 if n != "dropout_p" else 0.8 for n in learn}
+    params = FilterParameters(start, learn, bounds={n: None for n in NAMES})
+    logs = {n: torch.tensor(_logit(start[n]) if n == "dropout_p" else math.log(start[n]), dtype=torch.float64,
+                            requires_grad=True) for n in learn}
+
+    def loss(value) -> torch.Tensor:
+        return sum((torch.log(value(n)) - math.log(target[n])) ** 2 for n in learn)
+
+    ours = torch.optim.Adam([params.raw[n] for n in learn], lr=0.2)
+    theirs = torch.optim.Adam(list(logs.values()), lr=0.2)
+    for _ in range(25):
+        for opt, value in ((ours, params.value),
+                           (theirs, lambda n: torch.sigmoid(logs[n]) if n == "dropout_p" else torch.exp(logs[n]))):
+            opt.zero_grad()
+            loss(value).backward()
+            opt.step()
+    values = params.values()
+    for n in learn:
+        reference = float((torch.sigmoid(logs[n]) if n == "dropout_p" else torch.exp(logs[n])).detach())
+        assert values[n] == pytest.approx(reference, rel=1e-12), n
+        assert values[n] != pytest.approx(start[n], rel=1e-3), n  # the steps moved it
+
+
+def test_model_bounds_override_bound_decades_by_name():
+    from flowins.config import build
+    from flowins.settings import parameter_sets
+    from flowins.training.parameters import ModelSettings
+
+    walks = {"acc_bias_walk": 1e-4, "gyro_bias_walk": 1e-5, "acc_scale_walk": 1e-5}  # configs/model/filter.yaml
+    model = build(ModelSettings, {"bound_decades": 1.0, "bounds": {"acc_noise": 0.5, "gyro_noise": None},
+                                  "start": walks}, "model")
+    bounds = model.parameter_bounds()
+    assert bounds == {n: {"acc_noise": 0.5, "gyro_noise": None}.get(n, 1.0) for n in NAMES}
+    assert ModelSettings().parameter_bounds() == {n: 2.0 for n in NAMES}
+    assert build(ModelSettings, {"bound_decades": None}, "model").parameter_bounds() == {n: None for n in NAMES}
+    sets = parameter_sets({"model": model, "flow": {}}, NavigationConfig())
+    assert sets.bounds == bounds
+    _, start, learn = sets  # unpacks as it did
+    params = FilterParameters(start, learn, bounds=sets.bounds)
+    values = _at(params, {"acc_noise": 1e3, "gyro_noise": 50.0, "initial_velocity_mps": 1e3}).values()
+    assert values["acc_noise"] == pytest.approx(start["acc_noise"] * 10 ** 0.5, rel=1e-12)
+    assert values["gyro_noise"] == pytest.approx(start["gyro_noise"] * math.exp(50.0), rel=1e-12)  # unbounded
+    assert values["initial_velocity_mps"] == pytest.approx(start["initial_velocity_mps"] * 10.0, rel=1e-12)
+
+
+@pytest.mark.parametrize(("key", "value", "message"), [
+    ("bound_decades", 0, r"model\.bound_decades=0: expected a number or null >= 1e-12"),
+    ("bound_decades", -1, r"model\.bound_decades=-1: expected"),
+    ("bound_decades", "abc", r"model\.bound_decades='abc': expected a number"),
+    ("bounds", {"acc_nosie": 1.0}, r"model\.bounds\.acc_nosie: unknown parameter"),
+    ("bounds", {"acc_noise": 0.0}, r"model\.bounds\.acc_noise=0\.0: expected a number > 0 or null"),
+    ("bounds", {"acc_noise": "abc"}, r"model\.bounds\.acc_noise='abc': expected a number"),
+])
+def test_a_bad_bound_raises_naming_its_key(key, value, message):
+    from flowins.config import build
+    from flowins.training.parameters import ModelSettings
+
+    with pytest.raises(ValueError, match=message):
+        build(ModelSettings, {key: value}, "model")
+
+
+def test_bad_bounds_of_the_module_raise():
+    with pytest.raises(ValueError, match=r"bounds for unknown parameters \['acc_nosie'\]"):
+        FilterParameters(some_start(), bounds={"acc_nosie": 1.0})
+    with pytest.raises(ValueError, match=r"the bound of acc_noise must be a number of decades > 0 or None, got -1"):
+        FilterParameters(some_start(), bounds={"acc_noise": -1.0})
+
+
+@pytest.mark.parametrize("decades", [2.0, None])
+def test_a_checkpoint_round_trip_keeps_the_values_and_the_bounds(tmp_path, decades):
+    from flowins.training.module import FilterLearner
+
+    bounds = {n: decades for n in NAMES} | {"acc_noise": 0.7}
+    params = FilterParameters(some_start(), bounds=bounds)
+    _at(params, {n: 0.37 * (i - 10) for i, n in enumerate(NAMES) if n not in FROZEN_BY_DEFAULT})
+    learner = FilterLearner(params, NavigationConfig(), methods=["ins_gnss"])
+    path = tmp_path / "learner.ckpt"
+    torch.save({"state_dict": learner.state_dict()}, path)
+    state = torch.load(path)["state_dict"]
+    assert {k for k in state if k.startswith("params.")} == {f"params.{kind}.{n}" for kind in ("raw", "center", "bound")
+                                                             for n in NAMES}
+    loaded = FilterParameters.from_checkpoint(path)
+    assert loaded.bounds() == params.bounds()
+    for name, value in params.values().items():
+        assert loaded.values()[name] == pytest.approx(value, rel=1e-12, abs=0.0), name
+    assert loaded.learned == []
+
+
+def test_a_checkpoint_of_log_space_values_loads_as_those_values(tmp_path):
+    """The layout without starts and bounds: ``raw.<name>`` is the value's log (logit)."""
+    values = some_start()
+    values["gyro_bias_walk"] = 14.7  # anywhere: no bound applies to a stored value
+    raw = {n: torch.tensor(_logit(v) if n == "dropout_p" else math.log(v), dtype=torch.float64)
+           for n, v in values.items()}
+    path = tmp_path / "old.ckpt"
+    torch.save({"epoch": 2, "state_dict": {"params.raw." + n: x for n, x in raw.items()}}, path)
+    loaded = FilterParameters.from_checkpoint(path)
+    for name in NAMES:
+        assert loaded.values()[name] == pytest.approx(values[name], rel=1e-12), name
+        # the very value the log-space formula gives
+        legacy = torch.sigmoid(raw[name]) if name == "dropout_p" else torch.exp(raw[name])
+        assert loaded.values()[name] == float(legacy), name
+    assert loaded.bounds() == {n: None for n in NAMES}
+    assert FilterParameters.from_raw(raw).values() == loaded.values()
+    # a checkpoint with some starts but not all is refused, naming what is missing
+    state = {**{"params.raw." + n: x for n, x in raw.items()}, "params.center.acc_noise": torch.tensor(1e-3)}
+    torch.save({"state_dict": state}, path)
+    with pytest.raises(ValueError, match=r"missing the center of \['gyro_noise',"):
+        FilterParameters.from_checkpoint(path)
+
+
+def test_a_selection_history_gives_the_values_it_scored(tmp_path):
+    """:class:`~flowins.training.module.FilterLearner` records ``raw`` (the coordinates a) in
+    its history; the same module loads them back to the same values (``select_best``)."""
+    from flowins.training.module import FilterLearner
+
+    params = FilterParameters(some_start())
+    learner = FilterLearner(params, NavigationConfig(), methods=["ins_gnss"])
+    _at(params, {"acc_noise": 2.0, "dropout_p": -1.0})
+    scored = params.values()
+    entry = {"label": "epoch 1", "step": 3, "rmse_m": {"ins_gnss": 1.0}, "score": 1.0,
+             "raw": {n: float(q.detach()) for n, q in params.raw.items()}}
+    _at(params, {"acc_noise": -3.0, "dropout_p": 0.5})
+    learner.history = [entry]
+    learner.select_best()
+    assert params.values() == scored

@@ -141,6 +141,77 @@ def test_a_training_recording_with_an_impossible_reading_is_refused(tmp_path):
         run(cfg)  # the recordings are read, then checked against the preset the job resolves
 
 
+#: INS + GNSS with every fix applied as it comes: no flow to compute, a run in seconds
+GNSS = ["methods=[ins_gnss]", "filter.gnss_heading.enabled=false", "data.train=[{seed: 1, duration_s: 20.0}]",
+        "data.val=[{seed: 3, duration_s: 20.0}]", "window_s=10.0", "curriculum_window_s=[]", "trainer.max_epochs=1"]
+#: two long held-out walks of different lengths (their batched filter pass pads the shorter one)
+SELECT = [{"seed": 6, "duration_s": 20.0}, {"seed": 7, "duration_s": 24.0}]
+
+
+@pytest.mark.slow
+def test_select_sequences_choose_the_checkpoint_on_their_rmse_each_computed_as_alone(workdir):
+    import numpy as np
+    from flowins.training.unroll import sequence_rmse
+
+    cfg = _cfg(workdir / "select", *GNSS, "data.select=[{seed: 6, duration_s: 20.0},{seed: 7, duration_s: 24.0}]")
+    result = run(cfg)
+    out = Path(cfg["output_dir"])
+    history = result["history"]
+    assert [entry["label"] for entry in history] == ["start", "epoch 1"]
+    # each validation's RMSE of each select sequence: the filter alone on it, with the parameters validated
+    seqs = [load_training_sequence(s, {**cfg, "flow": flow_config(cfg, moments=True)}, methods=["ins_gnss"])
+            for s in SELECT]
+    base = navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=False))
+    validated = {"start": FilterParameters(result["start"], learn=()),
+                 "epoch 1": FilterParameters.from_checkpoint(out / "checkpoints" / "last.ckpt")}
+    for entry in history:
+        config = validated[entry["label"]].apply(base, training=False)
+        alone = [sequence_rmse(seq, "ins_gnss", config) for seq in seqs]
+        assert entry["select_rmse_m"]["ins_gnss"] == pytest.approx(alone, rel=1e-9), entry["label"]
+        assert entry["select_score"] == pytest.approx(sum(alone) / 2, rel=1e-9)
+    assert history[0]["select_score"] != pytest.approx(history[1]["select_score"], rel=1e-6)  # the epoch moved them
+    # the checkpoint is the lower select score, and its held-out test scores what its validation scored
+    chosen = min(history, key=lambda entry: entry["select_score"])
+    assert result["chosen"] == chosen["label"]
+    assert json.loads((out / "selection.json").read_text())["chosen"] == chosen["label"]
+    held = json.loads((out / "heldout.json").read_text())
+    assert set(held["select_rmse_m"]) == {"learned", "start", "hand-tuned"}
+    assert held["select_rmse_m"]["learned"]["ins_gnss"] == pytest.approx(chosen["select_rmse_m"]["ins_gnss"], rel=1e-9)
+    assert held["select_rmse_m"]["start"]["ins_gnss"] == pytest.approx(history[0]["select_rmse_m"]["ins_gnss"],
+                                                                       rel=1e-9)
+    learned = np.array(chosen["select_rmse_m"]["ins_gnss"])
+    row = next(line for line in (out / "heldout.txt").read_text().splitlines() if line.startswith("learned"))
+    assert row.split()[-4:] == [f"{learned.mean():.2f}", "±", f"{learned.std():.2f}", "m"]
+    metrics = (out / "csv" / "version_0" / "metrics.csv").read_text().splitlines()[0].split(",")
+    assert {"select/ins_gnss/filter_rmse_m", "select/rmse_mean_m", "test/learned/select/ins_gnss/filter_rmse_m"} \
+        <= set(metrics)
+
+    # the training itself does not see the select sequences: its validations are those of a run without them
+    plain = run(_cfg(workdir / "plain", *GNSS, "data.select=[]"))
+    keys = ("label", "step", "rmse_m", "score", "raw")
+    assert [{k: e[k] for k in keys} for e in plain["history"]] == [{k: e[k] for k in keys} for e in history]
+
+
+@pytest.mark.slow
+def test_an_empty_select_list_is_a_run_without_the_key(workdir):
+    without = run(_cfg(workdir / "without", *GNSS, "~data.select"))
+    empty = run(_cfg(workdir / "empty", *GNSS, "data.select=[]"))
+    assert empty["history"] == without["history"]
+    assert all("select_score" not in entry for entry in empty["history"])
+    assert empty["chosen"] == without["chosen"] == min(empty["history"], key=lambda entry: entry["score"])["label"]
+    for name in ("selection.json", "heldout.json", "heldout.txt"):
+        assert (workdir / "empty" / "out" / name).read_text() == (workdir / "without" / "out" / name).read_text(), name
+
+
+def test_a_bad_select_source_is_refused_naming_its_key(tmp_path):
+    from flowins.training.data import SequenceDataModule
+
+    with pytest.raises(ValueError, match=r"data\.select\[0\]\.foo: unknown key"):
+        run(_cfg(tmp_path, "data.select=[{foo: 1}]"))
+    with pytest.raises(ValueError, match=r"data\.select\[0\] \{'foo': 1\}"):
+        SequenceDataModule(train=[{"seed": 1}], val=[{"seed": 3}], select=[{"foo": 1}], config={}, methods=["ins"])
+
+
 def test_a_batch_of_windows_has_the_mean_loss_and_gradient_of_its_sequences_windows(workdir):
     """run_windows: the windows of two sequences in one batched filter; the mean of their
     losses has the mean of the gradients each window gives alone (run_window)."""
