@@ -13,11 +13,13 @@ from flowins.evaluation.alignment import (
 )
 from flowins.evaluation.metrics import (
     Association,
+    SegmentErrors,
     TrajectoryErrors,
     associate,
     interpolate_positions,
     interpolate_quaternions,
     position_rmse,
+    segment_errors,
     trajectory_errors,
 )
 from flowins.evaluation.plots import plot_errors, plot_trajectory
@@ -26,6 +28,7 @@ from flowins.evaluation.tum import read_tum, write_tum
 __all__ = [
     "Alignment",
     "Association",
+    "SegmentErrors",
     "TrajectoryErrors",
     "align_yaw",
     "apply_alignment",
@@ -38,6 +41,7 @@ __all__ = [
     "plot_trajectory",
     "position_rmse",
     "read_tum",
+    "segment_errors",
     "trajectory_errors",
     "umeyama",
     "write_tum",

@@ -191,3 +191,28 @@ def align_yaw(source: Tensor, target: Tensor) -> Alignment:
     rotation = torch.stack((c, -s, zero, s, c, zero, zero, zero, one), -1).reshape(*c.shape, 3, 3)
     translation = mu_t - (rotation @ mu_s.unsqueeze(-1)).squeeze(-1)
     return Alignment(rotation=rotation, translation=translation, scale=torch.ones_like(c))
+
+
+def heading_directions(q: Tensor) -> Tensor:
+    """``(..., 2)`` unit horizontal direction ``(cos ψ, sin ψ)`` of the body x axis of
+    orientations ``(..., 4)`` (w, x, y, z; body to world, z up): the heading without the
+    roll and pitch. Smooth everywhere but where the body x axis is vertical, where it stays
+    finite (a 1e-12 floor under the norm)."""
+    w, x, y, z = q.unbind(-1)
+    n2 = (q * q).sum(-1)
+    forward = torch.stack((n2 - 2 * (y * y + z * z), 2 * (x * y + w * z)), dim=-1)
+    return forward / torch.sqrt((forward * forward).sum(-1, keepdim=True) + 1e-12)
+
+
+def align_start(p_est: Tensor, q_est: Tensor, p_ref: Tensor, q_ref: Tensor) -> Alignment:
+    """The rotation about ``z`` and translation mapping one estimated pose onto a reference
+    pose (positions ``(3,)``, orientations ``(4,)`` w, x, y, z): the turn between their
+    headings (:func:`heading_directions`) and the offset between their positions. The frame
+    in which an INS started from this pose would have no error at all."""
+    h_est, h_ref = heading_directions(q_est), heading_directions(q_ref.to(q_est))
+    c = h_ref[0] * h_est[0] + h_ref[1] * h_est[1]  # cos and sin of ψ_ref - ψ_est
+    s = h_ref[1] * h_est[0] - h_ref[0] * h_est[1]
+    one, zero = torch.ones_like(c), torch.zeros_like(c)
+    rotation = torch.stack((c, -s, zero, s, c, zero, zero, zero, one), -1).reshape(3, 3)
+    translation = p_ref.to(p_est) - rotation @ p_est
+    return Alignment(rotation=rotation, translation=translation, scale=one)

@@ -26,6 +26,7 @@ from flowins.evaluation.alignment import (
     apply_alignment,
     apply_alignment_to_quaternions,
     check_points,
+    heading_directions,
     identity_alignment,
     umeyama,
 )
@@ -155,6 +156,97 @@ def position_rmse(est: Tensor, ref: Tensor) -> Tensor:
     if est.shape[-2] == 0:
         raise ValueError("est and ref are empty (K = 0): the RMSE of no points is undefined")
     return ((est - ref) ** 2).sum(dim=-1).mean(dim=-1).sqrt()
+
+
+class SegmentErrors(NamedTuple):
+    """Relative errors over segments of fixed durations (:func:`segment_errors`).
+
+    lengths_s: the segment durations (s) that have at least one segment.
+    rmse_m: ``(L,)`` RMS of the displacement error per duration (m).
+    heading_rmse_rad: ``(L,)`` RMS of the heading-change error per duration (rad), or None
+        without orientations.
+    counts: segments per duration.
+    """
+
+    lengths_s: tuple[float, ...]
+    rmse_m: Tensor
+    heading_rmse_rad: Tensor | None
+    counts: tuple[int, ...]
+
+
+def segment_errors(
+    t_s: Tensor,
+    est: Tensor,
+    ref: Tensor,
+    lengths_s: tuple[float, ...] | list[float],
+    *,
+    q_est: Tensor | None = None,
+    q_ref: Tensor | None = None,
+    tolerance_s: float = 0.1,
+) -> SegmentErrors:
+    """Displacement (and heading) errors over every segment ``[t_i, t_j]`` of each duration.
+
+    ``est`` and ``ref`` are ``(K, 3)`` positions at the common times ``t_s`` (``(K,)``,
+    increasing: an associated and interpolated estimate, :func:`associate`). For each
+    duration ``L`` every sample ``i`` starts a segment ending at the first sample ``j`` with
+    ``t_j >= t_i + L``, kept when ``t_j - t_i - L <= tolerance_s``. Its error is
+    ``d̂ - d`` with ``d = p_j - p_i``:
+
+    * with orientations (``q_est``, ``q_ref``, ``(K, 4)``), each displacement in its own
+      heading frame at ``i`` (rotated by ``-ψ_i``, :func:`heading_directions`): the relative
+      error of the KITTI odometry metric, free of any alignment. Heading error carried into
+      ``i`` cancels; heading and scale drift over the segment cost. The heading-change error
+      ``(ψ̂_j - ψ̂_i) - (ψ_j - ψ_i)`` (wrapped to ``(-π, π]``) is returned too.
+    * without, in the world frame as given (the caller aligns the estimate first).
+
+    Returns the RMS error of each duration that has a segment (:class:`SegmentErrors`).
+    """
+    if est.shape != ref.shape or est.ndim != 2 or est.shape[-1] != 3 or t_s.shape != est.shape[:1]:
+        raise ValueError(f"segment_errors: expected t_s (K,), est and ref (K, 3); got {tuple(t_s.shape)}, "
+                         f"{tuple(est.shape)} and {tuple(ref.shape)}")
+    if (q_est is None) != (q_ref is None):
+        raise ValueError("segment_errors: q_est and q_ref must be given together (both or neither)")
+    if any(not float(length) > 0.0 for length in lengths_s):
+        raise ValueError(f"segment_errors: every segment duration must be > 0 s, got {list(lengths_s)}")
+    t = t_s.to(dtype=torch.float64, device=est.device)
+    if q_est is not None:
+        h_est, h_ref = heading_directions(q_est), heading_directions(q_ref.to(est))
+    kept, rmse, heading, counts = [], [], [], []
+    for length in lengths_s:
+        j = torch.searchsorted(t, t + (float(length) - 1e-9))  # a time stamp a rounding error short of L counts
+        ok = j < t.shape[0]
+        i = torch.nonzero(ok).reshape(-1)
+        j = j[ok]
+        ok = (t[j] - t[i] - float(length)) <= tolerance_s
+        i, j = i[ok], j[ok]
+        if i.numel() == 0:
+            continue
+        d_est, d_ref = est[j] - est[i], ref[j] - ref[i]
+        if q_est is not None:
+            d_est, d_ref = _into_heading(d_est, h_est[i]), _into_heading(d_ref, h_ref[i])
+            turn_est, turn_ref = _relative_heading(h_est[i], h_est[j]), _relative_heading(h_ref[i], h_ref[j])
+            # the angle of turn_est · conj(turn_ref)
+            re = turn_est[:, 0] * turn_ref[:, 0] + turn_est[:, 1] * turn_ref[:, 1]
+            im = turn_est[:, 1] * turn_ref[:, 0] - turn_est[:, 0] * turn_ref[:, 1]
+            heading.append(torch.sqrt(torch.atan2(im, re).square().mean() + 1e-16))
+        err = d_est - d_ref
+        rmse.append(torch.sqrt((err * err).sum(-1).mean() + 1e-12))
+        kept.append(float(length))
+        counts.append(int(i.numel()))
+    empty = est.new_zeros(0)
+    return SegmentErrors(tuple(kept), torch.stack(rmse) if rmse else empty,
+                         (torch.stack(heading) if heading else empty) if q_est is not None else None, tuple(counts))
+
+
+def _into_heading(d: Tensor, h: Tensor) -> Tensor:
+    """World vectors ``(K, 3)`` in the heading frames ``h`` ``(K, 2)`` (rotated by ``-ψ``)."""
+    return torch.stack((h[:, 0] * d[:, 0] + h[:, 1] * d[:, 1], h[:, 0] * d[:, 1] - h[:, 1] * d[:, 0], d[:, 2]), dim=-1)
+
+
+def _relative_heading(h_a: Tensor, h_b: Tensor) -> Tensor:
+    """``(K, 2)`` the turn from heading ``h_a`` to ``h_b`` as ``(cos, sin)`` (``h_b · conj(h_a)``)."""
+    return torch.stack((h_b[:, 0] * h_a[:, 0] + h_b[:, 1] * h_a[:, 1], h_b[:, 1] * h_a[:, 0] - h_b[:, 0] * h_a[:, 1]),
+                       dim=-1)
 
 
 @dataclass(frozen=True)

@@ -83,6 +83,8 @@ class FilterLearner(pl.LightningModule):
         self.nll_weight = model.nll_weight
         self.orientation_weight = model.orientation_weight_m_per_rad
         self.innovation_weight = model.innovation_weight
+        self.loss = model.loss
+        self.segment_s = tuple(model.segment_s)
         self.lr = model.lr
         self.lr_final = self.lr if model.lr_final is None else model.lr_final
         self.warmup_steps = model.warmup_steps
@@ -103,7 +105,8 @@ class FilterLearner(pl.LightningModule):
         self.save_hyperparameters({"methods": self.methods, "window_s": self.window_s,
                                    "curriculum_window_s": self.curriculum, "nll_weight": self.nll_weight,
                                    "orientation_weight_m_per_rad": self.orientation_weight,
-                                   "innovation_weight": self.innovation_weight, "lr": self.lr,
+                                   "innovation_weight": self.innovation_weight, "loss": self.loss,
+                                   "segment_s": list(self.segment_s), "lr": self.lr,
                                    "lr_final": self.lr_final, "warmup_steps": self.warmup_steps,
                                    "accumulate_windows": self.accumulate, "gradient_clip": self.gradient_clip,
                                    "reference": self.reference, "learned": params.learned})
@@ -123,6 +126,7 @@ class FilterLearner(pl.LightningModule):
         learned = [q for q in self.params.parameters() if q.requires_grad]
         for method in self.methods:
             starts: list = [None] * len(seqs)
+            aligned: list = [None] * len(seqs)  # model.loss=start: each sequence's one alignment
             going = [True] * len(seqs)  # a sequence whose state stopped being finite leaves the batch
             # every process takes the same number of steps (their batches may differ in windows)
             count = int(self._sum_over_processes(torch.tensor([max(len(b) for b in bounds)], dtype=torch.float64),
@@ -130,7 +134,8 @@ class FilterLearner(pl.LightningModule):
             gradient, present, pending = self._no_gradient(learned), torch.zeros(len(learned), dtype=torch.float64), 0
             for i in range(count):
                 rows = [k for k in range(len(seqs)) if going[k] and i < len(bounds[k])]
-                losses = self._window_losses(seqs, rows, method, [bounds[k][i] for k in rows], starts, going, bounds, i)
+                losses = self._window_losses(seqs, rows, method, [bounds[k][i] for k in rows], starts, going, bounds, i,
+                                             aligned)
                 if losses:
                     total = torch.stack([w.loss for w in losses]).sum()
                     grads = (torch.autograd.grad(total, learned, allow_unused=True) if total.requires_grad
@@ -149,10 +154,11 @@ class FilterLearner(pl.LightningModule):
                     gradient, present, pending = self._no_gradient(learned), torch.zeros_like(present), 0
         self.log("train/skipped_windows", float(self.skipped_windows), on_step=True, batch_size=1)
 
-    def _window_losses(self, seqs, rows, method, windows, starts, going, bounds, i) -> list:
+    def _window_losses(self, seqs, rows, method, windows, starts, going, bounds, i, aligned) -> list:
         """The losses of the rows' ``i``-th windows (one batched filter pass); the rows'
-        states go on, detached, to their next windows, and a row whose state is not finite
-        leaves the batch (its remaining windows counted as skipped)."""
+        states go on, detached, to their next windows (with ``model.loss=start``, their first
+        window's alignment too, in ``aligned``), and a row whose state is not finite leaves
+        the batch (its remaining windows counted as skipped)."""
         if not rows:
             return []
         config = self.params.apply(self.base, training=True)
@@ -163,7 +169,10 @@ class FilterLearner(pl.LightningModule):
         for k, result in zip(rows, results):
             loss = window_loss(result.track, seqs[k].truth, nll_weight=self.nll_weight,
                                orientation_weight_m_per_rad=self.orientation_weight,
-                               innovation_weight=self.innovation_weight, innovation=(result.nll, result.nll_count))
+                               innovation_weight=self.innovation_weight, innovation=(result.nll, result.nll_count),
+                               loss=self.loss, segment_s=self.segment_s, alignment=aligned[k])
+            if self.loss == "start" and aligned[k] is None:
+                aligned[k] = loss.alignment
             state_ok = bool(torch.isfinite(result.mean).all() and torch.isfinite(result.cov).all())
             finite = bool(torch.isfinite(loss.loss))
             if finite:
@@ -223,6 +232,9 @@ class FilterLearner(pl.LightningModule):
         self.log("train/loss", mean_loss, on_step=True, prog_bar=True, batch_size=n)
         if self.nll_weight > 0:
             self.log("train/nll", torch.stack([w.nll for w in losses]).mean(), on_step=True, batch_size=n)
+        if self.loss == "segments":
+            self.log(f"train/{method}/segment_rmse_m", torch.stack([w.segment_rmse_m for w in losses]).mean(),
+                     on_step=True, batch_size=n)
         if self.innovation_weight > 0:
             self.log(f"train/{method}/innovation_nll", torch.stack([w.innovation_nll for w in losses]).mean(),
                      on_step=True, batch_size=n)

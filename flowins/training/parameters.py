@@ -10,6 +10,10 @@ coordinate ``a`` (``raw.<name>``, 0 at the start), which the optimiser moves. Wi
 * the dropout rate is ``logit θ = logit θ₀ + B · tanh(a / B)``: its odds within
   ``10^±b`` of the start's, the rate in ``(0, 1)``.
 
+An angle's 1-σ has an absolute ceiling ``c`` too (:data:`CEILINGS`: roll/pitch ``π/2``, yaw
+``π``): above the start, ``B`` is replaced by ``B⁺ = min(B, ln(c / θ₀))``, so the value stays
+below ``c`` (and at ``θ₀`` when it starts at or above it) with the same slope of 1 at the start.
+
 Near the start ``d ln θ / d a = sech²(a / B) ≈ 1``, so the learning rate is in units of
 ``ln θ`` (of ``logit θ`` for the dropout rate): ai-imu-dr's factor ``10^tanh(a)`` on its
 learned covariances, widened to ``b`` decades and with a slope of 1 at the start. A bound
@@ -49,6 +53,7 @@ import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Literal
 
 import torch
 from torch import Tensor, nn
@@ -95,6 +100,9 @@ NOISE_NAMES: tuple[str, ...] = (
 FROZEN_BY_DEFAULT = frozenset({"initial_position_m", "initial_yaw_rad"})
 #: how far a learned value may go from its start, in decades each way (``model.bound_decades``)
 DEFAULT_BOUND_DECADES = 2.0
+#: absolute ceilings whatever the start and the bound: an angle's 1-σ beyond these means nothing
+#: (a roll or pitch 1-σ past a right angle, a yaw 1-σ past half a turn)
+CEILINGS: dict[str, float] = {"initial_roll_pitch_rad": math.pi / 2, "initial_yaw_rad": math.pi}
 
 
 @dataclass(frozen=True)
@@ -111,6 +119,10 @@ class ModelSettings:
         innovation_weight: weight of the innovation negative log-likelihood per scalar
             measurement (metres per nat; :func:`~flowins.training.unroll.window_loss`).
         orientation_weight_m_per_rad: weight of the orientation RMSE (rad) in the loss.
+        loss: ``window`` (the position RMSE after each window's yaw alignment), ``segments``
+            (relative errors over segments of ``segment_s``) or ``start`` (the position RMSE after
+            one alignment per sequence, at its start; :func:`~flowins.training.unroll.window_loss`).
+        segment_s: the segment durations (s) of ``loss=segments``.
         mistune: every noise parameter's start multiplied by this.
         start: starting values replacing the filter config's, by parameter name.
         learn, freeze: the names learned (None: all but the frozen-by-default ones) and kept.
@@ -128,6 +140,8 @@ class ModelSettings:
     nll_weight: float = bounded(0.0, minimum=0.0)
     innovation_weight: float = bounded(0.0, minimum=0.0)
     orientation_weight_m_per_rad: float = bounded(0.0, minimum=0.0)
+    loss: Literal["window", "segments", "start"] = "window"
+    segment_s: tuple[float, ...] = bounded((10.0, 20.0, 40.0), minimum=1e-3, nonempty=True)
     mistune: float = bounded(1.0, minimum=1e-12)
     start: dict[str, float] = bounded({})
     learn: tuple[str, ...] | None = None
@@ -178,19 +192,32 @@ def _check_bound(name: str, decades: float | None) -> float:
     return decades
 
 
-def _bounded_value(name: str, a: Tensor, center: Tensor, bound_decades: Tensor) -> Tensor:
+def _bounded_value(name: str, a: Tensor, center: Tensor, bound_decades: Tensor,
+                   ceiling: Tensor | float = math.inf) -> Tensor:
     """The value of parameter ``name`` at the coordinate ``a`` around the start ``center``
-    within ``bound_decades`` (``inf``: unbounded): the module docstring's maps, for tensors of
-    any (broadcast) shape. Exactly ``center`` at ``a = 0``; free of NaN for every ``a``."""
+    within ``bound_decades`` (``inf``: unbounded) and below ``ceiling`` (``inf``: none): the
+    module docstring's maps, for tensors of any (broadcast) shape. Exactly ``center`` at
+    ``a = 0``; free of NaN for every ``a``."""
     unbounded = torch.isinf(bound_decades)
     scale = torch.where(unbounded, torch.ones_like(bound_decades), bound_decades * math.log(10.0))
     s = torch.where(unbounded, a, scale * torch.tanh(a / scale))  # B tanh(a / B); a itself for B = ∞
     if name != "dropout_p":
+        ceiling = torch.as_tensor(ceiling, dtype=center.dtype, device=center.device)
+        if bool(torch.isfinite(ceiling).any()):
+            # above the start: B⁺ = min(B, ln(c / θ₀)) >= 0 (a floor keeps a / B⁺ finite)
+            room = torch.log(ceiling / center.clamp_min(1e-300)).clamp_min(0.0)
+            up = torch.minimum(torch.where(unbounded, torch.full_like(room, math.inf), scale), room).clamp_min(1e-12)
+            s = torch.where(a > 0, torch.where(room > 0, up * torch.tanh(a / up), torch.zeros_like(s)), s)
         return center * torch.exp(s)
     # sigmoid(logit p0 + s), in the form without overflow for either sign of s and = p0 at s = 0
     p0, q0 = center, 1.0 - center
     up, down = torch.exp(-s.clamp(min=0.0)), torch.exp(s.clamp(max=0.0))
     return torch.where(s >= 0, p0 / (p0 + q0 * up), p0 * down / (p0 * down + q0))
+
+
+def _plain_number(x: object) -> bool:
+    """A one-element floating tensor that is not NaN (a ceiling: ``inf`` for none)."""
+    return isinstance(x, Tensor) and x.numel() == 1 and x.is_floating_point() and not bool(torch.isnan(x).any())
 
 
 def starting_values(config: NavigationConfig, *, dropout_p: float = 0.2) -> dict[str, float]:
@@ -239,14 +266,17 @@ class FilterParameters(nn.Module):
         bounds: decades each way from the start by name (None: unbounded;
             :meth:`ModelSettings.parameter_bounds`); names left out take
             :data:`DEFAULT_BOUND_DECADES`.
+        ceilings: absolute ceilings by name (default :data:`CEILINGS`; ``{}``: none).
 
     Attributes:
         raw: the coordinates ``a``, one 0-dim float64 ``nn.Parameter`` each (0 at the start).
-        center, bound: the starts and the bounds (decades, ``inf`` for none), as buffers.
+        center, bound, ceiling: the starts, the bounds (decades, ``inf`` for none) and the
+            ceilings (``inf`` for none), as buffers.
     """
 
     def __init__(self, start: Mapping[str, float], learn: Iterable[str] | None = None, *,
-                 bounds: Mapping[str, float | None] | None = None) -> None:
+                 bounds: Mapping[str, float | None] | None = None,
+                 ceilings: Mapping[str, float] | None = None) -> None:
         super().__init__()
         bounds = dict(bounds or {})
         missing = [n for n in NAMES if n not in start]
@@ -273,6 +303,8 @@ class FilterParameters(nn.Module):
             self.raw[name] = nn.Parameter(torch.zeros((), **f64), requires_grad=name in learn)
         self.center = _Tensors(centers)
         self.bound = _Tensors(decades)
+        ceilings = CEILINGS if ceilings is None else ceilings
+        self.ceiling = _Tensors({n: torch.tensor(float(ceilings.get(n, math.inf)), **f64) for n in NAMES})
 
     @property
     def learned(self) -> list[str]:
@@ -280,7 +312,7 @@ class FilterParameters(nn.Module):
 
     def value(self, name: str) -> Tensor:
         """The parameter in its own units (a 0-dim float64 tensor with a gradient)."""
-        return _bounded_value(name, self.raw[name], self.center[name], self.bound[name])
+        return _bounded_value(name, self.raw[name], self.center[name], self.bound[name], self.ceiling[name])
 
     def values(self) -> dict[str, float]:
         return {n: float(self.value(n).detach()) for n in NAMES}
@@ -320,7 +352,7 @@ class FilterParameters(nn.Module):
         state = ckpt.get("state_dict", ckpt) if isinstance(ckpt, dict) else None
         if not isinstance(state, dict):
             raise ValueError(f"model.checkpoint: {path} is not a train.py checkpoint (no state_dict); expected {expected}")
-        found: dict[str, dict[str, object]] = {"raw": {}, "center": {}, "bound": {}}
+        found: dict[str, dict[str, object]] = {"raw": {}, "center": {}, "bound": {}, "ceiling": {}}
         for key, tensor in state.items():  # "params.raw.acc_noise": kind "raw", name "acc_noise"
             *_, kind, name = ("." + str(key)).split(".")
             if kind in found and name in _FIELDS:
@@ -349,8 +381,11 @@ class FilterParameters(nn.Module):
         if bad:
             raise ValueError(f"model.checkpoint: {path}: {bad} are not single numbers (a start >= 0; "
                              "a bound > 0 decades, inf for none)")
+        # a checkpoint without ceilings was learned without them: its values stay as they were
+        ceiling = {n: float(found["ceiling"][n]) for n in NAMES if _plain_number(found["ceiling"].get(n))}
         module = cls({n: float(center[n]) for n in NAMES}, learn=(),
-                     bounds={n: None if math.isinf(float(bound[n])) else float(bound[n]) for n in NAMES})
+                     bounds={n: None if math.isinf(float(bound[n])) else float(bound[n]) for n in NAMES},
+                     ceilings=ceiling)
         with torch.no_grad():
             for n in NAMES:
                 module.raw[n].copy_(raw[n].reshape(()))
@@ -365,7 +400,7 @@ class FilterParameters(nn.Module):
         for n in NAMES:
             x = torch.as_tensor(raw[n], dtype=torch.float64)
             values[n] = float(torch.sigmoid(x) if n == "dropout_p" else torch.exp(x))
-        return cls(values, learn=(), bounds={n: None for n in NAMES})
+        return cls(values, learn=(), bounds={n: None for n in NAMES}, ceilings={})
 
     def extra_repr(self) -> str:
         return ", ".join(f"{n}={v:.4g}" for n, v in self.values().items())

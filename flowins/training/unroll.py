@@ -19,6 +19,8 @@ from torch import Tensor
 
 from flowins.data.streams import GnssStream, ImuStream, PoseStream
 from flowins.evaluation.alignment import (
+    Alignment,
+    align_start,
     align_yaw,
     apply_alignment,
     apply_alignment_to_quaternions,
@@ -27,6 +29,7 @@ from flowins.evaluation.metrics import (
     associate,
     interpolate_positions,
     interpolate_quaternions,
+    segment_errors,
 )
 from flowins.filter.chain import NodeTrack
 from flowins.filter.runner import FilterInput, run_filters
@@ -169,6 +172,14 @@ class WindowLoss(NamedTuple):
     nll: Tensor  # mean Gaussian negative log-likelihood of the aligned position errors (0 if unused)
     orientation_rmse_rad: Tensor = torch.zeros(())  # chordal orientation RMSE after the same alignment (0 if unused)
     innovation_nll: Tensor = torch.zeros(())  # innovation NLL per scalar measurement (0 if unused)
+    segment_rmse_m: Tensor = torch.zeros(())  # mean over durations of the segment RMSE (0 unless loss="segments")
+    #: the alignment the errors were taken after (no gradient): with loss="start", the one to
+    #: pass to the sequence's later windows
+    alignment: Alignment | None = None
+
+
+#: the window losses :func:`window_loss` knows (``model.loss``)
+LOSSES = ("window", "segments", "start")
 
 
 def orientation_rmse(q_est: Tensor, q_ref: Tensor) -> Tensor:
@@ -188,6 +199,9 @@ def window_loss(
     innovation_weight: float = 0.0,
     innovation: tuple[Tensor, float] | None = None,
     max_dt_s: float = 0.1,
+    loss: str = "window",
+    segment_s: Sequence[float] = (10.0, 20.0, 40.0),
+    alignment: Alignment | None = None,
 ) -> WindowLoss:
     """Position (and optionally orientation) error of a window's filter track against the ground truth.
 
@@ -206,7 +220,25 @@ def window_loss(
     (:attr:`WindowResult.nll`, :attr:`WindowResult.nll_count`): the likelihood of the
     measurements under the filter's own predictions, which fixes the absolute noise levels
     that the RMSE sees only as ratios, and needs no ground truth.
+
+    ``loss="segments"`` replaces the aligned RMSE by the relative errors over segments of
+    the durations ``segment_s`` inside the window (:func:`~flowins.evaluation.metrics.segment_errors`,
+    the mean over durations of each one's RMS displacement error), and the orientation term by
+    the RMS heading-change error over the same segments. With a truth that has orientations the
+    displacements are compared in their own heading frames, so no alignment enters and heading
+    and scale drift inside a segment cost in full (the per-window yaw alignment absorbs most
+    of a drift). Without orientations the displacements are compared after the window's yaw
+    alignment. Durations longer than the window are left out; a window shorter than all of
+    them is one segment, the whole window.
+
+    ``loss="start"`` aligns once per sequence instead of once per window: ``alignment`` (the
+    one :attr:`WindowLoss.alignment` returned for the sequence's first window), or, for the
+    first window, the heading and position of the window's first node against the truth's
+    (:func:`~flowins.evaluation.alignment.align_start`; the window's own yaw alignment when
+    the truth has no orientations). Heading drift since the start then costs in full.
     """
+    if loss not in LOSSES:
+        raise ValueError(f"model.loss={loss!r}: expected one of {', '.join(LOSSES)}")
     t, pos, cov = track.t, track.mean[:, STATE.p], track.cov[:, STATE.p, STATE.p]
     inside = (truth.t_s >= t[0]) & (truth.t_s <= t[-1])
     t_ref, p_ref = truth.t_s[inside], truth.pos_m[inside].to(pos)
@@ -216,10 +248,27 @@ def window_loss(
     est = interpolate_positions(pos, assoc)
     ref = p_ref[assoc.ref_index]
     with torch.no_grad():
-        alignment = align_yaw(est.detach(), ref)
+        if loss != "start" or alignment is None:
+            if loss == "start" and truth.quat_wxyz is not None:
+                q_first = interpolate_quaternions(track.mean[:, STATE.q], assoc)[0]
+                alignment = align_start(est[0], q_first, ref[0], truth.quat_wxyz[inside][assoc.ref_index[0]])
+            else:
+                alignment = align_yaw(est.detach(), ref)
+        alignment = Alignment(*(x.detach() for x in alignment))
     err = apply_alignment(alignment, est) - ref
     mse = (err * err).sum(-1).mean()
     rmse = torch.sqrt(mse + 1e-12)
+    segments = None
+    if loss == "segments":
+        t_k = t_ref[assoc.ref_index]
+        span = float(t_k[-1] - t_k[0])
+        lengths = [float(x) for x in segment_s if float(x) <= span] or [span]
+        if truth.quat_wxyz is not None:
+            q_est = interpolate_quaternions(track.mean[:, STATE.q], assoc)
+            q_ref = truth.quat_wxyz[inside].to(pos)[assoc.ref_index]
+            segments = segment_errors(t_k, est, ref, lengths, q_est=q_est, q_ref=q_ref)
+        else:
+            segments = segment_errors(t_k, apply_alignment(alignment, est), ref, lengths)
     nll = torch.zeros((), dtype=pos.dtype)
     if nll_weight > 0:
         w = assoc.weight.to(pos).view(-1, 1, 1)
@@ -230,7 +279,12 @@ def window_loss(
         maha = (err.unsqueeze(-2) @ torch.linalg.solve(P, err.unsqueeze(-1))).reshape(-1)
         nll = 0.5 * (maha + torch.logdet(2 * torch.pi * P)).mean()
     attitude = torch.zeros((), dtype=pos.dtype)
-    if orientation_weight_m_per_rad > 0:
+    if orientation_weight_m_per_rad > 0 and segments is not None:
+        if segments.heading_rmse_rad is None:
+            raise ValueError(f"{truth.name}: the orientation loss (orientation_weight_m_per_rad > 0) needs a ground "
+                             "truth with orientations (quat_wxyz); this one has positions only")
+        attitude = segments.heading_rmse_rad.mean()
+    elif orientation_weight_m_per_rad > 0:
         if truth.quat_wxyz is None:
             raise ValueError(f"{truth.name}: the orientation loss (orientation_weight_m_per_rad > 0) needs a ground "
                              "truth with orientations (quat_wxyz); this one has positions only")
@@ -243,8 +297,10 @@ def window_loss(
             raise ValueError("window_loss: innovation_weight > 0 needs the window's innovation likelihood "
                              "(run_windows(..., likelihood=True))")
         innovation_nll = innovation[0] / max(innovation[1], 1.0)
-    loss = rmse + nll_weight * nll + orientation_weight_m_per_rad * attitude + innovation_weight * innovation_nll
-    return WindowLoss(loss, rmse.detach(), nll.detach(), attitude.detach(), innovation_nll.detach())
+    position = rmse if segments is None else segments.rmse_m.mean()
+    total = position + nll_weight * nll + orientation_weight_m_per_rad * attitude + innovation_weight * innovation_nll
+    return WindowLoss(total, rmse.detach(), nll.detach(), attitude.detach(), innovation_nll.detach(),
+                      position.detach() if segments is not None else torch.zeros((), dtype=pos.dtype), alignment)
 
 
 def sequence_rmse(seq: TrainingSequence, method: str, config: NavigationConfig, *, dropout_p: float | None = None) -> float:

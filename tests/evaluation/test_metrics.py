@@ -10,6 +10,7 @@ from flowins.evaluation import (
     interpolate_positions,
     interpolate_quaternions,
     position_rmse,
+    segment_errors,
     trajectory_errors,
 )
 from flowins.geometry import quaternion
@@ -199,3 +200,79 @@ def test_trajectory_errors_argument_checks():
         trajectory_errors(t, p[:9], t, p)
     with pytest.raises(ValueError, match="at least 3 associated points"):
         trajectory_errors(t, p, torch.tensor([0.5, 4.0], dtype=F64), p[:2], max_dt_s=0.6)
+
+
+# ---------------------------------------------------------------- segment errors
+def _circle_walk(n: int = 401, rate: float = 0.2, radius: float = 10.0):
+    """40 s on a circle, body x axis along the velocity (heading = angle + π/2)."""
+    t = torch.linspace(0.0, 40.0, n, dtype=torch.float64)
+    angle = rate * t
+    pos = torch.stack((radius * torch.cos(angle), radius * torch.sin(angle), torch.zeros_like(t)), -1)
+    yaw = angle + math.pi / 2
+    zero = torch.zeros_like(yaw)
+    return t, pos, quaternion.from_euler(zero, zero, yaw)
+
+
+def test_segment_errors_of_a_scale_error_on_a_straight_line():
+    """Every displacement is s times the truth: the error is |s - 1| v L for each duration L."""
+    t = torch.linspace(0.0, 30.0, 301, dtype=torch.float64)
+    ref = torch.stack((1.5 * t, torch.zeros_like(t), torch.zeros_like(t)), -1)
+    out = segment_errors(t, 1.02 * ref, ref, [5.0, 10.0, 25.0, 40.0])
+    assert out.lengths_s == (5.0, 10.0, 25.0)  # no 40 s segment in 30 s
+    assert out.counts == (251, 201, 51)
+    assert torch.allclose(out.rmse_m, 0.02 * 1.5 * torch.tensor([5.0, 10.0, 25.0], dtype=torch.float64), rtol=1e-9)
+    assert out.heading_rmse_rad is None
+
+
+def test_segment_errors_in_heading_frames_need_no_alignment():
+    """The truth turned by 0.7 rad about the vertical and moved: positions, headings and all.
+    Relative errors in each segment's own heading frame are zero without any alignment."""
+    t, pos, q = _circle_walk()
+    turn = quaternion.from_euler(*(torch.tensor(v, dtype=torch.float64) for v in (0.0, 0.0, 0.7)))
+    est = pos @ quaternion.to_matrix(turn).T + torch.tensor([3.0, -2.0, 1.0], dtype=torch.float64)
+    q_est = quaternion.multiply(turn.expand_as(q), q)
+    out = segment_errors(t, est, pos, [5.0, 20.0], q_est=q_est, q_ref=q)
+    assert float(out.rmse_m.max()) < 2e-6 and float(out.heading_rmse_rad.max()) < 1e-7  # the sqrt floors
+    world = segment_errors(t, est, pos, [5.0, 20.0])  # world frame: the turn is an error there
+    assert float(world.rmse_m.min()) > 1.0
+
+
+def test_segment_errors_of_a_heading_offset_and_a_heading_drift_match_the_closed_form():
+    """Positions exact; the estimated heading off by a constant β: each displacement is turned
+    by -β, an error of 2 sin(β/2) times the chord 2 r sin(ωL/2), and the heading change is exact.
+    With a heading drifting at δ rad/s instead, the heading-change error is δ L."""
+    rate, radius, beta, drift = 0.2, 10.0, 0.05, 0.003
+    t, pos, q = _circle_walk(rate=rate, radius=radius)
+    zero = torch.zeros_like(t)
+    offset = quaternion.from_euler(zero, zero, zero + beta)
+    out = segment_errors(t, pos, pos, [5.0, 20.0], q_est=quaternion.multiply(offset, q), q_ref=q)
+    lengths = torch.tensor([5.0, 20.0], dtype=torch.float64)
+    chord = 2 * radius * torch.sin(rate * lengths / 2)
+    assert torch.allclose(out.rmse_m, 2 * math.sin(beta / 2) * chord, rtol=1e-9)
+    assert float(out.heading_rmse_rad.max()) < 1e-7
+    drifting = quaternion.from_euler(zero, zero, drift * t)
+    out = segment_errors(t, pos, pos, [5.0, 20.0], q_est=quaternion.multiply(drifting, q), q_ref=q)
+    assert torch.allclose(out.heading_rmse_rad, drift * lengths, rtol=1e-6)
+
+
+def test_segment_errors_gradient_matches_finite_differences():
+    t, pos, q = _circle_walk(n=81)
+    gen = torch.Generator().manual_seed(0)
+    est = (pos + 0.1 * torch.randn(pos.shape, generator=gen, dtype=torch.float64)).requires_grad_(True)
+    q_est = (q + 0.01 * torch.randn(q.shape, generator=gen, dtype=torch.float64)).requires_grad_(True)
+
+    def f(e, qe):
+        out = segment_errors(t, e, pos, [5.0, 20.0], q_est=qe, q_ref=q)
+        return out.rmse_m.sum() + out.heading_rmse_rad.sum()
+
+    assert torch.autograd.gradcheck(f, (est, q_est), eps=1e-6, atol=1e-6)
+
+
+def test_segment_errors_refuse_bad_input():
+    t, pos, q = _circle_walk(n=11)
+    with pytest.raises(ValueError, match="durations? must be > 0"):
+        segment_errors(t, pos, pos, [0.0])
+    with pytest.raises(ValueError, match="together"):
+        segment_errors(t, pos, pos, [1.0], q_est=q)
+    with pytest.raises(ValueError, match="expected t_s"):
+        segment_errors(t, pos[:5], pos, [1.0])

@@ -62,3 +62,54 @@ def test_orientation_term_needs_a_truth_with_orientations():
     t, pos, q = circle()
     with pytest.raises(ValueError, match="orientations"):
         window_loss(track_of(t, pos, q), PoseStream(t, pos, name="positions only"), orientation_weight_m_per_rad=1.0)
+
+
+def test_segment_loss_of_a_heading_drift_is_the_arc_against_the_chord():
+    """The truth walks straight along x at v; the estimate's heading drifts at δ, so it walks
+    an arc of radius v/δ. In its own heading frame each segment of L seconds is displaced by
+    (v/δ)(sin δL, 1 - cos δL) against (vL, 0): the loss is the mean over the durations of that
+    error's length, plus the weight times δL for the heading change; no alignment enters."""
+    v, drift = 1.4, 0.01
+    t = torch.linspace(0.0, 20.0, 201, dtype=F64)
+    zero = torch.zeros_like(t)
+    truth = PoseStream(t, torch.stack((v * t, zero, zero), -1), quat.from_euler(zero, zero, zero))
+    arc = torch.stack((v / drift * torch.sin(drift * t), v / drift * (1 - torch.cos(drift * t)), zero), -1)
+    turn = quat.to_matrix(quat.from_euler(*(torch.tensor(a, dtype=F64) for a in (0.0, 0.0, 0.3))))
+    est = track_of(t, arc @ turn.T + torch.tensor([2.0, 1.0, 0.0], dtype=F64), quat.from_euler(zero, zero, drift * t + 0.3))
+    lengths = torch.tensor([5.0, 10.0], dtype=F64)
+    expected = torch.sqrt((v / drift * torch.sin(drift * lengths) - v * lengths) ** 2
+                          + (v / drift * (1 - torch.cos(drift * lengths))) ** 2).mean()
+    loss = window_loss(est, truth, loss="segments", segment_s=(5.0, 10.0, 60.0), orientation_weight_m_per_rad=2.0)
+    assert float(loss.segment_rmse_m) == pytest.approx(float(expected), rel=1e-6)
+    assert float(loss.orientation_rmse_rad) == pytest.approx(drift * 7.5, rel=1e-6)
+    assert float(loss.loss) == pytest.approx(float(expected) + 2.0 * drift * 7.5, rel=1e-6)
+    # a window shorter than every duration is one segment: the whole window
+    short = window_loss(est, truth, loss="segments", segment_s=(60.0,))
+    whole = torch.tensor(20.0, dtype=F64)
+    assert float(short.segment_rmse_m) == pytest.approx(float(torch.sqrt(
+        (v / drift * torch.sin(drift * whole) - v * whole) ** 2 + (v / drift * (1 - torch.cos(drift * whole))) ** 2)),
+        rel=1e-6)
+    with pytest.raises(ValueError, match="model.loss='foo'"):
+        window_loss(est, truth, loss="foo")
+
+
+def test_start_loss_aligns_once_at_the_start_so_a_heading_drift_costs_in_full():
+    """The arc of a drifting heading against the straight truth, the estimate in another frame
+    (turned by 0.3 rad and moved): aligned once by the first pose, the error at t is the arc's
+    distance from the line, |(v/δ)(sin δt, 1 - cos δt) - (vt, 0)|, for the first window and,
+    with that alignment passed on, for a later one. Each window's own yaw alignment hides most of it."""
+    v, drift = 1.4, 0.01
+    t = torch.linspace(0.0, 40.0, 401, dtype=F64)
+    zero = torch.zeros_like(t)
+    truth = PoseStream(t, torch.stack((v * t, zero, zero), -1), quat.from_euler(zero, zero, zero))
+    arc = torch.stack((v / drift * torch.sin(drift * t), v / drift * (1 - torch.cos(drift * t)), zero), -1)
+    turn = quat.to_matrix(quat.from_euler(*(torch.tensor(a, dtype=F64) for a in (0.0, 0.0, 0.3))))
+    est_p, est_q = arc @ turn.T + torch.tensor([2.0, 1.0, 0.0], dtype=F64), quat.from_euler(zero, zero, drift * t + 0.3)
+    gap = (arc - truth.pos_m).norm(dim=-1)
+    first, later = slice(0, 201), slice(200, 401)
+    one = window_loss(track_of(t[first], est_p[first], est_q[first]), truth, loss="start")
+    assert float(one.rmse_m) == pytest.approx(float(gap[first].square().mean().sqrt()), rel=1e-6)
+    two = window_loss(track_of(t[later], est_p[later], est_q[later]), truth, loss="start", alignment=one.alignment)
+    assert float(two.rmse_m) == pytest.approx(float(gap[later].square().mean().sqrt()), rel=1e-6)
+    own = window_loss(track_of(t[later], est_p[later], est_q[later]), truth)
+    assert float(own.rmse_m) < 0.2 * float(two.rmse_m)

@@ -328,7 +328,7 @@ def _logit(p: float) -> float:
 @pytest.mark.parametrize("decades", [0.5, 2.0, 3.0])
 def test_values_stay_within_the_bound_and_approach_its_limits(decades):
     start = some_start()
-    params = FilterParameters(start, bounds={n: decades for n in NAMES})
+    params = FilterParameters(start, bounds={n: decades for n in NAMES}, ceilings={})
     for a, factor in ((1e3, 10.0 ** decades), (-1e3, 10.0 ** -decades)):
         values = _at(params, {n: a for n in NAMES}).values()
         for name in POSITIVE:
@@ -355,7 +355,7 @@ def test_values_stay_within_the_bound_and_approach_its_limits(decades):
 def test_the_gradient_is_the_closed_form_and_the_finite_difference(name, decades):
     """d value / d a: value · sech²(a / B) for a positive parameter (value for B = ∞), and
     p (1 - p) sech²(a / B) for the dropout rate, by autograd and by central differences."""
-    params = FilterParameters(some_start(), bounds={name: decades})
+    params = FilterParameters(some_start(), bounds={name: decades}, ceilings={})
     scale = math.inf if decades is None else decades * math.log(10)
     for a in (-6.0, -1.0, 0.0, 0.4, 3.0, 8.0):
         _at(params, {name: a})
@@ -375,7 +375,7 @@ def test_unbounded_is_log_and_logit_space():
     """``bound_decades: null``: start · exp(a), sigmoid(logit p0 + a): the log-space
     parameters ``log start + a`` of an unbounded module, for any a."""
     start = some_start()
-    params = FilterParameters(start, bounds={n: None for n in NAMES})
+    params = FilterParameters(start, bounds={n: None for n in NAMES}, ceilings={})
     assert params.bounds() == {n: None for n in NAMES}
     for a in (-40.0, -2.5, 0.7, 30.0):
         values = _at(params, {n: a for n in NAMES}).values()
@@ -397,7 +397,7 @@ def test_unbounded_training_takes_the_steps_of_log_space_parameters():
     start = some_start()
     learn = ["acc_noise", "gyro_noise", "flow_sigma_scale", "initial_roll_pitch_rad", "dropout_p"]
     target = {n: start[n] * 3.0 if n != "dropout_p" else 0.8 for n in learn}
-    params = FilterParameters(start, learn, bounds={n: None for n in NAMES})
+    params = FilterParameters(start, learn, bounds={n: None for n in NAMES}, ceilings={})
     logs = {n: torch.tensor(_logit(start[n]) if n == "dropout_p" else math.log(start[n]), dtype=torch.float64,
                             requires_grad=True) for n in learn}
 
@@ -475,13 +475,64 @@ def test_a_checkpoint_round_trip_keeps_the_values_and_the_bounds(tmp_path, decad
     path = tmp_path / "learner.ckpt"
     torch.save({"state_dict": learner.state_dict()}, path)
     state = torch.load(path)["state_dict"]
-    assert {k for k in state if k.startswith("params.")} == {f"params.{kind}.{n}" for kind in ("raw", "center", "bound")
+    assert {k for k in state if k.startswith("params.")} == {f"params.{kind}.{n}" for kind in ("raw", "center", "bound", "ceiling")
                                                              for n in NAMES}
     loaded = FilterParameters.from_checkpoint(path)
     assert loaded.bounds() == params.bounds()
     for name, value in params.values().items():
         assert loaded.values()[name] == pytest.approx(value, rel=1e-12, abs=0.0), name
     assert loaded.learned == []
+
+
+def test_angle_sigmas_stay_below_their_ceilings_with_a_slope_of_one_at_the_start():
+    """Roll/pitch 1-σ below π/2 and yaw below π whatever the bound (null too); below the
+    start the plain bound; d ln θ / d a = 1 at the start; a start above its ceiling can only fall."""
+    from flowins.training.parameters import CEILINGS
+
+    start = some_start() | {"initial_roll_pitch_rad": 0.35, "initial_yaw_rad": 4.0}
+    for decades in (2.0, None):
+        params = FilterParameters(start, NAMES, bounds={n: decades for n in NAMES})
+        for a in (0.5, 3.0, 50.0, 1e4):
+            values = _at(params, {n: a for n in NAMES}).values()
+            assert start["initial_roll_pitch_rad"] < values["initial_roll_pitch_rad"] <= math.pi / 2
+            assert values["initial_yaw_rad"] == start["initial_yaw_rad"]  # above π already: it can't grow
+        up = math.log((math.pi / 2) / 0.35) if decades is None else min(decades * math.log(10), math.log(math.pi / 2 / 0.35))
+        for a in (0.5, 3.0):  # an independent evaluation in plain floats
+            value = _at(params, {"initial_roll_pitch_rad": a}).values()["initial_roll_pitch_rad"]
+            assert value == pytest.approx(0.35 * math.exp(up * math.tanh(a / up)), rel=1e-12)
+        assert _at(params, {"initial_roll_pitch_rad": 1e4}).values()["initial_roll_pitch_rad"] == pytest.approx(
+            math.pi / 2, rel=1e-12)
+        down = _at(params, {"initial_roll_pitch_rad": -1e4, "initial_yaw_rad": -1e4}).values()
+        if decades is not None:
+            assert down["initial_roll_pitch_rad"] == pytest.approx(0.35 * 10 ** -decades, rel=1e-12)
+            assert down["initial_yaw_rad"] == pytest.approx(4.0 * 10 ** -decades, rel=1e-12)
+        for name in CEILINGS:
+            _at(params, {name: 0.0})
+            value = params.value(name)
+            (grad,) = torch.autograd.grad(torch.log(value), params.raw[name])
+            assert float(grad) == pytest.approx(1.0, rel=1e-12) or name == "initial_yaw_rad"
+            _at(params, {name: 1e4})
+            (grad,) = torch.autograd.grad(params.value(name), params.raw[name])
+            assert math.isfinite(float(grad))
+
+
+def test_a_checkpoint_without_ceilings_keeps_the_values_it_was_learned_with(tmp_path):
+    from flowins.training.module import FilterLearner
+
+    params = FilterParameters(some_start() | {"initial_roll_pitch_rad": 0.35}, ceilings={})
+    _at(params, {"initial_roll_pitch_rad": 3.0})
+    assert params.values()["initial_roll_pitch_rad"] > math.pi / 2  # learned without a ceiling
+    state = {k: v for k, v in FilterLearner(params, NavigationConfig(), methods=["ins"]).state_dict().items()
+             if ".ceiling." not in k}
+    torch.save({"state_dict": state}, tmp_path / "old.ckpt")
+    loaded = FilterParameters.from_checkpoint(tmp_path / "old.ckpt")
+    assert loaded.values() == pytest.approx(params.values(), rel=1e-12)
+    capped = FilterParameters(some_start() | {"initial_roll_pitch_rad": 0.35})
+    _at(capped, {"initial_roll_pitch_rad": 3.0})
+    torch.save({"state_dict": FilterLearner(capped, NavigationConfig(), methods=["ins"]).state_dict()},
+               tmp_path / "new.ckpt")
+    assert FilterParameters.from_checkpoint(tmp_path / "new.ckpt").values() == pytest.approx(capped.values(), rel=1e-12)
+    assert capped.values()["initial_roll_pitch_rad"] < math.pi / 2
 
 
 def test_a_checkpoint_of_log_space_values_loads_as_those_values(tmp_path):
