@@ -23,6 +23,7 @@ import torch
 from flowins.config import bounded, build, check_target, setting
 from flowins.data.streams import ImuStream
 from flowins.filter.ekf import Gate
+from flowins.ins.consistency import gyro_consistency
 from flowins.ins.imu_model import ImuModel, imu_model
 from flowins.ins.initialization import InitialUncertainty
 from flowins.ins.mechanization import ProcessNoise
@@ -32,8 +33,14 @@ from flowins.measurements.gnss_heading import HeadingAlignment
 from flowins.measurements.registry import measurement_settings
 from flowins.navigation import NavigationConfig
 from flowins.start import StartSettings
-from flowins.training.parameters import (FROZEN_BY_DEFAULT, NAMES, NOISE_NAMES, FilterParameters, ModelSettings,
-                                         starting_values)
+from flowins.training.parameters import (
+    FROZEN_BY_DEFAULT,
+    NAMES,
+    NOISE_NAMES,
+    FilterParameters,
+    ModelSettings,
+    starting_values,
+)
 from flowins.training.unroll import METHODS
 
 log = logging.getLogger("flowins")
@@ -286,15 +293,34 @@ def resolve_imu(imu_cfg: Mapping[str, Any], recordings: Sequence[SensorRecording
     ``imu=auto`` takes the preset the recordings' metadata name (they must agree), else
     ``imu.recording`` when ``recorded`` (a recording read from a path) and ``imu.simulated``
     otherwise; a named preset or ``imu=kalibr`` is taken as it is. Every reading of every
-    recording is checked against the sensor's range (:meth:`ImuModel.check_readings`)."""
+    recording is checked against the sensor's range (:meth:`ImuModel.check_readings`) and,
+    unless ``imu.check_consistency`` is false, its gyroscope against its accelerometer
+    (:func:`check_gyro_consistency`)."""
     sensors = list(dict.fromkeys(rec.sensor for rec in recordings))
     if imu_cfg.get("name") == "auto" and len(sensors) > 1:
         raise ValueError(f"imu=auto: the recordings name different IMU presets {sensors} (metadata.yaml imu); "
                          "name one with imu=...")
     imu = imu_model(imu_cfg, recording=recorded, sensor=sensors[0] if sensors else None)
+    check = imu_cfg.get("check_consistency", True)
+    if not isinstance(check, bool):
+        raise ValueError(f"imu.check_consistency={check!r}: expected true or false")
     for rec in recordings:
         imu.check_readings(rec.imu)
+        if check:
+            check_gyro_consistency(rec.imu)
     return imu
+
+
+def check_gyro_consistency(stream: Any) -> None:
+    """A ValueError naming ``stream`` when its gyroscope disagrees with its accelerometer
+    (:func:`~flowins.ins.consistency.gyro_consistency`), and deg/s when that is why."""
+    result = gyro_consistency(stream.t_s, stream.acc_mps2, stream.gyro_rps)
+    if result.consistent:
+        return
+    hint = ("the readings look like deg/s: convert them to rad/s (× π/180)" if result.fix == "deg/s" else
+            "check the gyroscope's unit (rad/s expected) and that its axes are the accelerometer's")
+    raise ValueError(f"{stream.name}: the gyroscope's rotation does not explain the accelerometer's tilt: "
+                     f"{result.describe()}; {hint}, or set imu.check_consistency=false to run anyway")
 
 
 def flow_config(cfg: Mapping[str, Any], *, moments: bool, dropout_p: float | None = None) -> dict[str, Any]:

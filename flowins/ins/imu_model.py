@@ -139,4 +139,4 @@ def imu_model(cfg: Any, *, recording: bool, sensor: str | None = None) -> ImuMod
         ranges = {key: setting({"imu": cfg}, f"imu.{key}", float | None, minimum=0.0, default=None)
                   for key in ("acc_range_mps2", "gyro_range_rps")}
         return dataclasses.replace(model, **{k: v for k, v in ranges.items() if v is not None})
-    return build(ImuModel, {k: v for k, v in cfg.items() if k != "path"}, "imu")
+    return build(ImuModel, {k: v for k, v in cfg.items() if k not in ("path", "check_consistency")}, "imu")
