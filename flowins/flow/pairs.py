@@ -96,14 +96,15 @@ class FlowPairs:
         """One ``.npz``: times, per-pair counts and the concatenated points."""
         counts = np.array([len(p) for p in self.points], np.int64)
         cat = lambda field: (
-            np.concatenate([getattr(p, field).numpy() for p in self.points]) if self.points else np.zeros((0, 2))
+            np.concatenate([getattr(p, field).detach().cpu().numpy() for p in self.points]) if self.points
+            else np.zeros((0, 2))
         ).astype(np.float32)
         optional = [f for f in _OPTIONAL if self.points and all(getattr(p, f) is not None for p in self.points)]
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(path.name + ".partial.npz")
         np.savez_compressed(
-            tmp, version=FORMAT_VERSION, t1_s=self.t1_s.numpy(), t2_s=self.t2_s.numpy(), counts=counts,
+            tmp, version=FORMAT_VERSION, t1_s=self.t1_s.cpu().numpy(), t2_s=self.t2_s.cpu().numpy(), counts=counts,
             **{f: cat(f) for f in (*_REQUIRED, *optional)},
             kind=self.kind, description=self.description,
         )
@@ -253,7 +254,7 @@ def dense_pairs(
         second = torch.stack([cache[b] for _, b in chunk])
         result = run_provider(provider, first, second, input_scale)
         for j in range(len(chunk)):
-            item = lambda x: None if x is None else x[j].double()
+            item = lambda x: None if x is None else x[j].to("cpu", torch.float64)  # pairs are data: on the CPU
             points.append(grid_candidates(item(result.flow), item(result.sigma), stride_px=stride_px,
                                           border_px=border_px, dropout_unit_px=item(result.dropout_unit),
                                           floor_px=item(result.floor)))

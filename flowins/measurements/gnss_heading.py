@@ -149,7 +149,8 @@ def heading_transform(fit: HeadingFit, *, dtype: torch.dtype = torch.float64) ->
     """The state map ``x ↦ A x + b`` of the fit: ``A (26, 26)``, ``b (26,)``."""
     psi = fit.yaw_rad.to(dtype)
     R2 = rotation_2d(psi)
-    R3 = torch.block_diag(R2, torch.ones(1, 1, dtype=dtype))
+    like = {"dtype": dtype, "device": psi.device}
+    R3 = torch.block_diag(R2, torch.ones(1, 1, **like))
     zero = torch.zeros_like(psi)
     L = quat.left_matrix(torch.stack((torch.cos(0.5 * psi), zero, zero, torch.sin(0.5 * psi))))
     shift = fit.centre_fix_m.to(dtype) - R2 @ fit.centre_filter_m.to(dtype)
@@ -157,8 +158,8 @@ def heading_transform(fit: HeadingFit, *, dtype: torch.dtype = torch.float64) ->
     rotated = {"p": R3, "v": R3, "p_prev": R3, "q": L, "q_prev": L}
     shifted = {"p": shift3, "p_prev": shift3}
     sizes = dict(STATE.sizes)
-    A = torch.block_diag(*(rotated.get(name, torch.eye(sizes[name], dtype=dtype)) for name in STATE.names))
-    b = torch.cat([shifted.get(name, torch.zeros(sizes[name], dtype=dtype)) for name in STATE.names])
+    A = torch.block_diag(*(rotated.get(name, torch.eye(sizes[name], **like)) for name in STATE.names))
+    b = torch.cat([shifted.get(name, torch.zeros(sizes[name], **like)) for name in STATE.names])
     return A, b
 
 
@@ -172,7 +173,7 @@ def heading_noise(x: Tensor, fit: HeadingFit) -> Tensor:
         sl = STATE.slice(p_name)
         rel = getattr(s, p_name)[:2] - fit.centre_fix_m.to(x)
         J[sl.start : sl.start + 2, 0] = S @ rel
-        J[sl.start : sl.start + 2, 1:] = torch.eye(2, dtype=x.dtype)
+        J[sl.start : sl.start + 2, 1:] = torch.eye(2, dtype=x.dtype, device=x.device)
     J[STATE.v.start : STATE.v.start + 2, 0] = S @ s.v[:2]
     for q_name in ("q", "q_prev"):
         J[STATE.slice(q_name), 0] = 0.5 * quat.multiply(e_z, getattr(s, q_name))
