@@ -101,8 +101,8 @@ def gyro_consistency(
     average_s: float = 0.5,
     min_change_rad: float = math.radians(2.0),
     min_windows: int = 10,
-    margin: float = 3.0,
-    offset_rad: float = math.radians(5.0),
+    margin: float = 2.0,
+    offset_rad: float = math.radians(3.0),
 ) -> GyroConsistency:
     """Whether the gyroscope's rotation explains the accelerometer's tilt changes (module docstring).
 
