@@ -13,7 +13,9 @@ Data flow: ``config -> settings (checked) -> recordings -> filter_setup -> navig
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -24,8 +26,8 @@ from flowins.config import bounded, build, check_target, setting
 from flowins.data.streams import ImuStream
 from flowins.filter.ekf import Gate
 from flowins.ins.consistency import gyro_consistency
-from flowins.ins.imu_model import ImuModel, imu_model
-from flowins.ins.initialization import InitialUncertainty
+from flowins.ins.imu_model import ImuModel, imu_model, still_noise_densities
+from flowins.ins.initialization import InitialUncertainty, still_interval
 from flowins.ins.mechanization import ProcessNoise
 from flowins.measurements.flow_update import FlowUpdate
 from flowins.measurements.gnss import GnssRecovery
@@ -290,9 +292,10 @@ class SensorRecording(Protocol):
 def resolve_imu(imu_cfg: Mapping[str, Any], recordings: Sequence[SensorRecording], *, recorded: bool) -> ImuModel:
     """The IMU's error model for a job's ``recordings``: the one place the preset is chosen.
 
-    ``imu=auto`` takes the preset the recordings' metadata name (they must agree), else
-    ``imu.recording`` when ``recorded`` (a recording read from a path) and ``imu.simulated``
-    otherwise; a named preset or ``imu=kalibr`` is taken as it is. Every reading of every
+    ``imu=auto`` takes the preset the recordings' metadata name (they must agree), else, for
+    recordings read from a path (``recorded``), the white noise measured over their still
+    starts (:func:`measured_imu`) and ``imu.recording`` where there is none, and
+    ``imu.simulated`` for the simulated walk; a named preset or ``imu=kalibr`` is taken as it is. Every reading of every
     recording is checked against the sensor's range (:meth:`ImuModel.check_readings`) and,
     unless ``imu.check_consistency`` is false, its gyroscope against its accelerometer
     (:func:`check_gyro_consistency`)."""
@@ -301,6 +304,8 @@ def resolve_imu(imu_cfg: Mapping[str, Any], recordings: Sequence[SensorRecording
         raise ValueError(f"imu=auto: the recordings name different IMU presets {sensors} (metadata.yaml imu); "
                          "name one with imu=...")
     imu = imu_model(imu_cfg, recording=recorded, sensor=sensors[0] if sensors else None)
+    if imu_cfg.get("name") == "auto" and recorded and sensors == [None]:
+        imu = measured_imu(imu_cfg, recordings, fallback=imu)
     check = imu_cfg.get("check_consistency", True)
     if not isinstance(check, bool):
         raise ValueError(f"imu.check_consistency={check!r}: expected true or false")
@@ -309,6 +314,37 @@ def resolve_imu(imu_cfg: Mapping[str, Any], recordings: Sequence[SensorRecording
         if check:
             check_gyro_consistency(rec.imu)
     return imu
+
+
+def measured_imu(imu_cfg: Mapping[str, Any], recordings: Sequence[SensorRecording], *, fallback: ImuModel) -> ImuModel:
+    """The IMU model of recordings that name no sensor: white-noise densities measured over
+    each one's still start (:func:`~flowins.ins.initialization.still_interval`, at least
+    ``imu.still_noise_min_s`` long; :func:`~flowins.ins.imu_model.still_noise_densities`), their
+    RMS over the recordings, times ``imu.still_noise_inflation`` (a still interval sees neither
+    vibration nor scale and axis errors); the bias walks and ranges of ``fallback`` (the
+    ``imu.recording`` preset), which is returned as it is when ``imu.still_noise`` is false or
+    no recording starts still for long enough."""
+    enabled = setting({"imu": imu_cfg}, "imu.still_noise", bool, default=True)
+    min_s = setting({"imu": imu_cfg}, "imu.still_noise_min_s", float, minimum=0.0, default=2.0)
+    inflation = setting({"imu": imu_cfg}, "imu.still_noise_inflation", float, minimum=1e-12, default=10.0)
+    if not enabled:
+        return fallback
+    measured = []
+    for rec in recordings:
+        stream = rec.imu
+        still = still_interval(stream.t_s, stream.acc_mps2, stream.gyro_rps)
+        if still.end >= 10 and still.duration_s >= min_s:
+            measured.append((stream.name, still_noise_densities(stream.t_s, stream.acc_mps2, stream.gyro_rps,
+                                                                still.end)))
+    if not measured:
+        return fallback
+    acc = math.sqrt(sum(m.acc_noise**2 for _, m in measured) / len(measured))
+    gyro = math.sqrt(sum(m.gyro_noise**2 for _, m in measured) / len(measured))
+    where = "; ".join(f"{name} {m.start_s:.2f}–{m.end_s:.2f} s ({m.samples} samples)" for name, m in measured)
+    source = (f"white noise measured over the still start ({where}): acc {acc:.3g} m/s²/√Hz, gyro {gyro:.3g} "
+              f"rad/s/√Hz, × {inflation:g} (imu.still_noise_inflation); walks and ranges of {fallback.name}")
+    return dataclasses.replace(fallback, name="measured", acc_noise=acc, gyro_noise=gyro, inflation=inflation,
+                               source=source)
 
 
 def check_gyro_consistency(stream: Any) -> None:

@@ -140,3 +140,38 @@ def imu_model(cfg: Any, *, recording: bool, sensor: str | None = None) -> ImuMod
                   for key in ("acc_range_mps2", "gyro_range_rps")}
         return dataclasses.replace(model, **{k: v for k, v in ranges.items() if v is not None})
     return build(ImuModel, {k: v for k, v in cfg.items() if k not in ("path", "check_consistency")}, "imu")
+
+
+@dataclass(frozen=True)
+class MeasuredNoise:
+    """White-noise densities measured over a still interval (:func:`still_noise_densities`)."""
+
+    acc_noise: float  # m/s²/√Hz, RMS over the axes
+    gyro_noise: float  # rad/s/√Hz
+    samples: int
+    start_s: float
+    end_s: float
+
+
+def still_noise_densities(t_s: Any, acc_mps2: Any, gyro_rps: Any, end: int) -> MeasuredNoise:
+    """The white-noise densities of rows ``[0, end)`` of a still IMU: per axis, the standard
+    deviation about a straight line in time (what is left of a slow bias drift or settling
+    tilt), times ``√Δt`` (the density of white noise sampled every ``Δt``, the median step),
+    then the RMS over the three axes. Needs ``end >= 10``."""
+    import torch
+
+    if end < 10:
+        raise ValueError(f"still_noise_densities: {end} still samples; need at least 10")
+    t = torch.as_tensor(t_s, dtype=torch.float64)[:end]
+    dt = float(torch.diff(t).median())
+    tau = t - t.mean()
+    design = torch.stack((torch.ones_like(tau), tau), -1)
+
+    def density(x: Any) -> float:
+        x = torch.as_tensor(x, dtype=torch.float64)[:end]
+        coef = torch.linalg.lstsq(design, x).solution
+        residual = x - design @ coef
+        variance = (residual * residual).sum(0) / (end - 2)  # two fitted parameters per axis
+        return float(torch.sqrt(variance.mean() * dt))
+
+    return MeasuredNoise(density(acc_mps2), density(gyro_rps), end, float(t[0]), float(t[-1]))

@@ -74,6 +74,11 @@ def run(cfg: Mapping[str, Any]) -> list[Row]:
     if cfg["plots"] and isinstance(flows[0].get("dense"), FlowPairs) and cfg["flow_panels"] > 0:
         flow_panels(recs[0], cfg, outs[0], cfg["flow_panels"])
     _report(rows, metrics, cfg, recs, nav_cfg, unscored, seeds)
+    if setup.imu.name == "measured":  # noise measured from the recording itself: said under the table too
+        log.info("\n" + setup.describe())
+    metrics["imu"] = {"name": setup.imu.name, "source": setup.imu.source,
+                      **{k: float(getattr(nav_cfg.noise, k)) for k in ("acc_noise", "gyro_noise", "acc_bias_walk",
+                                                                       "gyro_bias_walk")}}
     if settings.uses("dense"):  # which flow the dense rows used, and whether it is the configured one
         metrics["dense_flow"] = {"provider": setup.flow, "as_configured": setup.flow == configured_flow}
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=float))

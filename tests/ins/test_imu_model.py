@@ -1,6 +1,7 @@
 """IMU presets and the Kalibr reader (configs/imu, flowins.ins.imu_model)."""
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import pytest
@@ -78,3 +79,82 @@ def test_a_missing_kalibr_file_or_path_is_named(tmp_path):
         imu_model(_imu("imu=kalibr", f"imu.path={tmp_path / 'nowhere.yaml'}"), recording=True)
     with pytest.raises(ValueError, match=r"imu=kalibr needs imu\.path=FILE"):
         imu_model(_imu("imu=kalibr"), recording=True)
+
+
+# ---------------------------------------------------------------- noise from a still start
+def _still_walk(acc_density: float = 0.003, gyro_density: float = 2e-4, *, still_s: float = 5.0, seed: int = 0):
+    """A walk starting still for ``still_s``, its exact readings plus white noise of the given densities at 100 Hz."""
+    import torch
+
+    from flowins.data.streams import ImuStream
+    from flowins.data.synthetic import Walk, WalkConfig
+
+    t = torch.arange(0.0, 20.0, 0.01, dtype=torch.float64)
+    acc, gyro = Walk(WalkConfig(duration_s=20.0, stationary_s=still_s, ramp_s=2.0)).imu(t)
+    gen = torch.Generator().manual_seed(seed)
+    acc = acc + acc_density / 0.1 * torch.randn(acc.shape, generator=gen, dtype=torch.float64)
+    gyro = gyro + gyro_density / 0.1 * torch.randn(gyro.shape, generator=gen, dtype=torch.float64)
+    return ImuStream(t, acc, gyro, name="walk/imu.csv")
+
+
+def test_still_noise_densities_recover_white_noise_under_a_drift():
+    """σ √Δt of white noise, with a linear drift and an offset per axis removed first."""
+    import torch
+
+    from flowins.ins.imu_model import still_noise_densities
+
+    gen = torch.Generator().manual_seed(1)
+    t = torch.arange(0.0, 10.0, 0.005, dtype=torch.float64)  # 200 Hz
+    sigma = torch.tensor([0.02, 0.03, 0.025], dtype=torch.float64)
+    acc = sigma * torch.randn(t.shape[0], 3, generator=gen, dtype=torch.float64) + 9.8 + 0.01 * t.unsqueeze(-1)
+    gyro = 0.001 * torch.randn(t.shape[0], 3, generator=gen, dtype=torch.float64) + 1e-4 * t.unsqueeze(-1)
+    m = still_noise_densities(t, acc, gyro, end=t.shape[0])
+    assert m.acc_noise == pytest.approx(float(sigma.square().mean().sqrt()) * math.sqrt(0.005), rel=0.03)
+    assert m.gyro_noise == pytest.approx(0.001 * math.sqrt(0.005), rel=0.03)
+    assert (m.samples, m.start_s) == (t.shape[0], 0.0)
+    with pytest.raises(ValueError, match="need at least 10"):
+        still_noise_densities(t, acc, gyro, end=5)
+
+
+def _auto_cfg(**overrides):
+    from pathlib import Path
+
+    import yaml
+
+    root = Path(__file__).resolve().parents[2] / "configs" / "imu"
+    cfg = {k: v for k, v in yaml.safe_load((root / "auto.yaml").read_text()).items() if k != "defaults"}
+    for preset in ("phone", "simulated_walk"):
+        cfg[preset] = yaml.safe_load((root / f"{preset}.yaml").read_text())
+    return cfg | overrides
+
+
+class _Rec:
+    def __init__(self, imu, sensor=None):
+        self.imu, self.sensor = imu, sensor
+
+
+def test_a_recording_that_names_no_imu_gets_the_noise_of_its_still_start():
+    from flowins.settings import resolve_imu
+
+    imu = resolve_imu(_auto_cfg(), [_Rec(_still_walk())], recorded=True)
+    phone = resolve_imu(_auto_cfg(still_noise=False), [_Rec(_still_walk())], recorded=True)
+    assert phone.name == "phone"
+    assert imu.name == "measured" and imu.inflation == 10.0
+    assert imu.acc_noise == pytest.approx(0.003, rel=0.1) and imu.gyro_noise == pytest.approx(2e-4, rel=0.1)
+    # what a still start can't measure stays the fallback preset's
+    assert (imu.acc_bias_walk, imu.gyro_bias_walk, imu.gyro_range_rps) == (
+        phone.acc_bias_walk, phone.gyro_bias_walk, phone.gyro_range_rps)
+    assert "walk/imu.csv 0.00–" in imu.source and "× 10" in imu.source
+    # two recordings: the RMS of their densities
+    both = resolve_imu(_auto_cfg(), [_Rec(_still_walk()), _Rec(_still_walk(0.006, 4e-4, seed=3))], recorded=True)
+    assert both.acc_noise == pytest.approx(math.sqrt((0.003**2 + 0.006**2) / 2), rel=0.1)
+
+
+def test_a_short_still_start_a_named_sensor_or_the_simulated_walk_keep_their_presets():
+    from flowins.settings import resolve_imu
+
+    assert resolve_imu(_auto_cfg(), [_Rec(_still_walk(still_s=1.0))], recorded=True).name == "phone"
+    assert resolve_imu(_auto_cfg(), [_Rec(_still_walk(), "simulated_walk")], recorded=True).name == "simulated_walk"
+    assert resolve_imu(_auto_cfg(), [_Rec(_still_walk())], recorded=False).name == "simulated_walk"
+    with pytest.raises(ValueError, match="imu.still_noise_inflation"):
+        resolve_imu(_auto_cfg(still_noise_inflation=-1.0), [_Rec(_still_walk())], recorded=True)
