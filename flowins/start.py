@@ -29,7 +29,7 @@ from flowins.ins.initialization import (
     still_interval,
     still_prior,
 )
-from flowins.state import make_state
+from flowins.state import STATE, make_state
 
 MODES = ("auto", "still", "moving", "groundtruth")
 
@@ -215,6 +215,27 @@ def _groundtruth(imu: ImuStream, truth: PoseStream | None, settings: Groundtruth
     return Start("groundtruth", index, t0, mean, cov, "", facts=facts)
 
 
+def _still_from(start: Start, imu: ImuStream, settings: StillSettings, gravity_mps2: float) -> Start:
+    """``start`` (from the ground truth) with what a still start adds when the IMU is still
+    from its row for at least ``settings.min_s``: the gyroscope bias from the mean rate, zero
+    velocity, and the zero-velocity updates over the still interval. The pose stays the
+    ground truth's."""
+    rows = slice(start.index, None)
+    still = still_interval(imu.t_s[rows], imu.acc_mps2[rows], imu.gyro_rps[rows], settings, gravity_mps2=gravity_mps2)
+    if still.end >= imu.t_s.shape[0] - start.index or still.duration_s < settings.min_s:
+        return start  # not still (or still throughout: nothing to tell the bias from a tilt by)
+    mean = start.mean.clone()
+    mean[STATE.v] = 0.0
+    mean[STATE.b_w] = imu.gyro_rps[start.index : start.index + still.end].mean(dim=0)
+    zupt = []
+    if settings.zupt_hz > 0:
+        zupt = torch.arange(start.t_s, still.end_s + 1e-9, 1.0 / settings.zupt_hz, dtype=torch.float64).tolist()
+    facts = {**start.facts, "still_s": still.duration_s, "still_end_s": still.end_s}
+    facts["source"] = (f"{facts['source']}; still for {still.duration_s:.2f} s: gyroscope bias from the mean rate, "
+                       "zero-velocity updates")
+    return Start(start.mode, start.index, start.t_s, mean, start.cov, start.reason, zupt, facts)
+
+
 def choose_start(
     imu: ImuStream,
     *,
@@ -245,7 +266,7 @@ def choose_start(
         start = _groundtruth(imu, truth, settings.groundtruth, settings.moving, forward_b, uncertainty, gravity_mps2,
                              fixes)
         start.reason = "filter.init.mode=groundtruth: the ground truth's pose and velocity, as VIO evaluations start"
-        return start
+        return _still_from(start, imu, settings.still, gravity_mps2)
     t0 = float(imu.t_s[0])
     fit = None if fixes is None else _fit_from_fixes(*fixes, t0, settings.moving)
     if mode in ("auto", "still"):
