@@ -52,6 +52,11 @@ class MovingSettings:
         velocity_sigma_mps: ... and its σ per axis.
         heading_rad: the forward axis's heading (counter-clockwise from east); None:
             the course of ``velocity_mps`` (with GNSS: of the fixes).
+        max_wait_s: with fewer than two fixes in the first ``fit_s``, the start waits: it
+            starts at the first fix, fitted to the fixes of the ``fit_s`` after it (or up to
+            the second fix, if that comes later), when the first fix comes within this of the
+            recording's start and the second within this of the first (what the IMU is
+            trusted to bridge); the rows before it are not filtered.
     """
 
     window_s: float = 1.0
@@ -63,6 +68,7 @@ class MovingSettings:
     velocity_mps: tuple[float, float, float] | None = None
     velocity_sigma_mps: float = 1.0
     heading_rad: float | None = None
+    max_wait_s: float = 60.0
 
 
 @dataclass(frozen=True)
@@ -137,7 +143,9 @@ def _moving(imu: ImuStream, fit, settings: MovingSettings, forward_b: Tensor, un
     rows = (imu.t_s >= t0) & (imu.t_s <= t0 + settings.window_s)
     if fit is None:
         if settings.velocity_mps is None:
-            raise ValueError("filter.init.mode=moving without GNSS fixes at the start needs the initial velocity: "
+            raise ValueError("filter.init.mode=moving without GNSS fixes at the start (2 in the first "
+                             f"filter.init.moving.fit_s={settings.fit_s} s, or the first two within "
+                             f"filter.init.moving.max_wait_s={settings.max_wait_s} s) needs the initial velocity: "
                              "filter.init.moving.velocity_mps=[east,north,up] (m/s) and, unless the course of that "
                              "velocity is the heading of the forward axis, filter.init.moving.heading_rad")
         var = torch.full((3,), float(settings.velocity_sigma_mps) ** 2, dtype=torch.float64)
@@ -309,6 +317,11 @@ def choose_start(
             facts = {"still_s": still.duration_s, "still_end_s": still.end_s, "still_ends": still.reason}
             return Start("still", 0, t0, mean, cov, reason, zupt, facts)
         why_not_still = contradicted or too_short
+        if fit is None and fixes is not None and (waiting := _waiting_fit(imu, fixes, settings.moving)) is not None:
+            row, late, waited = waiting
+            return _waited(_moving(imu, late, settings.moving, forward_b, uncertainty, gravity_mps2, index=row,
+                                   reason=f"auto: not still ({why_not_still})", source=_fit_source(late, fused)),
+                           waited, settings.moving)
         if fit is None:
             raise ValueError(
                 f"filter.init.mode=auto: the recording does not start still ({why_not_still}) and has fewer than 2 "
@@ -319,8 +332,42 @@ def choose_start(
         return _moving(imu, fit, settings.moving, forward_b, uncertainty, gravity_mps2,
                        reason=f"auto: not still ({why_not_still})", source=_fit_source(fit, fused))
     # mode == "moving"
+    if fit is None and fixes is not None and (waiting := _waiting_fit(imu, fixes, settings.moving)) is not None:
+        row, late, waited = waiting
+        return _waited(_moving(imu, late, settings.moving, forward_b, uncertainty, gravity_mps2, index=row,
+                               reason="filter.init.mode=moving", source=_fit_source(late, fused)),
+                       waited, settings.moving)
     return _moving(imu, fit, settings.moving, forward_b, uncertainty, gravity_mps2, reason="filter.init.mode=moving",
                    source="" if fit is None else _fit_source(fit, fused))
+
+
+def _waited(start: Start, waited_s: float, settings: MovingSettings) -> Start:
+    """``start`` saying that it waited ``waited_s`` for its fixes."""
+    start.facts["waited_s"] = waited_s
+    start.reason += (f"; waited {waited_s:.1f} s for two GNSS fixes (fewer than 2 in the first "
+                     f"filter.init.moving.fit_s={settings.fit_s} s; the rows before are not filtered)")
+    return start
+
+
+def _waiting_fit(imu: ImuStream, fixes: tuple[Tensor, Tensor, Tensor], settings: MovingSettings):
+    """``(row, fit, waited_s)``: the kinematic fit of a start that waits for its fixes (the
+    ``max_wait_s`` of :class:`MovingSettings`), or None when the fixes come too late or too
+    far apart."""
+    f_t, f_enu, f_sigma = fixes
+    t0 = float(imu.t_s[0])
+    if f_t.shape[0] < 2:
+        return None
+    first, second = float(f_t[0]), float(f_t[1])
+    if first - t0 > settings.max_wait_s or second - first > settings.max_wait_s:
+        return None
+    row = int(torch.searchsorted(imu.t_s, torch.tensor(first, dtype=imu.t_s.dtype)))
+    if row >= imu.t_s.shape[0]:
+        return None
+    t_row = float(imu.t_s[row])
+    window = (f_t >= first) & (f_t <= max(first + settings.fit_s, second) + 1e-9)
+    fit = kinematic_fit(f_t[window], f_enu[window], f_sigma[window], t0_s=t_row,
+                        acceleration_sigma_mps2=settings.acceleration_sigma_mps2)
+    return row, fit, t_row - t0
 
 
 def _fit_source(fit, fused: bool) -> str:

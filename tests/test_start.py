@@ -179,3 +179,36 @@ def test_a_ground_truth_start_on_a_still_recording_is_as_good_as_the_still_start
     assert float((split(gt_start.mean).b_w - rec.imu_errors["b_w"][0]).norm()) < 2e-3
     assert gt <= 1.1 * still + 0.05
     assert blind > 3.0 * gt
+
+
+def test_a_moving_start_waits_for_sparse_fixes_and_says_how_long():
+    """Fixes every 6 s; the recording starts 4 s into the drive, so its first 10 s hold one fix
+    (at 5 s). The start waits for it, fits it and the next (6 s later), starts there and
+    drives on as well as a start fitted over 20 s from the first row; without the wait
+    (max_wait_s below the 5 s it needs) it stops with the error that names fit_s."""
+    from dataclasses import replace
+
+    from flowins.data.streams import GnssStream, ImuStream
+    from flowins.start import MovingSettings, StartSettings
+
+    config = DriveConfig(duration_s=120.0, gnss_rate_hz=1.0 / 6.0, outage_s=0.0)
+    seq = drive_sequence(config)[0]
+    i, g = seq.imu.t_s >= 4.0, seq.gnss.t_s >= 4.0
+    imu = ImuStream(seq.imu.t_s[i], seq.imu.acc_mps2[i], seq.imu.gyro_rps[i], name="imu")
+    gnss = GnssStream(*(getattr(seq.gnss, k)[g] for k in ("t_s", "lat_deg", "lon_deg", "alt_m", "h_acc_m", "v_acc_m")),
+                      name="gnss")
+    assert 4.9 < float(gnss.t_s[0] - imu.t_s[0]) < 5.1 and int((gnss.t_s <= float(imu.t_s[0]) + 10.0).sum()) == 1
+    moving = StartSettings(mode="moving")  # at a steady 12 m/s the IMU alone looks still
+    result = navigate(NavigationRun(imu, gnss), config=NavigationConfig(noise=noise(), start=moving))
+    start = result.start
+    assert start.mode == "moving" and abs(start.facts["waited_s"] - 5.0) < 0.05
+    assert "waited 5.0 s for two GNSS fixes" in start.reason and abs(start.t_s - float(gnss.t_s[0])) < 0.02
+    t, err, _ = errors(result, Drive(config).position, config.origin)
+    assert float(t[0]) >= start.t_s - 1e-9  # nothing filtered before the start
+    long_fit = NavigationConfig(noise=noise(), start=replace(moving, moving=replace(MovingSettings(), fit_s=20.0)))
+    t_l, err_l, _ = errors(navigate(NavigationRun(imu, gnss), config=long_fit), Drive(config).position, config.origin)
+    assert mean_error(t, err, 30.0, 120.0) < 1.5 * mean_error(t_l, err_l, 30.0, 120.0) + 0.5
+    assert mean_error(t, err, 30.0, 120.0) < 6.0  # fixes of 1 m σ every 6 s, correlated over 10 s
+    early = NavigationConfig(noise=noise(), start=replace(moving, moving=replace(MovingSettings(), max_wait_s=4.0)))
+    with pytest.raises(ValueError, match="filter.init.mode=moving without GNSS fixes at the start"):
+        navigate(NavigationRun(imu, gnss), config=early)
