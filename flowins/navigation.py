@@ -25,6 +25,7 @@ from flowins.measurements.flow_update import FlowFrame, FlowUpdate
 from flowins.measurements.gnss import GnssRecovery, correlation_inflation, gnss_fixes, gnss_noise
 from flowins.measurements.gnss_heading import HeadingAlignment
 from flowins.measurements.registry import NavigationContext, measurement_kind
+from flowins.measurements.vehicle import VehicleConstraint  # noqa: F401  (registers the kind "vehicle")
 from flowins.measurements.zero_velocity import ZeroVelocity
 from flowins.state import STATE
 from flowins.start import Start, StartSettings, choose_start
@@ -242,9 +243,14 @@ def prepare_navigation(run: NavigationRun, *, config: NavigationConfig = Navigat
         frames, outside = flow_frames(run.flow, run.camera, config.flow_update, t_min_s=start.t_s, t_max_s=t_end_s,
                                       name=run.flow.kind, jacobians=config.jacobians)
         events = events + frames
-    if run.streams:
+    streams = dict(run.streams)
+    for name, settings in config.measurements.items():  # a kind switched on that needs no recorded stream
+        kind = measurement_kind(name)
+        if name not in streams and kind.default_stream is not None and getattr(settings, "mode", None) == "on":
+            streams[name] = kind.default_stream()
+    if streams:
         context = NavigationContext(t_start_s=start.t_s, t_end_s=t_end_s, frame=frame, dtype=config.dtype)
-        for name, stream in run.streams.items():
+        for name, stream in streams.items():
             kind = measurement_kind(name)
             settings = config.measurements.get(name)
             settings = kind.settings() if settings is None else settings

@@ -338,7 +338,8 @@ def read_kitti_raw(
             it, e.g. 0, is raised to it; ``metadata["gnss_floored_rows"]`` counts them).
 
     See the module docstring for the frames, conventions and timestamp policy.
-    ``metadata`` names the IMU preset (``imu: oxts_rt3003``).
+    ``metadata`` names the IMU preset (``imu: oxts_rt3003``) and the platform
+    (``platform: vehicle``).
 
     Raises ``ValueError`` naming the file and 1-based line for a missing file, a
     packet without 30 numbers, a bad timestamp, a timestamp not after the
@@ -359,6 +360,7 @@ def read_kitti_raw(
         "format": "kitti",
         "source": "KITTI raw",
         "imu": "oxts_rt3003",  # the IMU preset (configs/imu) of KITTI's OXTS RT3003
+        "platform": "vehicle",  # a car: the vehicle motion constraint applies (flowins/measurements/vehicle.py)
         "time_offset_ns": int(t_ns[0]),
         "start_time": texts[0],
         "acc": "OXTS ax, ay, az: specific force (gravity included), x forward, y left, z up",

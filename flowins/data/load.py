@@ -50,6 +50,12 @@ class Recording:
         """The IMU preset the recording names (``metadata.yaml`` ``imu``), or None."""
         return self.sequence.metadata.get("imu")
 
+    @property
+    def platform(self) -> str | None:
+        """What carries the sensors (``metadata.yaml`` ``platform``, e.g. ``vehicle``), or None."""
+        value = self.sequence.metadata.get("platform")
+        return None if value is None else str(value)
+
     @functools.cached_property
     def content_key(self) -> str:
         """Content key of the recording's frames, calibration and tracks, the flow cache's

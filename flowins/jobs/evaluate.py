@@ -31,6 +31,7 @@ from flowins.flow.pairs import FlowPairs, read_frame, run_provider
 from flowins.ins.initialization import forward_axis
 from flowins.jobs.cli import console_logging
 from flowins.measurements.flow import FlowCamera
+from flowins.measurements.vehicle import platform_streams
 from flowins.navigation import (NavigationConfig, NavigationResult, NavigationRun, flow_statistics, navigate_batch,
                                 run_warnings)
 from flowins.settings import evaluate_settings, filter_setup
@@ -136,7 +137,8 @@ def _combination(name: str, cfg: Mapping[str, Any], recs: list[Recording], nav_c
                                  None if calibration is None else calibration.rotation_matrix)
         runs.append(NavigationRun(rec.imu, rec.gnss if "gnss" in sources else None, flow=flow,
                                   camera=FlowCamera.from_sequence(rec.sequence) if flow is not None else None,
-                                  truth=rec.truth, forward_b=forward_b, start_gnss=rec.gnss))
+                                  truth=rec.truth, forward_b=forward_b, start_gnss=rec.gnss,
+                                  streams=platform_streams(rec.platform)))
     results = navigate_batch(runs, config=nav_cfg, progress=cfg["progress"])
     seconds = time.perf_counter() - t1
     per_run = []

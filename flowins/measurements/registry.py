@@ -52,6 +52,9 @@ class MeasurementKind:
     name: str
     settings: type
     events: Callable[[Any, Any, NavigationContext], list]
+    #: the stream a run gets when its settings say ``mode: on`` and the run has none (a kind
+    #: whose measurements need no recorded data, such as a motion constraint); None: no such mode
+    default_stream: Callable[[], Any] | None = None
 
 
 #: the registered kinds by name

@@ -20,6 +20,7 @@ from flowins.data.load import load_recording
 from flowins.flow.load import load_flow
 from flowins.flow.pairs import FlowPairs
 from flowins.measurements.flow import FlowCamera
+from flowins.measurements.vehicle import platform_streams
 from flowins.training.unroll import METHODS, TrainingSequence
 
 
@@ -65,7 +66,7 @@ def load_training_sequence(
                 raise ValueError(f"{rec.name}: {kind} flow unavailable: {flow}")
             pairs[kind] = flow
     return TrainingSequence(rec.name, rec.imu, rec.gnss, rec.truth, FlowCamera.from_sequence(rec.sequence),
-                            pairs["dense"], pairs["sparse"], rec.sensor)
+                            pairs["dense"], pairs["sparse"], rec.sensor, platform_streams(rec.platform))
 
 
 class _Sequences(Dataset):

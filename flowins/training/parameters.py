@@ -42,6 +42,7 @@ The parameters (units of the filter config, ``configs/filter/default.yaml``):
 ``flow_sigma_scale``,       flow noise ``σ = sqrt((scale σ_flow)² + floor²)``
 ``flow_sigma_floor_px``
 ``dropout_p``               Monte Carlo dropout rate of the flow network
+``vehicle_*_sigma_mps``     σ of the vehicle constraint's sideways and vertical velocity
 ``*_gate_threshold``,       the χ² gates of the flow points and the GNSS fixes: soft
 ``*_gate_softness``         (``sigmoid((threshold - NIS) / softness)``) while training,
                             hard (``NIS <= threshold``) at inference
@@ -61,6 +62,7 @@ from torch import Tensor, nn
 from flowins.config import bounded
 from flowins.filter.ekf import Gate
 from flowins.ins.initialization import InitialUncertainty
+from flowins.measurements.vehicle import VehicleSettings
 from flowins.navigation import NavigationConfig
 from flowins.serialization import load_tensors
 
@@ -87,8 +89,12 @@ _FIELDS: dict[str, tuple[str, str]] = {
     "flow_gate_softness": ("gate", "flow"),
     "gnss_gate_threshold": ("gate", "gnss"),
     "gnss_gate_softness": ("gate", "gnss"),
+    "vehicle_lateral_sigma_mps": ("vehicle", "lateral_sigma_mps"),
+    "vehicle_vertical_sigma_mps": ("vehicle", "vertical_sigma_mps"),
     "dropout_p": ("dropout", "p"),
 }
+#: names a checkpoint written before they existed lacks: it loads with their defaults
+ADDED_NAMES: frozenset[str] = frozenset({"vehicle_lateral_sigma_mps", "vehicle_vertical_sigma_mps"})
 NAMES: tuple[str, ...] = tuple(_FIELDS)
 #: the noise parameters (what a "mis-tuned" start multiplies)
 NOISE_NAMES: tuple[str, ...] = (
@@ -220,6 +226,11 @@ def _plain_number(x: object) -> bool:
     return isinstance(x, Tensor) and x.numel() == 1 and x.is_floating_point() and not bool(torch.isnan(x).any())
 
 
+def _vehicle(config: NavigationConfig) -> VehicleSettings:
+    """The vehicle constraint's settings in ``config`` (the defaults when it names none)."""
+    return config.measurements.get("vehicle") or VehicleSettings()
+
+
 def starting_values(config: NavigationConfig, *, dropout_p: float = 0.2) -> dict[str, float]:
     """Every parameter's value in ``config`` (the hand-tuned defaults when ``config`` is the default)."""
     out: dict[str, float] = {}
@@ -232,6 +243,8 @@ def starting_values(config: NavigationConfig, *, dropout_p: float = 0.2) -> dict
             value = getattr(config.flow_update, field)
         elif where == "config":
             value = getattr(config, field)
+        elif where == "vehicle":
+            value = getattr(_vehicle(config), field)
         elif where == "gate":
             gate = config.flow_update.gate if field == "flow" else config.gnss_gate
             dof = 1 if field == "flow" else 3  # one epipolar scalar per point; a 3-D fix
@@ -339,8 +352,11 @@ class FilterParameters(nn.Module):
 
         flow = replace(config.flow_update, sigma_scale=v["flow_sigma_scale"], sigma_floor_px=v["flow_sigma_floor_px"],
                        sigma_p0=v["sigma_p0"], sigma_q0=v["sigma_q0"], gate=gate("flow", config.flow_update.gate))
+        vehicle = replace(_vehicle(config), lateral_sigma_mps=v["vehicle_lateral_sigma_mps"],
+                          vertical_sigma_mps=v["vehicle_vertical_sigma_mps"])
         return replace(config, noise=noise, initial=initial, gnss_noise_scale=v["gnss_noise_scale"],
-                       gnss_gate=gate("gnss", config.gnss_gate), flow_update=flow)
+                       gnss_gate=gate("gnss", config.gnss_gate), flow_update=flow,
+                       measurements={**config.measurements, "vehicle": vehicle})
 
     @classmethod
     def from_checkpoint(cls, path: str | Path) -> FilterParameters:
@@ -359,6 +375,15 @@ class FilterParameters(nn.Module):
                 found[kind][name] = tensor
         raw = found["raw"]
         layouts = [kind for kind in ("center", "bound") if found[kind]]
+        if any(n not in raw for n in ADDED_NAMES) and all(n in raw for n in NAMES if n not in ADDED_NAMES):
+            # written before these parameters existed: they load at their defaults, not learned
+            for n in ADDED_NAMES - set(raw):
+                default = float(getattr(VehicleSettings(), _FIELDS[n][1]))
+                raw[n] = torch.tensor(math.log(default), dtype=torch.float64)
+                if "center" in layouts:
+                    found["center"][n] = torch.tensor(default, dtype=torch.float64)
+                    found["bound"][n] = torch.tensor(DEFAULT_BOUND_DECADES, dtype=torch.float64)
+                    found["raw"][n] = torch.zeros((), dtype=torch.float64)
         missing = {kind: [n for n in NAMES if n not in found[kind]] for kind in ("raw", *layouts)}
         if missing := {kind: names for kind, names in missing.items() if names}:
             what = "; ".join(f"missing {names}" if kind == "raw" else f"missing the {kind} of {names}"

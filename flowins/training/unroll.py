@@ -11,7 +11,7 @@ uses), so each window sees the current values.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import torch
@@ -62,6 +62,9 @@ class TrainingSequence:
     sparse: FlowPairs | None = None
     #: the IMU preset the recording names (its metadata's ``imu``), or None
     sensor: str | None = None
+    #: further measurement streams by kind (:attr:`flowins.navigation.NavigationRun.streams`),
+    #: e.g. the vehicle constraint of a recording whose metadata names ``platform: vehicle``
+    streams: dict = field(default_factory=dict)
 
     def sources(self, method: str) -> tuple[GnssStream | None, FlowPairs | None]:
         """The GNSS stream and flow pairs ``method`` uses; a clear error when one is missing."""
@@ -151,8 +154,8 @@ def run_windows(
             flow = flow.select((flow.t2_s > t_a - 1.0) & (flow.t2_s <= t_b))
             if dropout_p is not None:
                 flow = flow.at_dropout_rate(dropout_p)
-        setup = prepare_navigation(NavigationRun(imu, gnss, flow=flow, camera=seq.camera if flow is not None else None),
-                                   config=config)
+        setup = prepare_navigation(NavigationRun(imu, gnss, flow=flow, camera=seq.camera if flow is not None else None,
+                                                 streams=seq.streams), config=config)
         if setup.start.index != 0:
             raise ValueError(f"training starts the filter at the first IMU sample; filter.init.mode={setup.start.mode} "
                              f"starts it at row {setup.start.index}: use filter.init.mode=still or moving")

@@ -573,3 +573,24 @@ def test_a_selection_history_gives_the_values_it_scored(tmp_path):
     learner.history = [entry]
     learner.select_best()
     assert params.values() == scored
+
+
+def test_a_checkpoint_from_before_the_vehicle_constraint_loads_it_at_its_defaults(tmp_path):
+    from flowins.measurements.vehicle import VehicleSettings
+    from flowins.training.module import FilterLearner
+    from flowins.training.parameters import ADDED_NAMES
+
+    params = FilterParameters(some_start())
+    _at(params, {"acc_noise": 0.8, "gyro_noise": -0.3})
+    state = {k: v for k, v in FilterLearner(params, NavigationConfig(), methods=["ins"]).state_dict().items()
+             if not any(k.endswith("." + n) for n in ADDED_NAMES)}
+    torch.save({"state_dict": state}, tmp_path / "old.ckpt")
+    loaded = FilterParameters.from_checkpoint(tmp_path / "old.ckpt").values()
+    for name in NAMES:
+        if name in ADDED_NAMES:
+            assert loaded[name] == pytest.approx(getattr(VehicleSettings(), name.removeprefix("vehicle_")), rel=1e-12)
+        else:
+            assert loaded[name] == pytest.approx(params.values()[name], rel=1e-12), name
+    # the learned sigmas reach the constraint's settings
+    config = FilterParameters(some_start()).apply(NavigationConfig(), training=False)
+    assert config.measurements["vehicle"].lateral_sigma_mps == pytest.approx(some_start()["vehicle_lateral_sigma_mps"])

@@ -1,0 +1,127 @@
+"""A wheeled vehicle's motion constraint: no sideways and no vertical velocity in its own frame.
+
+A car does not slip sideways or leave the road, so between GNSS fixes its velocity in the
+vehicle frame is ``(v_forward, 0, 0)`` (the non-holonomic constraint of wheeled-vehicle
+navigation, as ai-imu-dr uses). With the IMU's axes along the vehicle's (``forward_axis``,
+``up_axis``; KITTI's OXTS: x forward, z up) the pseudo-measurement is
+
+    0 = e_lateralᵀ C(q)ᵀ v + n_lat,   0 = e_upᵀ C(q)ᵀ v + n_up,
+
+``n ~ N(0, diag(σ_lat², σ_up²))``, applied every ``1 / rate_hz`` seconds from the start.
+Its Jacobian has blocks on the velocity (``e_kᵀ C(q)ᵀ``) and on the quaternion
+(:func:`~flowins.geometry.quaternion.rotate_jacobian` of the conjugate). The kind registers
+itself as ``vehicle``: a run uses it when its streams hold ``vehicle`` (a
+:class:`VehicleConstraint`: ``filter.measurements.vehicle.mode=on``, or ``auto`` on a
+recording whose metadata names ``platform: vehicle``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from flowins.filter.chain import ChainBuilder
+from flowins.filter.updater import update
+from flowins.geometry import quaternion as quat
+from flowins.measurements.registry import MeasurementKind, NavigationContext, register
+from flowins.state import STATE
+
+AXES = {"x": (0, 1.0), "-x": (0, -1.0), "y": (1, 1.0), "-y": (1, -1.0), "z": (2, 1.0), "-z": (2, -1.0)}
+MODES = ("auto", "on", "off")
+
+
+@dataclass(frozen=True)
+class VehicleSettings:
+    """``filter.measurements.vehicle``."""
+
+    #: auto: on when the recording's metadata names ``platform: vehicle``; on; off
+    mode: str = "auto"
+    #: σ of the sideways and of the vertical velocity in the vehicle frame (m/s)
+    lateral_sigma_mps: float | Tensor = 1.0
+    vertical_sigma_mps: float | Tensor = 1.0
+    #: pseudo-measurements per second
+    rate_hz: float = 5.0
+    #: the IMU axes along the vehicle's forward and up directions
+    forward_axis: str = "x"
+    up_axis: str = "z"
+
+    def __post_init__(self) -> None:
+        key = "filter.measurements.vehicle"
+        if self.mode not in MODES:
+            raise ValueError(f"{key}.mode={self.mode!r}: expected one of {', '.join(MODES)}")
+        for name in ("forward_axis", "up_axis"):
+            if getattr(self, name) not in AXES:
+                raise ValueError(f"{key}.{name}={getattr(self, name)!r}: expected one of {', '.join(AXES)}")
+        if AXES[self.forward_axis][0] == AXES[self.up_axis][0]:
+            raise ValueError(f"{key}: forward_axis={self.forward_axis!r} and up_axis={self.up_axis!r} are the same axis")
+        if not self.rate_hz > 0:
+            raise ValueError(f"{key}.rate_hz={self.rate_hz!r}: expected a number > 0")
+        for name in ("lateral_sigma_mps", "vertical_sigma_mps"):
+            if not float(torch.as_tensor(getattr(self, name)).detach()) > 0:
+                raise ValueError(f"{key}.{name}={getattr(self, name)!r}: expected a number > 0")
+
+    def rows(self) -> tuple[Tensor, Tensor]:
+        """``(E (2, 3), sign)``: the lateral and up unit axes of the body as rows."""
+        up_i, up_s = AXES[self.up_axis]
+        fwd_i, _ = AXES[self.forward_axis]
+        lateral_i = 3 - up_i - fwd_i
+        E = torch.zeros(2, 3, dtype=torch.float64)
+        E[0, lateral_i] = 1.0
+        E[1, up_i] = up_s
+        return E
+
+
+@dataclass(frozen=True)
+class VehicleConstraint:
+    """The stream that switches the constraint on for a run (it carries no data)."""
+
+
+def platform_streams(platform: str | None) -> dict[str, VehicleConstraint]:
+    """The streams a recording's ``platform`` (its metadata) brings: the vehicle constraint for
+    ``vehicle`` (used unless ``filter.measurements.vehicle.mode=off``), none otherwise."""
+    return {"vehicle": VehicleConstraint()} if platform == "vehicle" else {}
+
+
+def body_velocity_jacobians(q: Tensor, v: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``(v_b, ∂v_b/∂v (3, 3), ∂v_b/∂q (3, 4))`` of the body-frame velocity ``v_b = C(q)ᵀ v``."""
+    q_conj = quat.conjugate(q)
+    v_b = quat.rotate(q_conj, v)
+    d_v = quat.to_matrix(q).transpose(-1, -2)
+    flip = torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=q.dtype, device=q.device)
+    d_q = quat.rotate_jacobian(q_conj, v) * flip  # ∂conj(q)/∂q = diag(1, -1, -1, -1)
+    return v_b, d_v, d_q
+
+
+@dataclass(frozen=True)
+class VehicleUpdate:
+    """One non-holonomic pseudo-measurement at ``time_s`` (module docstring)."""
+
+    time_s: float
+    settings: VehicleSettings
+    name: str = "vehicle constraint"
+
+    def apply(self, chain: ChainBuilder) -> None:
+        mean = chain.mean
+        like = {"dtype": mean.dtype, "device": mean.device}
+        E = self.settings.rows().to(**like)
+        v_b, d_v, d_q = body_velocity_jacobians(mean[STATE.q], mean[STATE.v])
+        H = torch.zeros(1, 2, mean.shape[-1], **like)
+        H[0, :, STATE.v] = E @ d_v
+        H[0, :, STATE.q] = E @ d_q
+        sigma = torch.stack([torch.as_tensor(s, **like) for s in (self.settings.lateral_sigma_mps,
+                                                                  self.settings.vertical_sigma_mps)])
+        update(chain, H=H, residual=-(E @ v_b).reshape(1, 2), noise_cov=torch.diag_embed(sigma**2).reshape(1, 2, 2),
+               likelihood=False, kind="vehicle", name=self.name)
+
+
+def vehicle_events(stream: VehicleConstraint, settings: VehicleSettings, context: NavigationContext) -> list:
+    """A :class:`VehicleUpdate` every ``1 / rate_hz`` s after the start (none with ``mode=off``)."""
+    if settings.mode == "off":
+        return []
+    step = 1.0 / settings.rate_hz
+    times = torch.arange(context.t_start_s + step, context.t_end_s + 1e-9, step, dtype=torch.float64).tolist()
+    return [VehicleUpdate(t, settings) for t in times]
+
+
+register(MeasurementKind("vehicle", VehicleSettings, vehicle_events, default_stream=VehicleConstraint))
