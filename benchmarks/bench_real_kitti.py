@@ -142,6 +142,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None, help="where the recordings and runs go (default: a temp dir)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--outage", type=float, default=60.0, help="outage length (s) in the middle")
+    parser.add_argument("--every", type=float, default=2.0, help="seconds between GNSS fixes (default 2)")
+    parser.add_argument("--noise", type=float, default=2.0, help="GNSS noise per axis, m (default 2)")
     parser.add_argument("overrides", nargs="*", help="evaluate.py overrides to compare with (none: the workbench itself)")
     args = parser.parse_args()
     turns = turn_consistency(args.data)
@@ -155,7 +157,8 @@ def main() -> None:
     rows = []
     for seed in args.seeds:
         for outage in (0.0, args.outage):
-            folder = build(args.data, out / "recordings", seed=seed, outage_s=outage)
+            folder = build(args.data, out / "recordings", seed=seed, outage_s=outage, every_s=args.every,
+                           noise_m=args.noise)
             run_dir = out / "runs" / folder.name
             t = time.perf_counter()
             m = evaluate(folder, run_dir, args.overrides)
