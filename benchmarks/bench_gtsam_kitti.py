@@ -42,6 +42,22 @@ def _rmse(t_est: np.ndarray, p_est: np.ndarray, truth) -> float:
                              max_dt_s=0.06, align="se3").rmse_m
 
 
+def _predictions(pim, state, bias, t_imu, acc, gyro, rows, t_start: float, refs: np.ndarray) -> list:
+    """Positions predicted from ``state`` at each of ``refs`` (increasing), integrating the
+    IMU ``rows`` (from ``t_start``) into ``pim`` on the way; a reference time is taken at the
+    first sample at or after it."""
+    out, j, t_prev = [], 0, t_start
+    for r in rows:
+        dt = t_imu[r] - t_prev
+        if dt > 0:
+            pim.integrateMeasurement(acc[r], gyro[r], dt)
+        t_prev = t_imu[r]
+        while j < len(refs) and refs[j] <= t_prev:
+            out.append(pim.predict(state, bias).pose().translation())
+            j += 1
+    return out
+
+
 def run_gtsam(seq, enu: np.ndarray, sigma_m: np.ndarray, *, imu_scale: float) -> tuple[float, float]:
     """(causal RMSE, smoothed RMSE) of iSAM2 on ``seq`` with the IMU noise × ``imu_scale``."""
     import gtsam
@@ -82,17 +98,11 @@ def run_gtsam(seq, enu: np.ndarray, sigma_m: np.ndarray, *, imu_scale: float) ->
         t_end = t_fix[k] if k < len(t_fix) else t_imu[-1]
         pim = gtsam.PreintegratedImuMeasurements(params, bias)
         refs = t_ref[(t_ref > (t_fix[k - 1])) & (t_ref <= t_end)]
-        first_row, j, t_prev = row, 0, t_fix[k - 1]
-        while row < len(t_imu) and t_imu[row] <= t_end:
-            dt = t_imu[row] - t_prev
-            if dt > 0:
-                pim.integrateMeasurement(acc[row], gyro[row], dt)
-            t_prev = t_imu[row]
-            while j < len(refs) and refs[j] <= t_prev:
-                causal_t.append(refs[j])
-                causal_p.append(pim.predict(state, bias).pose().translation())
-                j += 1
-            row += 1
+        first_row = row
+        row = int(np.searchsorted(t_imu, t_end, side="right"))
+        predicted = _predictions(pim, state, bias, t_imu, acc, gyro, range(first_row, row), t_fix[k - 1], refs)
+        causal_t += list(refs[: len(predicted)])
+        causal_p += predicted
         segments.append((k - 1, first_row, row, refs))
         if k == len(t_fix):
             break
@@ -116,16 +126,10 @@ def run_gtsam(seq, enu: np.ndarray, sigma_m: np.ndarray, *, imu_scale: float) ->
     for key, first_row, last_row, refs in segments:
         b = final.atConstantBias(B(key))
         s = gtsam.NavState(final.atPose3(X(key)), final.atVector(V(key)))
-        pim, t_prev, j = gtsam.PreintegratedImuMeasurements(params, b), t_fix[key], 0
-        for r in range(first_row, last_row):
-            dt = t_imu[r] - t_prev
-            if dt > 0:
-                pim.integrateMeasurement(acc[r], gyro[r], dt)
-            t_prev = t_imu[r]
-            while j < len(refs) and refs[j] <= t_prev:
-                smooth_t.append(refs[j])
-                smooth_p.append(pim.predict(s, b).pose().translation())
-                j += 1
+        pim = gtsam.PreintegratedImuMeasurements(params, b)
+        predicted = _predictions(pim, s, b, t_imu, acc, gyro, range(first_row, last_row), t_fix[key], refs)
+        smooth_t += list(refs[: len(predicted)])
+        smooth_p += predicted
     return (_rmse(np.array(causal_t), np.array(causal_p), truth), _rmse(np.array(smooth_t), np.array(smooth_p), truth))
 
 
