@@ -93,3 +93,31 @@ def test_the_constraint_keeps_a_car_on_its_road_through_a_gnss_outage():
     assert outage_error(by_platform) == pytest.approx(outage_error(held), rel=1e-9)
     none = navigate(NavigationRun(seq.imu, seq.gnss), config=auto)
     assert not [x for x in none.filter.log if x.get("kind") == "vehicle"]
+
+
+def test_the_gradient_reaches_the_constraint_sigmas_as_finite_differences_say():
+    """A 20 s drive with the constraint on: d(end position error²)/d(ln σ_lat) by autograd
+    through the filter against a central difference."""
+    config = DriveConfig(duration_s=20.0, outage_s=0.0)
+    seq = drive_sequence(config)[0]
+    e = AUTOMOTIVE_IMU
+    noise = ProcessNoise(acc_noise=e.acc_noise, gyro_noise=e.gyro_noise, acc_bias_walk=e.acc_bias_walk,
+                         gyro_bias_walk=e.gyro_bias_walk)
+
+    def loss(log_sigma: torch.Tensor) -> torch.Tensor:
+        settings = VehicleSettings(mode="on", lateral_sigma_mps=torch.exp(log_sigma), vertical_sigma_mps=0.5)
+        result = navigate(NavigationRun(seq.imu, seq.gnss),
+                          config=NavigationConfig(noise=noise, measurements={"vehicle": settings}))
+        f = result.frame
+        shift = LocalTangentPlane(*config.origin).to_enu(f.origin_lat_deg, f.origin_lon_deg, f.origin_alt_m)
+        t_end = result.filter.t_s[-1:]
+        err = result.filter.node_mean[-1, STATE.p] - (Drive(config).position(t_end)[0] - shift)
+        return (err * err).sum()
+
+    a = torch.tensor(-1.0, dtype=F64, requires_grad=True)
+    (grad,) = torch.autograd.grad(loss(a), a)
+    h = 1e-4
+    with torch.no_grad():
+        difference = (loss(torch.tensor(-1.0 + h, dtype=F64)) - loss(torch.tensor(-1.0 - h, dtype=F64))) / (2 * h)
+    assert torch.isfinite(grad) and abs(float(grad)) > 1e-8
+    assert float(grad) == pytest.approx(float(difference), rel=1e-4, abs=1e-9)
