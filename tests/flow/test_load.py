@@ -122,7 +122,7 @@ def test_closed_form_dropout_shares_one_cache_across_rates(recording, tmp_path, 
     """SpyNet in closed form keeps σ's moments: a second rate reads the first rate's cache, and its
     σ is what the network computes at that rate from scratch (another cache)."""
     def spynet(p):
-        return ("flow=spynet", "+flow.mc_mode=moments", f"flow.p={p}")
+        return ("flow=spynet", "flow.mc_mode=moments", f"flow.p={p}")
 
     first, cached = _dense_flow(recording, tmp_path / "shared", caplog, spynet(0.2))
     assert not cached
