@@ -64,18 +64,27 @@ def test_orientation_term_needs_a_truth_with_orientations():
         window_loss(track_of(t, pos, q), PoseStream(t, pos, name="positions only"), orientation_weight_m_per_rad=1.0)
 
 
+def drifting_arc(v: float, drift: float, duration_s: float):
+    """``(t, truth, arc, est_p, est_q)``: a truth walking straight along x at ``v`` (10 Hz) and
+    an estimate whose heading drifts at ``drift`` rad/s, so it walks ``arc`` (radius v/δ), seen
+    in another frame (turned by 0.3 rad and moved by (2, 1, 0) m)."""
+    t = torch.linspace(0.0, duration_s, int(round(10 * duration_s)) + 1, dtype=F64)
+    zero = torch.zeros_like(t)
+    truth = PoseStream(t, torch.stack((v * t, zero, zero), -1), quat.from_euler(zero, zero, zero))
+    arc = torch.stack((v / drift * torch.sin(drift * t), v / drift * (1 - torch.cos(drift * t)), zero), -1)
+    turn = quat.to_matrix(quat.from_euler(*(torch.tensor(a, dtype=F64) for a in (0.0, 0.0, 0.3))))
+    return t, truth, arc, arc @ turn.T + torch.tensor([2.0, 1.0, 0.0], dtype=F64), quat.from_euler(zero, zero,
+                                                                                                     drift * t + 0.3)
+
+
 def test_segment_loss_of_a_heading_drift_is_the_arc_against_the_chord():
     """The truth walks straight along x at v; the estimate's heading drifts at δ, so it walks
     an arc of radius v/δ. In its own heading frame each segment of L seconds is displaced by
     (v/δ)(sin δL, 1 - cos δL) against (vL, 0): the loss is the mean over the durations of that
     error's length, plus the weight times δL for the heading change; no alignment enters."""
     v, drift = 1.4, 0.01
-    t = torch.linspace(0.0, 20.0, 201, dtype=F64)
-    zero = torch.zeros_like(t)
-    truth = PoseStream(t, torch.stack((v * t, zero, zero), -1), quat.from_euler(zero, zero, zero))
-    arc = torch.stack((v / drift * torch.sin(drift * t), v / drift * (1 - torch.cos(drift * t)), zero), -1)
-    turn = quat.to_matrix(quat.from_euler(*(torch.tensor(a, dtype=F64) for a in (0.0, 0.0, 0.3))))
-    est = track_of(t, arc @ turn.T + torch.tensor([2.0, 1.0, 0.0], dtype=F64), quat.from_euler(zero, zero, drift * t + 0.3))
+    t, truth, arc, est_p, est_q = drifting_arc(v, drift, 20.0)
+    est = track_of(t, est_p, est_q)
     lengths = torch.tensor([5.0, 10.0], dtype=F64)
     expected = torch.sqrt((v / drift * torch.sin(drift * lengths) - v * lengths) ** 2
                           + (v / drift * (1 - torch.cos(drift * lengths))) ** 2).mean()
@@ -99,12 +108,7 @@ def test_start_loss_aligns_once_at_the_start_so_a_heading_drift_costs_in_full():
     distance from the line, |(v/δ)(sin δt, 1 - cos δt) - (vt, 0)|, for the first window and,
     with that alignment passed on, for a later one. Each window's own yaw alignment hides most of it."""
     v, drift = 1.4, 0.01
-    t = torch.linspace(0.0, 40.0, 401, dtype=F64)
-    zero = torch.zeros_like(t)
-    truth = PoseStream(t, torch.stack((v * t, zero, zero), -1), quat.from_euler(zero, zero, zero))
-    arc = torch.stack((v / drift * torch.sin(drift * t), v / drift * (1 - torch.cos(drift * t)), zero), -1)
-    turn = quat.to_matrix(quat.from_euler(*(torch.tensor(a, dtype=F64) for a in (0.0, 0.0, 0.3))))
-    est_p, est_q = arc @ turn.T + torch.tensor([2.0, 1.0, 0.0], dtype=F64), quat.from_euler(zero, zero, drift * t + 0.3)
+    t, truth, arc, est_p, est_q = drifting_arc(v, drift, 40.0)
     gap = (arc - truth.pos_m).norm(dim=-1)
     first, later = slice(0, 201), slice(200, 401)
     one = window_loss(track_of(t[first], est_p[first], est_q[first]), truth, loss="start")
