@@ -4,7 +4,7 @@ For each recording it prints the check's verdict on the readings as they are and
 readings with the gyroscope in deg/s (× 180/π) and with its x and y axes swapped: no false
 alarm on the clean ones, deg/s named on every converted one (the swap is not claimed).
 
-    python benchmarks/bench_imu_consistency.py ~/.cache/flowins/simulated/*/ /tmp/gtsam/gtsam/Data
+    python benchmarks/bench_imu_consistency.py ~/.cache/flowins/simulated/*/ /tmp/gtsam/gtsam/Data --drives 4
     python benchmarks/bench_imu_consistency.py DIR ...     # flowins folders (imu.csv) or EuRoC/KITTI folders
 
 A folder holding ``KittiEquivBiasedImu.txt`` (the gtsam 4.3.0 wheel's ``gtsam/Data``) is read
@@ -32,17 +32,28 @@ def _readings(path: Path) -> tuple[str, torch.Tensor, torch.Tensor, torch.Tensor
     return str(path), imu.t_s, imu.acc_mps2, imu.gyro_rps
 
 
+def _drive(seed: int) -> tuple[str, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A simulated car drive's IMU (flowins.data.simulate.drive, 300 s)."""
+    import dataclasses
+
+    from flowins.data.simulate.drive import DriveConfig, drive_sequence
+
+    imu = drive_sequence(dataclasses.replace(DriveConfig(), seed=seed))[0].imu
+    return f"simulated drive, seed {seed}", imu.t_s, imu.acc_mps2, imu.gyro_rps
+
+
 def main() -> None:
     from flowins.ins.consistency import gyro_consistency
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("paths", nargs="+", type=Path, help="recording folders")
+    parser.add_argument("paths", nargs="*", type=Path, help="recording folders")
+    parser.add_argument("--drives", type=int, default=0, help="also this many simulated car drives (seeds 0, 1, ...)")
     args = parser.parse_args()
     print(f"{'recording':<60} {'s':>6}  {'clean':<22} {'deg/s':<22} {'x<->y':<22} {'time':>6}")
     alarms = missed = 0
-    for path in args.paths:
+    for path in [*args.paths, *(f"drive:{seed}" for seed in range(args.drives))]:
         try:
-            name, t, acc, gyro = _readings(path)
+            name, t, acc, gyro = _drive(int(path[6:])) if isinstance(path, str) else _readings(path)
         except (ValueError, OSError) as exc:
             print(f"{str(path):<60} skipped: {exc}")
             continue
