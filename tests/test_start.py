@@ -144,15 +144,12 @@ def _gt_case(seed: int = 0):
     and a ground truth at 20 Hz with 2 mm and 2 mrad of noise of its own."""
     from dataclasses import replace
 
-    from flowins.data.streams import PoseStream
+    from flowins.data.synthetic import noisy_truth
 
     rec = synthetic_walk_recording(duration_s=20.0, seed=seed, truth_rate_hz=20.0, walk=WalkConfig(duration_s=20.0))
-    gen = torch.Generator().manual_seed(100 + seed)
+    noisy = noisy_truth(rec.truth, position_sigma_m=0.002, attitude_sigma_rad=0.002,
+                        generator=torch.Generator().manual_seed(100 + seed), name="gt")
     truth = rec.truth
-    noisy_q = quat.multiply(truth.quat_wxyz, quat.from_rotation_vector(
-        0.002 * torch.randn(truth.quat_wxyz.shape[0], 3, generator=gen, dtype=torch.float64)))
-    noisy = PoseStream(truth.t_s, truth.pos_m + 0.002 * torch.randn(truth.pos_m.shape, generator=gen,
-                                                                     dtype=torch.float64), noisy_q, name="gt")
     return replace(rec, truth=noisy), truth
 
 

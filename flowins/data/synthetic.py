@@ -321,3 +321,16 @@ def synthetic_walk_recording(
         imu_errors=errors,
         walk=w,
     )
+
+
+def noisy_truth(truth, *, position_sigma_m: float, attitude_sigma_rad: float, generator: torch.Generator,
+                name: str = "noisy ground truth"):
+    """``truth`` (a :class:`~flowins.data.streams.PoseStream` with orientations) as a motion-capture
+    system would record it: white noise of ``position_sigma_m`` per axis on the positions and a
+    rotation vector of ``attitude_sigma_rad`` per axis on the orientations (body frame)."""
+    from flowins.data.streams import PoseStream
+
+    n = truth.t_s.shape[0]
+    turn = quat.from_rotation_vector(attitude_sigma_rad * torch.randn(n, 3, generator=generator, dtype=torch.float64))
+    shift = position_sigma_m * torch.randn(n, 3, generator=generator, dtype=torch.float64)
+    return PoseStream(truth.t_s, truth.pos_m + shift, quat.multiply(truth.quat_wxyz, turn), name=name)
