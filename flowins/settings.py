@@ -306,9 +306,7 @@ def resolve_imu(imu_cfg: Mapping[str, Any], recordings: Sequence[SensorRecording
     imu = imu_model(imu_cfg, recording=recorded, sensor=sensors[0] if sensors else None)
     if imu_cfg.get("name") == "auto" and recorded and sensors == [None]:
         imu = measured_imu(imu_cfg, recordings, fallback=imu)
-    check = imu_cfg.get("check_consistency", True)
-    if not isinstance(check, bool):
-        raise ValueError(f"imu.check_consistency={check!r}: expected true or false")
+    check = setting({"imu": imu_cfg}, "imu.check_consistency", bool, default=True)
     for rec in recordings:
         imu.check_readings(rec.imu)
         if check:

@@ -317,11 +317,9 @@ def choose_start(
             facts = {"still_s": still.duration_s, "still_end_s": still.end_s, "still_ends": still.reason}
             return Start("still", 0, t0, mean, cov, reason, zupt, facts)
         why_not_still = contradicted or too_short
-        if fit is None and fixes is not None and (waiting := _waiting_fit(imu, fixes, settings.moving)) is not None:
-            row, late, waited = waiting
-            return _waited(_moving(imu, late, settings.moving, forward_b, uncertainty, gravity_mps2, index=row,
-                                   reason=f"auto: not still ({why_not_still})", source=_fit_source(late, fused)),
-                           waited, settings.moving)
+        if fit is None and (late := _waiting_start(imu, fixes, settings.moving, forward_b, uncertainty, gravity_mps2,
+                                                   reason=f"auto: not still ({why_not_still})", fused=fused)):
+            return late
         if fit is None:
             raise ValueError(
                 f"filter.init.mode=auto: the recording does not start still ({why_not_still}) and has fewer than 2 "
@@ -332,17 +330,24 @@ def choose_start(
         return _moving(imu, fit, settings.moving, forward_b, uncertainty, gravity_mps2,
                        reason=f"auto: not still ({why_not_still})", source=_fit_source(fit, fused))
     # mode == "moving"
-    if fit is None and fixes is not None and (waiting := _waiting_fit(imu, fixes, settings.moving)) is not None:
-        row, late, waited = waiting
-        return _waited(_moving(imu, late, settings.moving, forward_b, uncertainty, gravity_mps2, index=row,
-                               reason="filter.init.mode=moving", source=_fit_source(late, fused)),
-                       waited, settings.moving)
+    if fit is None and (late := _waiting_start(imu, fixes, settings.moving, forward_b, uncertainty, gravity_mps2,
+                                               reason="filter.init.mode=moving", fused=fused)):
+        return late
     return _moving(imu, fit, settings.moving, forward_b, uncertainty, gravity_mps2, reason="filter.init.mode=moving",
                    source="" if fit is None else _fit_source(fit, fused))
 
 
-def _waited(start: Start, waited_s: float, settings: MovingSettings) -> Start:
-    """``start`` saying that it waited ``waited_s`` for its fixes."""
+def _waiting_start(imu: ImuStream, fixes: tuple[Tensor, Tensor, Tensor] | None, settings: MovingSettings,
+                   forward_b: Tensor, uncertainty: InitialUncertainty, gravity_mps2: float, *, reason: str,
+                   fused: bool) -> Start | None:
+    """The moving start that waits for its fixes (:func:`_waiting_fit`), saying how long it
+    waited; None without fixes, or when they come too late or too far apart."""
+    waiting = None if fixes is None else _waiting_fit(imu, fixes, settings)
+    if waiting is None:
+        return None
+    row, fit, waited_s = waiting
+    start = _moving(imu, fit, settings, forward_b, uncertainty, gravity_mps2, index=row, reason=reason,
+                    source=_fit_source(fit, fused))
     start.facts["waited_s"] = waited_s
     start.reason += (f"; waited {waited_s:.1f} s for two GNSS fixes (fewer than 2 in the first "
                      f"filter.init.moving.fit_s={settings.fit_s} s; the rows before are not filtered)")

@@ -204,14 +204,19 @@ def heading_directions(q: Tensor) -> Tensor:
     return forward / torch.sqrt((forward * forward).sum(-1, keepdim=True) + 1e-12)
 
 
+def relative_heading(h_a: Tensor, h_b: Tensor) -> Tensor:
+    """``(..., 2)`` the turn from headings ``h_a`` to ``h_b`` (``(..., 2)`` unit ``(cos, sin)``,
+    :func:`heading_directions`) as ``(cos, sin)`` of ``ψ_b - ψ_a``: ``h_b · conj(h_a)``."""
+    return torch.stack((h_b[..., 0] * h_a[..., 0] + h_b[..., 1] * h_a[..., 1],
+                        h_b[..., 1] * h_a[..., 0] - h_b[..., 0] * h_a[..., 1]), dim=-1)
+
+
 def align_start(p_est: Tensor, q_est: Tensor, p_ref: Tensor, q_ref: Tensor) -> Alignment:
     """The rotation about ``z`` and translation mapping one estimated pose onto a reference
     pose (positions ``(3,)``, orientations ``(4,)`` w, x, y, z): the turn between their
     headings (:func:`heading_directions`) and the offset between their positions. The frame
     in which an INS started from this pose would have no error at all."""
-    h_est, h_ref = heading_directions(q_est), heading_directions(q_ref.to(q_est))
-    c = h_ref[0] * h_est[0] + h_ref[1] * h_est[1]  # cos and sin of ψ_ref - ψ_est
-    s = h_ref[1] * h_est[0] - h_ref[0] * h_est[1]
+    c, s = relative_heading(heading_directions(q_est), heading_directions(q_ref.to(q_est))).unbind(-1)
     one, zero = torch.ones_like(c), torch.zeros_like(c)
     rotation = torch.stack((c, -s, zero, s, c, zero, zero, zero, one), -1).reshape(3, 3)
     translation = p_ref.to(p_est) - rotation @ p_est

@@ -28,6 +28,7 @@ from flowins.evaluation.alignment import (
     check_points,
     heading_directions,
     identity_alignment,
+    relative_heading,
     umeyama,
 )
 from flowins.geometry import quaternion
@@ -224,11 +225,9 @@ def segment_errors(
         d_est, d_ref = est[j] - est[i], ref[j] - ref[i]
         if q_est is not None:
             d_est, d_ref = _into_heading(d_est, h_est[i]), _into_heading(d_ref, h_ref[i])
-            turn_est, turn_ref = _relative_heading(h_est[i], h_est[j]), _relative_heading(h_ref[i], h_ref[j])
-            # the angle of turn_est · conj(turn_ref)
-            re = turn_est[:, 0] * turn_ref[:, 0] + turn_est[:, 1] * turn_ref[:, 1]
-            im = turn_est[:, 1] * turn_ref[:, 0] - turn_est[:, 0] * turn_ref[:, 1]
-            heading.append(torch.sqrt(torch.atan2(im, re).square().mean() + 1e-16))
+            # the angle from the true turn to the estimated one
+            miss = relative_heading(relative_heading(h_ref[i], h_ref[j]), relative_heading(h_est[i], h_est[j]))
+            heading.append(torch.sqrt(torch.atan2(miss[:, 1], miss[:, 0]).square().mean() + 1e-16))
         err = d_est - d_ref
         rmse.append(torch.sqrt((err * err).sum(-1).mean() + 1e-12))
         kept.append(float(length))
@@ -241,12 +240,6 @@ def segment_errors(
 def _into_heading(d: Tensor, h: Tensor) -> Tensor:
     """World vectors ``(K, 3)`` in the heading frames ``h`` ``(K, 2)`` (rotated by ``-ψ``)."""
     return torch.stack((h[:, 0] * d[:, 0] + h[:, 1] * d[:, 1], h[:, 0] * d[:, 1] - h[:, 1] * d[:, 0], d[:, 2]), dim=-1)
-
-
-def _relative_heading(h_a: Tensor, h_b: Tensor) -> Tensor:
-    """``(K, 2)`` the turn from heading ``h_a`` to ``h_b`` as ``(cos, sin)`` (``h_b · conj(h_a)``)."""
-    return torch.stack((h_b[:, 0] * h_a[:, 0] + h_b[:, 1] * h_a[:, 1], h_b[:, 1] * h_a[:, 0] - h_b[:, 0] * h_a[:, 1]),
-                       dim=-1)
 
 
 @dataclass(frozen=True)

@@ -62,7 +62,7 @@ class VehicleSettings:
                 raise ValueError(f"{key}.{name}={getattr(self, name)!r}: expected a number > 0")
 
     def rows(self) -> tuple[Tensor, Tensor]:
-        """``(E (2, 3), sign)``: the lateral and up unit axes of the body as rows."""
+        """``E (2, 3)``: the body's lateral and up unit axes as rows (the up axis with its sign)."""
         up_i, up_s = AXES[self.up_axis]
         fwd_i, _ = AXES[self.forward_axis]
         lateral_i = 3 - up_i - fwd_i

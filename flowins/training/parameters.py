@@ -379,11 +379,12 @@ class FilterParameters(nn.Module):
             # written before these parameters existed: they load at their defaults, not learned
             for n in ADDED_NAMES - set(raw):
                 default = float(getattr(VehicleSettings(), _FIELDS[n][1]))
-                raw[n] = torch.tensor(math.log(default), dtype=torch.float64)
-                if "center" in layouts:
+                if "center" in layouts:  # at its start: a = 0
                     found["center"][n] = torch.tensor(default, dtype=torch.float64)
                     found["bound"][n] = torch.tensor(DEFAULT_BOUND_DECADES, dtype=torch.float64)
-                    found["raw"][n] = torch.zeros((), dtype=torch.float64)
+                    raw[n] = torch.zeros((), dtype=torch.float64)
+                else:  # log space
+                    raw[n] = torch.tensor(math.log(default), dtype=torch.float64)
         missing = {kind: [n for n in NAMES if n not in found[kind]] for kind in ("raw", *layouts)}
         if missing := {kind: names for kind, names in missing.items() if names}:
             what = "; ".join(f"missing {names}" if kind == "raw" else f"missing the {kind} of {names}"
