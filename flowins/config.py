@@ -116,9 +116,7 @@ def check_value(value: Any, tp: Any, key: str) -> Any:
             return value
         raise ValueError(f"{key}={value!r}: expected a path")
     if tp is torch.device:
-        if isinstance(value, (str, torch.device)):
-            return value
-        raise ValueError(f"{key}={value!r}: expected a device name (cpu, cuda, ...)")
+        return check_device(value, key)
     if tp is torch.dtype:
         if isinstance(value, torch.dtype):
             return value
@@ -126,6 +124,25 @@ def check_value(value: Any, tp: Any, key: str) -> Any:
     if tp is typing.Any:
         return value
     return _scalar(value, tp, key)
+
+
+def check_device(value: Any, key: str) -> torch.device:
+    """``value`` as a :class:`torch.device` this machine has: ``cpu``, or ``cuda`` / ``cuda:N``
+    with a CUDA GPU that torch sees; errors name ``key`` and what is there."""
+    try:
+        device = torch.device(value) if isinstance(value, (str, torch.device)) else None
+    except RuntimeError:
+        device = None
+    if device is None or device.type not in ("cpu", "cuda"):
+        raise ValueError(f"{key}={value!r}: expected cpu, cuda or cuda:N")
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"{key}={value}: torch {torch.__version__} sees no CUDA GPU here "
+                             f"(torch.cuda.is_available() is False); use {key}=cpu, or install torch's CUDA build")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise ValueError(f"{key}={value}: there are {torch.cuda.device_count()} CUDA GPU(s) "
+                             f"(cuda:0 to cuda:{torch.cuda.device_count() - 1})")
+    return device
 
 
 def _fields(cls: type) -> list[str]:

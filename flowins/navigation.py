@@ -54,6 +54,9 @@ class NavigationConfig:
     #: ``"analytic"`` | ``"autodiff"``: the IMU's and the flow measurements' Jacobians
     jacobians: str = "analytic"
     dtype: torch.dtype = torch.float64
+    #: where the filter, the smoother and their events run (``cpu``, ``cuda``, ``cuda:1``);
+    #: the start and the measurements are prepared on the CPU and moved there
+    device: torch.device = field(default_factory=lambda: torch.device("cpu"))
     flow_update: FlowUpdate = field(default_factory=FlowUpdate)
     #: the settings of each registered measurement kind by name (``filter.measurements.<name>``,
     #: :func:`~flowins.measurements.registry.measurement_settings`); a kind not named here
@@ -255,7 +258,8 @@ def prepare_navigation(run: NavigationRun, *, config: NavigationConfig = Navigat
             settings = config.measurements.get(name)
             settings = kind.settings() if settings is None else settings
             events += [e for e in kind.events(stream, settings, context) if e.time_s >= start.t_s]
-    mean0, cov0 = start.mean.to(config.dtype), start.cov.to(config.dtype)
+    like = {"dtype": config.dtype, "device": torch.device(config.device)}
+    mean0, cov0 = start.mean.to(**like), start.cov.to(**like)
     return NavigationSetup(mean0, cov0, events, frame, enu, outside, start, len(before))
 
 

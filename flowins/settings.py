@@ -22,7 +22,7 @@ from typing import Any, Protocol
 
 import torch
 
-from flowins.config import bounded, build, check_target, setting
+from flowins.config import bounded, build, check_device, check_target, setting
 from flowins.data.streams import ImuStream
 from flowins.filter.ekf import Gate
 from flowins.ins.consistency import gyro_consistency
@@ -207,7 +207,7 @@ def evaluate_settings(cfg: Mapping[str, Any]) -> EvaluateSettings:
     settings = _job(EvaluateSettings, cfg)
     check_filter_settings(cfg, recorded=bool(settings.sequence.path))
     if settings.uses("dense"):
-        check_target(cfg["flow"], "flow")
+        check_flow(cfg["flow"])
     if settings.uses("sparse"):
         sparse = cfg["sparse"]
         source = sparse.get("source")
@@ -225,9 +225,20 @@ def train_settings(cfg: Mapping[str, Any]) -> TrainSettings:
     """``train.py``'s config checked and built before any work."""
     settings = _job(TrainSettings, cfg)
     setting(cfg, "trainer.max_epochs", int | None, minimum=-1, default=None)  # Lightning's own Trainer key
+    accelerator = cfg["trainer"].get("accelerator")
+    if accelerator in ("gpu", "cuda") and not torch.cuda.is_available():  # Lightning's own error is a traceback
+        raise ValueError(f"trainer.accelerator={accelerator} (trainer=gpu): torch {torch.__version__} sees no CUDA GPU "
+                         "here (torch.cuda.is_available() is False); use trainer=cpu, or install torch's CUDA build")
     check_filter_settings(cfg, recorded=settings.recorded)
-    check_target(cfg["flow"], "flow")
+    check_flow(cfg["flow"])
     return settings
+
+
+def check_flow(flow: Mapping[str, Any]) -> None:
+    """The ``flow`` group's provider (``_target_``) and, where it has one, its ``device``."""
+    check_target(flow, "flow")
+    if "device" in flow:
+        check_device(flow["device"], "flow.device")
 
 
 def check_filter_settings(cfg: Mapping[str, Any], *, recorded: bool) -> None:
@@ -256,7 +267,7 @@ def navigation_config(cfg: Mapping[str, Any], imu: ImuModel | None = None) -> Na
         if noise[key] is None:
             raise ValueError(f"filter.{key} is null and no imu preset was given; set filter.{key} or choose imu=...")
     noise.update(acc_scale_walk=cfg["acc_scale_walk"], discretization=cfg["discretization"])
-    simple = ("gnss_noise_scale", "gnss_correlation_s", "output_every", "scheme", "gravity_mps2", "jacobians")
+    simple = ("gnss_noise_scale", "gnss_correlation_s", "output_every", "scheme", "gravity_mps2", "jacobians", "device")
     groups = ("init", "initial", "gnss_gate", "gnss_recovery", "gnss_heading", "flow", "dtype", "measurements")
     known = (*noise, *simple, *groups)
     for key in cfg:

@@ -4,6 +4,170 @@ The filter's tensors are small (26 x 26): one intra-op thread is fastest, and it
 the suite's run time stable on a busy 2-core machine (oversubscribed threads made
 small matrix products two orders of magnitude slower here).
 """
+import os
+import traceback
+import typing
+import weakref
+
+import pytest
 import torch
+from torch.overrides import TorchFunctionMode
+from torch.utils._pytree import tree_flatten
 
 torch.set_num_threads(1)
+
+
+def _where() -> str:
+    """``file:line`` of the innermost frame in the flowins package on the stack."""
+    import flowins
+
+    root = os.path.dirname(flowins.__file__)
+    return next((f"{os.path.relpath(f.filename, os.path.dirname(root))}:{f.lineno}"
+                 for f in reversed(traceback.extract_stack()) if f.filename.startswith(root)), "?")
+
+
+class MixedDtypes(TorchFunctionMode):
+    """Records every torch op whose tensor arguments (of one dimension or more) hold two
+    floating dtypes: a constant built in float64 (or the default dtype) meeting a float32
+    state. On a GPU the same slip is a CPU tensor meeting a CUDA one (an error there);
+    run a float32 filter under this mode with ``torch.set_default_dtype(torch.float64)``
+    to see both kinds of slip on a CPU. Casts (``to``, ``copy_``, assignment) are allowed."""
+
+    CASTS: typing.ClassVar[set] = {torch.Tensor.to, torch.Tensor.type_as, torch.Tensor.copy_, torch.Tensor.__setitem__,
+             torch.as_tensor, torch.Tensor.double, torch.Tensor.float, torch.Tensor.type}
+
+    def __init__(self):
+        super().__init__()
+        self.slips: dict[str, int] = {}
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        if func not in self.CASTS:
+            dtypes = set()
+            stack = list(args) + list(kwargs.values())
+            while stack:
+                a = stack.pop()
+                if isinstance(a, torch.Tensor):
+                    if a.ndim > 0 and a.is_floating_point():
+                        dtypes.add(a.dtype)
+                elif isinstance(a, (list, tuple)):
+                    stack.extend(a)
+            if len(dtypes) > 1:
+                key = f"{getattr(func, '__name__', func)} at {_where()}: {sorted(map(str, dtypes))}"
+                self.slips[key] = self.slips.get(key, 0) + 1
+        return func(*args, **kwargs)
+
+
+@pytest.fixture
+def mixed_dtypes():
+    """``with mixed_dtypes() as mode:`` a :class:`MixedDtypes` mode with the default dtype
+    float64 inside (restored after); ``mode.slips`` names each op, where and its dtypes."""
+    import contextlib
+
+    @contextlib.contextmanager
+    def guard():
+        previous = torch.get_default_dtype()
+        torch.set_default_dtype(torch.float64)
+        try:
+            with MixedDtypes() as mode:
+                yield mode
+        finally:
+            torch.set_default_dtype(previous)
+
+    return guard
+
+
+#: the fake device of :class:`FakeDevice`: tensors "on" it are CPU tensors it has tagged
+FAKE_DEVICE = torch.device("meta")
+_DEVICE = torch._C.TensorBase.__dict__["device"]  # the getset descriptor behind x.device
+
+
+class FakeDevice(TorchFunctionMode):
+    """A second device on a CPU: tensors made with ``device=meta`` (or moved there) are CPU
+    tensors tagged as on it; every op on a tagged tensor tags its results; ``x.device`` of a
+    tagged tensor is ``meta``. An op that meets a tagged tensor and an untagged one (of one
+    dimension or more) is recorded as a slip: on a GPU it is a CPU tensor meeting a CUDA one."""
+
+    ALLOWED: typing.ClassVar[set] = {torch.Tensor.copy_, torch.Tensor.__setitem__, torch.Tensor.__getitem__, torch.Tensor.to,
+               torch.Tensor.cpu, torch.as_tensor, torch.Tensor.index_select, torch.Tensor.tolist}
+
+    #: id -> weak reference of every tensor on the fake device, shared by all modes (cached
+    #: constants built for it outlive a mode); tensors compare by value, so no WeakSet
+    tagged: typing.ClassVar[dict] = {}
+
+    def __init__(self):
+        super().__init__()
+        self.slips = {}
+
+    @classmethod
+    def place(cls, *modules) -> None:
+        """Count the parameters and buffers of ``modules`` as on the device (``module.to(cuda)``)."""
+        for module in modules:
+            for t in (*module.parameters(), *module.buffers()):
+                cls._tag(t)
+
+    @classmethod
+    def _tag(cls, t: torch.Tensor) -> None:
+        key = id(t)
+        cls.tagged[key] = weakref.ref(t, lambda _: cls.tagged.pop(key, None))
+
+    def _is(self, t):
+        ref = self.tagged.get(id(t)) if isinstance(t, torch.Tensor) else None
+        return ref is not None and ref() is t
+
+    def _slip(self, what):
+        key = f"{what} at {_where()}"
+        self.slips[key] = self.slips.get(key, 0) + 1
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        kwargs = dict(kwargs or {})
+        if getattr(func, "__self__", None) is _DEVICE:
+            return FAKE_DEVICE if self._is(args[0]) else func(*args)
+        flat, _ = tree_flatten((args, kwargs))
+        tensors = [t for t in flat if isinstance(t, torch.Tensor)]
+        on = [t for t in tensors if self._is(t)]
+        target = None  # where the result goes: True tagged, False untagged, None: follow the inputs
+        dev = kwargs.get("device")
+        if dev is not None and torch.device(dev) == FAKE_DEVICE:
+            kwargs["device"] = "cpu"
+            target = True
+        elif dev is not None:
+            target = False
+        if func is torch.Tensor.to:
+            rest = list(args[1:])
+            for i, a in enumerate(rest):
+                if isinstance(a, (str, torch.device)):
+                    if torch.device(a) == FAKE_DEVICE:
+                        rest[i], target = "cpu", True
+                    else:
+                        target = False
+                elif isinstance(a, torch.Tensor):
+                    target = self._is(a)
+            args = (args[0], *rest)
+        if func is torch.Tensor.cpu:
+            target = False
+        if func is torch.Tensor.numpy and on:
+            self._slip("numpy() of a tensor on the device")
+        if on and func not in self.ALLOWED and target is None:
+            plain = [t for t in tensors if not self._is(t) and t.ndim > 0]
+            if plain:
+                self._slip(f"{getattr(func, '__name__', func)}: {len(plain)} CPU tensor(s) {[tuple(t.shape) for t in plain]}")
+        out = func(*args, **kwargs)
+        if target is not None and any(out is t and self._is(t) != target for t in tensors):
+            out = out.clone()  # a move between devices is a new tensor (``to`` returns its input when nothing changes)
+        tag = bool(on) if target is None else target
+        for t in tree_flatten(out)[0]:
+            if isinstance(t, torch.Tensor):
+                if tag:
+                    self._tag(t)
+                elif target is False and self._is(t) and t is not (args[0] if args else None):
+                    del self.tagged[id(t)]
+        return out
+
+
+@pytest.fixture
+def fake_device():
+    """``with fake_device() as mode:`` a :class:`FakeDevice` mode; ``mode.slips`` names each op
+    that met a tensor on the fake device and a CPU one, where, and the CPU tensors' shapes;
+    ``mode.place(*modules)`` puts modules' parameters and buffers on the device."""
+    return FakeDevice

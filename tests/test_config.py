@@ -8,12 +8,13 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from flowins.config import build, check_value, setting
 from flowins.ins.imu_model import imu_model
-from flowins.settings import evaluate_settings, navigation_config
+from flowins.settings import evaluate_settings, navigation_config, train_settings
 from flowins.navigation import NavigationConfig
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
@@ -44,6 +45,7 @@ def test_the_defaults_pass():
     ("filter.jacobians=numeric", r"filter\.jacobians='numeric'"),
     ("filter.gravity_mps2=0", r"filter\.gravity_mps2=0\.0: expected a number > 0"),
     ("filter.dtype=float32", r"filter\.dtype='float32'"),
+    ("filter.device=gpu", r"filter\.device='gpu': expected cpu, cuda or cuda:N"),
     ("filter.init.mode=bogus", r"filter\.init\.mode='bogus'"),
     ("filter.init.still.min_s=x", r"filter\.init\.still\.min_s='x': expected a number"),
     ("filter.init.still.min_s=-1", r"filter\.init\.still\.min_s must be"),
@@ -81,6 +83,21 @@ def test_a_bad_filter_or_imu_value_names_its_key(override, message):
 def test_a_bad_job_value_names_its_key(override, message):
     with pytest.raises(ValueError, match=message):
         evaluate_settings(_evaluate_config(override))
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="the refusal of a machine without CUDA")
+@pytest.mark.parametrize("override, message", [
+    ("filter.device=cuda", r"filter\.device=cuda: torch .* sees no CUDA GPU here"),
+    ("flow.device=cuda:1", r"flow\.device=cuda:1: torch .* sees no CUDA GPU here"),
+])
+def test_a_cuda_device_without_cuda_is_refused_before_any_work(override, message):
+    with pytest.raises(ValueError, match=message):
+        evaluate_settings(_evaluate_config(override))
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        cfg = OmegaConf.to_container(compose(config_name="train", overrides=["output_dir=/tmp/unused", "trainer=gpu"]),
+                                     resolve=True)
+    with pytest.raises(ValueError, match=r"trainer\.accelerator=gpu \(trainer=gpu\): torch .* sees no CUDA GPU"):
+        train_settings(cfg)
 
 
 def test_check_value_converts_and_refuses():

@@ -67,7 +67,7 @@ def test_run_warnings_name_flow_pairs_outside_the_filter_span_and_fixes_before_t
     assert run_warnings(quiet) == []
 
 
-def test_the_whole_navigation_in_float32_stays_float32_and_agrees_with_float64():
+def test_the_whole_navigation_in_float32_stays_float32_and_agrees_with_float64(mixed_dtypes):
     """Every tensor a run builds follows the state's dtype: a float64 constant slipped into a
     float32 run (or a device's into another's) would promote the nodes or raise. The still start
     with its zero-velocity updates, the GNSS heading alignment and fixes, and the vehicle
@@ -79,10 +79,31 @@ def test_the_whole_navigation_in_float32_stays_float32_and_agrees_with_float64()
     tracks = {}
     for dtype in (torch.float64, torch.float32):
         config = NavigationConfig(dtype=dtype, measurements={"vehicle": VehicleSettings(mode="on")})
-        result = navigate(NavigationRun(rec.imu, rec.gnss), config=config)
+        with mixed_dtypes() as mode:
+            result = navigate(NavigationRun(rec.imu, rec.gnss), config=config)
+        assert mode.slips == {}, mode.slips  # no op mixes float32 with float64 (the default dtype inside)
         kinds = {e.get("kind") for e in result.filter.log}
         assert {"zero_velocity", "gnss", "vehicle"} <= kinds, kinds
         assert result.filter.node_mean.dtype == dtype and result.filter.node_cov.dtype == dtype
         assert result.smoother.node_mean.dtype == dtype
         tracks[dtype] = result.filter.node_mean[:, STATE.p].double()
     assert float((tracks[torch.float32] - tracks[torch.float64]).norm(dim=-1).max()) < 0.05
+
+
+def test_the_navigation_on_another_device_is_the_cpu_run_and_leaves_no_tensor_behind(fake_device):
+    """``NavigationConfig.device``: the start, the GNSS heading alignment and fixes, the
+    zero-velocity updates, the vehicle constraint and the smoother run on the fake device of
+    ``conftest.FakeDevice`` (a GPU's stand-in) with no op meeting a CPU tensor there, and give
+    the CPU run's numbers exactly."""
+    from flowins.measurements.vehicle import VehicleSettings
+
+    rec = synthetic_walk_recording(duration_s=30.0, seed=1)
+    config = NavigationConfig(measurements={"vehicle": VehicleSettings(mode="on")})
+    cpu = navigate(NavigationRun(rec.imu, rec.gnss), config=config)
+    with fake_device() as mode:
+        moved = navigate(NavigationRun(rec.imu, rec.gnss), config=dataclasses.replace(config, device="meta"))
+        assert moved.filter.node_mean.device == torch.device("meta") and moved.smoother.node_cov.device.type == "meta"
+    assert mode.slips == {}, mode.slips
+    assert {"zero_velocity", "gnss", "vehicle", "heading"} <= {e.get("kind") for e in moved.filter.log}
+    assert torch.equal(moved.filter.node_mean, cpu.filter.node_mean)
+    assert torch.equal(moved.smoother.node_cov, cpu.smoother.node_cov)

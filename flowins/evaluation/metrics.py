@@ -316,7 +316,7 @@ def trajectory_errors(
             f"(increase max_dt_s={max_dt_s} or check the time stamps)"
         )
     est = interpolate_positions(pos_est, association)
-    ref = pos_ref[association.ref_index.to(pos_ref.device)]
+    ref = pos_ref[association.ref_index.to(pos_ref.device)].to(est.device)  # a track on a GPU, the truth on the CPU
     t_s = t_ref_s[association.ref_index.to(t_ref_s.device)]
 
     if align == "none":
@@ -341,7 +341,7 @@ def trajectory_errors(
                 raise ValueError(f"{qn} contains NaN or inf; first bad row is {qn}[{row}] = {q[row].tolist()}")
         q_interp = interpolate_quaternions(q_est, association)
         q_aligned = apply_alignment_to_quaternions(alignment, q_interp)
-        q_ref_k = q_ref[association.ref_index.to(q_ref.device)]
+        q_ref_k = q_ref[association.ref_index.to(q_ref.device)].to(q_aligned.device)
         orientation_errors = quaternion.angle_between(q_aligned, q_ref_k)
         orientation_rmse = float(orientation_errors.square().mean().sqrt())
 

@@ -58,10 +58,10 @@ def augmented_covariance(core_cov: Tensor, nugget_var: float) -> Tensor:
     """``(26, 26)`` covariance with ``(p_prev, q_prev)`` an exact copy of ``(p, q)`` plus a nugget."""
     T = torch.zeros(STATE_DIM, CORE_DIM, dtype=core_cov.dtype, device=core_cov.device)
     T[:CORE_DIM] = torch.eye(CORE_DIM, dtype=core_cov.dtype, device=core_cov.device)
-    T[STATE.p_prev, STATE.p] = torch.eye(3, dtype=core_cov.dtype)
-    T[STATE.q_prev, STATE.q] = torch.eye(4, dtype=core_cov.dtype)
+    T[STATE.p_prev, STATE.p] = torch.eye(3, dtype=core_cov.dtype, device=core_cov.device)
+    T[STATE.q_prev, STATE.q] = torch.eye(4, dtype=core_cov.dtype, device=core_cov.device)
     cov = T @ core_cov @ T.T
-    idx = torch.arange(CORE_DIM, STATE_DIM)
+    idx = torch.arange(CORE_DIM, STATE_DIM, device=core_cov.device)
     cov[idx, idx] += nugget_var
     return symmetrize(cov)
 
@@ -69,14 +69,20 @@ def augmented_covariance(core_cov: Tensor, nugget_var: float) -> Tensor:
 def initial_covariance(q: Tensor, u: InitialUncertainty, *, velocity_var: Tensor | None = None,
                        position_var: Tensor | None = None, roll_pitch_yaw_std: Tensor | None = None) -> Tensor:
     """``(26, 26)`` prior covariance at attitude ``q`` with the σ of ``u``; ``velocity_var``,
-    ``position_var`` ``(3,)`` and ``roll_pitch_yaw_std`` ``(3,)`` replace those of ``u``."""
+    ``position_var`` ``(3,)`` and ``roll_pitch_yaw_std`` ``(3,)`` replace those of ``u``. The
+    covariance has the dtype and device of ``q``; learned uncertainties on another device
+    (a module's parameters) are moved there, with their gradient."""
     dtype = q.dtype
-    core = torch.zeros(CORE_DIM, CORE_DIM, dtype=dtype)
+    like = {"dtype": dtype, "device": q.device}
+    core = torch.zeros(CORE_DIM, CORE_DIM, **like)
+
+    def on(x: float | Tensor) -> Tensor:
+        return x.to(**like) if isinstance(x, Tensor) else torch.tensor(float(x), **like)
 
     def block(sl: slice, std: float | Tensor, var: Tensor | None = None) -> None:
         # stacked, not torch.tensor(...): the uncertainties may be learned tensors with a gradient
-        values = torch.as_tensor(std, dtype=dtype) ** 2 * torch.ones(sl.stop - sl.start, dtype=dtype) if var is None else var
-        core[sl, sl] = torch.diag(values.to(dtype))
+        values = on(std) ** 2 * torch.ones(sl.stop - sl.start, **like) if var is None else var
+        core[sl, sl] = torch.diag(values.to(**like))
 
     block(STATE.p, u.position_m, position_var)
     block(STATE.v, u.velocity_mps, velocity_var)
@@ -84,8 +90,8 @@ def initial_covariance(q: Tensor, u: InitialUncertainty, *, velocity_var: Tensor
     block(STATE.b_w, u.gyro_bias_rps)
     block(STATE.T_a, u.acc_scale)
     if roll_pitch_yaw_std is None:
-        roll_pitch_yaw_std = torch.stack([torch.as_tensor(v, dtype=dtype) for v in (u.roll_pitch_rad, u.roll_pitch_rad, u.yaw_rad)])
-    core[STATE.q, STATE.q] = orientation_covariance(q, roll_pitch_yaw_std.to(dtype), u.quaternion_radial)
+        roll_pitch_yaw_std = torch.stack([on(v) for v in (u.roll_pitch_rad, u.roll_pitch_rad, u.yaw_rad)])
+    core[STATE.q, STATE.q] = orientation_covariance(q, roll_pitch_yaw_std.to(**like), u.quaternion_radial)
     return augmented_covariance(core, u.augmentation_nugget_var)
 
 

@@ -65,7 +65,10 @@ def gnss_jacobian_analytic(x: Tensor, lever_arm_m: Tensor | None) -> Tensor:
 
 
 def gnss_noise(h_acc_m: Tensor, v_acc_m: Tensor, scale: float | Tensor = 1.0) -> Tensor:
-    """``R`` ``(..., 3, 3)`` from horizontal and vertical 1-σ accuracies ``(...)``."""
+    """``R`` ``(..., 3, 3)`` from horizontal and vertical 1-σ accuracies ``(...)``, on their
+    device (a learned ``scale`` on another device is moved there, with its gradient)."""
+    if isinstance(scale, Tensor):
+        scale = scale.to(device=h_acc_m.device)
     sigmas = torch.stack((h_acc_m, h_acc_m, v_acc_m), dim=-1) * scale
     return torch.diag_embed(sigmas * sigmas)
 

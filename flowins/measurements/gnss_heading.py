@@ -130,7 +130,7 @@ def fit_heading(filter_xy_m: Tensor, fix_xy_m: Tensor, var_m2: Tensor, *, outlie
     if n < 2:
         raise ValueError(f"fit_heading needs at least 2 fixes, got {n}")
     w = 1.0 / var_m2
-    used = torch.ones(n, dtype=torch.bool)
+    used = torch.ones(n, dtype=torch.bool, device=w.device)
     threshold = chi2_quantile(outlier_probability, 2)
     while True:
         psi, c_p, c_g, info, W = planar_rotation(filter_xy_m[used], fix_xy_m[used], w[used])

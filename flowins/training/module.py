@@ -129,9 +129,10 @@ class FilterLearner(pl.LightningModule):
             aligned: list = [None] * len(seqs)  # model.loss=start: each sequence's one alignment
             going = [True] * len(seqs)  # a sequence whose state stopped being finite leaves the batch
             # every process takes the same number of steps (their batches may differ in windows)
-            count = int(self._sum_over_processes(torch.tensor([max(len(b) for b in bounds)], dtype=torch.float64),
+            f64 = {"dtype": torch.float64, "device": self.device}  # NCCL reduces tensors on the GPU
+            count = int(self._sum_over_processes(torch.tensor([max(len(b) for b in bounds)], **f64),
                                                  reduce="max")[0])
-            gradient, present, pending = self._no_gradient(learned), torch.zeros(len(learned), dtype=torch.float64), 0
+            gradient, present, pending = self._no_gradient(learned), torch.zeros(len(learned), **f64), 0
             for i in range(count):
                 rows = [k for k in range(len(seqs)) if going[k] and i < len(bounds[k])]
                 losses = self._window_losses(seqs, rows, method, [bounds[k][i] for k in rows], starts, going, bounds, i,
@@ -140,11 +141,11 @@ class FilterLearner(pl.LightningModule):
                     total = torch.stack([w.loss for w in losses]).sum()
                     grads = (torch.autograd.grad(total, learned, allow_unused=True) if total.requires_grad
                              else [None] * len(learned))
-                    flat = torch.cat([torch.zeros(q.numel(), dtype=torch.float64) if g is None else g.reshape(-1)
+                    flat = torch.cat([q.new_zeros(q.numel()) if g is None else g.reshape(-1)
                                       for q, g in zip(learned, grads)])
                     if bool(torch.isfinite(flat).all()):
                         gradient += flat
-                        present += torch.tensor([float(g is not None) for g in grads], dtype=torch.float64)
+                        present += torch.tensor([float(g is not None) for g in grads], **f64)
                         pending += len(losses)
                     else:
                         self._skip(len(losses))
@@ -161,7 +162,7 @@ class FilterLearner(pl.LightningModule):
         the batch (its remaining windows counted as skipped)."""
         if not rows:
             return []
-        config = self.params.apply(self.base, training=True)
+        config = self.params.apply(self.base, training=True, device=self.device)
         p = self.params.value("dropout_p") if _has_moments(seqs[rows[0]], method) else None
         results = run_windows([seqs[k] for k in rows], method, config, windows, dropout_p=p,
                               starts=[starts[k] for k in rows], likelihood=self.innovation_weight > 0)
@@ -184,9 +185,8 @@ class FilterLearner(pl.LightningModule):
             self._skip((0 if finite else 1) + (0 if state_ok else len(bounds[k]) - i - 1))
         return losses
 
-    @staticmethod
-    def _no_gradient(learned: list[torch.Tensor]) -> torch.Tensor:
-        return torch.zeros(sum(q.numel() for q in learned), dtype=torch.float64)
+    def _no_gradient(self, learned: list[torch.Tensor]) -> torch.Tensor:
+        return torch.zeros(sum(q.numel() for q in learned), dtype=torch.float64, device=self.device)
 
     def _step(self, opt, learned: list[torch.Tensor], gradient: torch.Tensor, present: torch.Tensor,
               pending: int) -> None:
@@ -194,8 +194,7 @@ class FilterLearner(pl.LightningModule):
         sum), over all processes; nothing when no process has a window. A parameter no window
         reached (``present`` 0 everywhere) keeps no gradient, so Adam leaves it alone, as it
         does one process's parameter without ``.grad``."""
-        both = self._sum_over_processes(torch.cat((gradient, present, torch.tensor([float(pending)],
-                                                                                   dtype=torch.float64))))
+        both = self._sum_over_processes(torch.cat((gradient, present, gradient.new_tensor([float(pending)]))))
         n = int(both[-1])
         if n == 0:
             return
@@ -255,7 +254,7 @@ class FilterLearner(pl.LightningModule):
         :func:`~flowins.training.unroll.sequence_rmse` computes it for one; the sequences of
         one kind of flow (with or without dropout moments) run in one batched filter pass
         (:func:`~flowins.training.unroll.run_windows`)."""
-        config = params.apply(self.base, training=False)
+        config = params.apply(self.base, training=False, device=self.device)
         rmse = [math.nan] * len(seqs)
         for moments in (False, True):
             rows = [k for k, seq in enumerate(seqs) if _has_moments(seq, method) == moments]

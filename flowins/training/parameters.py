@@ -334,9 +334,11 @@ class FilterParameters(nn.Module):
         """Each parameter's bound in decades (None: unbounded)."""
         return {n: None if math.isinf(b := float(self.bound[n])) else b for n in NAMES}
 
-    def apply(self, config: NavigationConfig, *, training: bool) -> NavigationConfig:
+    def apply(self, config: NavigationConfig, *, training: bool,
+              device: torch.device | str | None = None) -> NavigationConfig:
         """``config`` with this module's values: tensors with a gradient; the gates soft
-        while ``training``, hard (at the learned threshold) otherwise."""
+        while ``training``, hard (at the learned threshold) otherwise. ``device``: where the
+        filter runs (default: ``config.device``, i.e. ``filter.device``)."""
         v = {n: self.value(n) for n in NAMES}
         if not training:
             v = {n: float(x.detach()) for n, x in v.items()}
@@ -355,6 +357,7 @@ class FilterParameters(nn.Module):
         vehicle = replace(_vehicle(config), lateral_sigma_mps=v["vehicle_lateral_sigma_mps"],
                           vertical_sigma_mps=v["vehicle_vertical_sigma_mps"])
         return replace(config, noise=noise, initial=initial, gnss_noise_scale=v["gnss_noise_scale"],
+                       device=config.device if device is None else device,
                        gnss_gate=gate("gnss", config.gnss_gate), flow_update=flow,
                        measurements={**config.measurements, "vehicle": vehicle})
 

@@ -272,16 +272,16 @@ def window_loss(
             segments = segment_errors(t_k, est, ref, lengths, q_est=q_est, q_ref=q_ref)
         else:
             segments = segment_errors(t_k, apply_alignment(alignment, est), ref, lengths)
-    nll = torch.zeros((), dtype=pos.dtype)
+    nll = pos.new_zeros(())
     if nll_weight > 0:
         w = assoc.weight.to(pos).view(-1, 1, 1)
         left = assoc.est_left
         P = (1 - w) * cov[left] + w * cov[left + 1]
         R = alignment.rotation
-        P = R @ P @ R.T + 1e-9 * torch.eye(3, dtype=pos.dtype)
+        P = R @ P @ R.T + 1e-9 * torch.eye(3, dtype=pos.dtype, device=pos.device)
         maha = (err.unsqueeze(-2) @ torch.linalg.solve(P, err.unsqueeze(-1))).reshape(-1)
         nll = 0.5 * (maha + torch.logdet(2 * torch.pi * P)).mean()
-    attitude = torch.zeros((), dtype=pos.dtype)
+    attitude = pos.new_zeros(())
     if orientation_weight_m_per_rad > 0 and segments is not None:
         if segments.heading_rmse_rad is None:
             raise ValueError(f"{truth.name}: the orientation loss (orientation_weight_m_per_rad > 0) needs a ground "
@@ -294,7 +294,7 @@ def window_loss(
         q_est = apply_alignment_to_quaternions(alignment, interpolate_quaternions(track.mean[:, STATE.q], assoc))
         q_ref = truth.quat_wxyz[inside].to(pos)[assoc.ref_index]
         attitude = orientation_rmse(q_est, q_ref)
-    innovation_nll = torch.zeros((), dtype=pos.dtype)
+    innovation_nll = pos.new_zeros(())
     if innovation_weight > 0:
         if innovation is None or innovation[0] is None:
             raise ValueError("window_loss: innovation_weight > 0 needs the window's innovation likelihood "
@@ -303,7 +303,7 @@ def window_loss(
     position = rmse if segments is None else segments.rmse_m.mean()
     total = position + nll_weight * nll + orientation_weight_m_per_rad * attitude + innovation_weight * innovation_nll
     return WindowLoss(total, rmse.detach(), nll.detach(), attitude.detach(), innovation_nll.detach(),
-                      position.detach() if segments is not None else torch.zeros((), dtype=pos.dtype), alignment)
+                      position.detach() if segments is not None else pos.new_zeros(()), alignment)
 
 
 def sequence_rmse(seq: TrainingSequence, method: str, config: NavigationConfig, *, dropout_p: float | None = None) -> float:

@@ -206,3 +206,30 @@ def test_bad_seeds_are_refused_naming_the_key(tmp_path, seeds, message):
     cfg = _compose([f"output_dir={tmp_path}", "quick=true", "progress=false", f"sequence.seeds={seeds}"])
     with pytest.raises(ValueError, match=message):
         run(cfg)
+
+
+def test_the_job_scores_plots_and_writes_a_filter_run_on_another_device(tmp_path, monkeypatch, fake_device):
+    """``filter.device`` other than the CPU: the job's scoring, TUM export, plots, warnings and
+    metrics read the tracks where they are (the fake device of ``conftest.FakeDevice``), with
+    no op meeting a CPU tensor there, and report what the CPU run reports."""
+    import dataclasses
+
+    import flowins.settings
+
+    rec = synthetic_walk_recording(duration_s=20.0, seed=2)
+    folder = write_folder(Sequence(rec.imu, gnss=rec.gnss, name="walk", groundtruth=rec.truth), tmp_path / "walk")
+    build = flowins.settings.navigation_config
+    metrics = {}
+    for device in ("cpu", "meta"):
+        monkeypatch.setattr(flowins.settings, "navigation_config",
+                            lambda *a, _device=device, **k: dataclasses.replace(build(*a, **k), device=_device))
+        out = tmp_path / device
+        with fake_device() as mode:
+            run(_compose([f"sequence.path={folder}", f"output_dir={out}", "progress=false", "combinations=[ins,ins_gnss]"]))
+        assert mode.slips == {}, mode.slips
+        assert (out / "ins_gnss.png").is_file()
+        metrics[device] = json.loads((out / "metrics.json").read_text())
+        for name in ("ins", "ins_gnss"):
+            metrics[device][name].pop("seconds")
+    assert metrics["meta"]["ins_gnss"] == metrics["cpu"]["ins_gnss"] and metrics["meta"]["ins"] == metrics["cpu"]["ins"]
+    assert (tmp_path / "meta" / "ins_gnss_filter.tum").read_text() == (tmp_path / "cpu" / "ins_gnss_filter.tum").read_text()

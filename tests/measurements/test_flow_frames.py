@@ -87,3 +87,59 @@ def test_flow_frames_of_unequal_runs_in_one_batch_equal_each_run_alone():
         for name in ("node_mean", "node_cov"):
             x, y = getattr(track, name), getattr(alone, name)
             torch.testing.assert_close(x, y, rtol=0, atol=1e-10 * max(1.0, float(y.abs().max())))
+
+
+def test_flow_frames_in_float32_mix_no_dtypes_and_agree_with_float64(mixed_dtypes):
+    """Every tensor the flow update, the pose augmentation, the recovery and the smoother build
+    follows the state's dtype (and so its device): a float32 run with float64 as the default
+    dtype mixes none (:class:`conftest.MixedDtypes`); with a tight gate (so the recovery
+    inflates) too. Without it, the float32 run ends within 0.2 m of float64 (filter and smoother)."""
+    from flowins.filter.ekf import Gate
+    from flowins.filter.smoother import rts_smooth
+    from flowins.measurements.flow_update import FlowRecovery, FlowUpdate
+
+    run, walk, _ = _flow_run(5.0, 9.0, 60, 3, own_camera=False)
+    plain = FlowUpdate(iterations=2, n_points=40)
+    tight = FlowUpdate(iterations=2, n_points=40, gate=Gate(probability=0.9),
+                       recovery=FlowRecovery(after_frames=2, max_accepted=0.99))
+    ends = {}
+    for dtype, update in ((torch.float64, plain), (torch.float32, plain), (torch.float32, tight)):
+        events = [FlowFrame(e.time_s, e.points, e.camera, update) for e in run.events]
+        with mixed_dtypes() as mode:
+            track = run_filter(t_s=run.t_s, acc_mps2=run.acc_mps2, gyro_rps=run.gyro_rps, mean0=run.mean0.to(dtype),
+                               cov0=run.cov0.to(dtype), noise=ProcessNoise(), events=events)
+            smoothed = rts_smooth(track)
+        assert mode.slips == {}, mode.slips
+        assert track.node_mean.dtype == dtype and smoothed.node_cov.dtype == dtype
+        kinds = {e.get("kind") for e in track.log}
+        assert ("flow_inflate" in kinds) == (update is tight), kinds
+        ends[dtype, update is tight] = torch.stack((track.node_mean[-1, STATE.p], smoothed.node_mean[0, STATE.p])).double()
+    # float32 rounds the pose copy and the flow update (why filter.dtype refuses it): 4 s drift apart by ~0.1 m
+    assert float((ends[torch.float32, False] - ends[torch.float64, False]).norm(dim=-1).max()) < 0.2
+
+
+def test_flow_frames_on_another_device_are_the_cpu_run(fake_device):
+    """The flow update (stacked and sequential, iterated, with the recovery's inflation), the
+    pose augmentation (exact and the paper's forgetting) and the smoother on the fake device of
+    ``conftest.FakeDevice``: no op meets a CPU tensor there, and the numbers are the CPU run's."""
+    from flowins.filter.ekf import Gate
+    from flowins.filter.smoother import rts_smooth
+    from flowins.measurements.flow_update import FlowRecovery, FlowUpdate
+
+    run, _, _ = _flow_run(5.0, 8.0, 60, 3, own_camera=False)
+    updates = (FlowUpdate(iterations=2, n_points=40, gate=Gate(probability=0.9),
+                          recovery=FlowRecovery(after_frames=2, max_accepted=0.99)),
+               FlowUpdate(sequential=True, n_points=20, augmentation_mode="paper", selection="grid"))
+    for update in updates:
+        events = [FlowFrame(e.time_s, e.points, e.camera, update) for e in run.events]
+        tracks = []
+        for device in ("cpu", "meta"):
+            with fake_device() as mode:
+                track = run_filter(t_s=run.t_s, acc_mps2=run.acc_mps2, gyro_rps=run.gyro_rps,
+                                   mean0=run.mean0.to(device), cov0=run.cov0.to(device), noise=ProcessNoise(), events=events)
+                tracks.append((track, rts_smooth(track)))
+                assert track.node_mean.device.type == device and tracks[-1][1].node_cov.device.type == device
+            assert mode.slips == {}, mode.slips
+        (cpu, cpu_smoothed), (moved, smoothed) = tracks[-2:]
+        assert torch.equal(moved.node_mean, cpu.node_mean) and torch.equal(smoothed.node_cov, cpu_smoothed.node_cov)
+        assert ("flow_inflate" in {e.get("kind") for e in moved.log}) == (update is updates[0])

@@ -1,0 +1,34 @@
+"""The fake device of ``conftest.FakeDevice``: the CPU stand-in for a GPU that the filter's
+device tests run on. It must see the slips a GPU would raise on, and nothing else."""
+import numpy as np
+import torch
+
+FAKE = torch.device("meta")
+
+
+def test_the_fake_device_records_a_cpu_tensor_meeting_a_device_tensor_and_a_numpy_of_one(fake_device):
+    with fake_device() as mode:
+        x = torch.ones(3, dtype=torch.float64, device=FAKE)
+        assert x.device == FAKE and (x + 1).device == FAKE and x.new_zeros(2).device == FAKE
+        _ = x * torch.ones(3, dtype=torch.float64)  # a CPU constant: a GPU raises here
+        _ = torch.stack((x, torch.zeros(3, dtype=torch.float64)))
+        _ = np.asarray(x.numpy())
+    assert len(mode.slips) == 3, mode.slips
+    assert any(key.startswith("mul: 1 CPU tensor(s) [(3,)]") for key in mode.slips)
+    assert any(key.startswith("numpy()") for key in mode.slips)
+
+
+def test_the_fake_device_lets_through_what_a_gpu_allows(fake_device):
+    """Moves both ways, allocations that follow the device, 0-dim CPU scalars, assignment of a
+    CPU value and indexing with CPU indices; the values are the CPU's."""
+    with fake_device() as mode:
+        cpu = torch.arange(4, dtype=torch.float64)
+        x = cpu.to(FAKE)
+        y = x * torch.tensor(2.0, dtype=torch.float64) + torch.eye(4, dtype=x.dtype, device=x.device)[0]
+        y[0] = torch.tensor([7.0], dtype=torch.float64)
+        z = y[torch.tensor([0, 2])] + torch.zeros_like(y)[:2]
+        back = z.cpu()
+        assert z.device == FAKE and back.device == torch.device("cpu") and cpu.to(x).device == FAKE
+        assert back.to(x.device).device == FAKE and x.to("cpu").device == torch.device("cpu")
+    assert mode.slips == {}
+    assert back.tolist() == [7.0, 4.0]

@@ -1,0 +1,41 @@
+"""The training unroll on another device: windows, their losses and gradients, and the
+held-out RMSE, on the fake device of ``conftest.FakeDevice`` (a GPU's stand-in)."""
+import torch
+
+from flowins.data.synthetic import synthetic_walk_recording
+from flowins.measurements.gnss_heading import HeadingAlignment
+from flowins.navigation import NavigationConfig
+from flowins.training.parameters import NAMES, FilterParameters, starting_values
+from flowins.training.unroll import LOSSES, TrainingSequence, run_windows, sequences_rmse, window_bounds, window_loss
+
+
+def test_the_unroll_on_another_device_gives_the_cpu_losses_gradients_and_rmse(fake_device):
+    """Parameters placed on the fake device (``module.to(cuda)``): every window loss, its gradient
+    and the held-out RMSE equal the CPU run's, and no op meets a CPU tensor on the device."""
+    rec = synthetic_walk_recording(duration_s=12.0, seed=1)
+    seq = TrainingSequence("walk", rec.imu, rec.gnss, rec.truth)
+    base = NavigationConfig(gnss_heading=HeadingAlignment(enabled=False))
+    start = starting_values(base)
+    learn = [n for n in NAMES if start[n] > 0 and n not in ("initial_position_m", "initial_yaw_rad", "dropout_p")]
+    outputs = {}
+    for device in ("cpu", "meta"):
+        params = FilterParameters(start, learn=learn)
+        if device == "meta":
+            fake_device.place(params)
+        with fake_device() as mode:
+            config = params.apply(base, training=True, device=device)
+            first, second = window_bounds(seq.imu.t_s, 6.0)
+            (a,) = run_windows([seq], "ins_gnss", config, [first])
+            (b,) = run_windows([seq], "ins_gnss", config, [second], starts=[(a.mean.detach(), a.cov.detach())])
+            assert b.track.mean.device.type == device
+            values = []
+            for loss in LOSSES:
+                total = sum(window_loss(w.track, seq.truth, loss=loss, nll_weight=0.1, orientation_weight_m_per_rad=0.1).loss
+                            for w in (a, b))
+                grads = torch.autograd.grad(total, [params.raw[n] for n in learn], allow_unused=True, retain_graph=True)
+                values.append(torch.stack([total.detach()] + [torch.zeros(()) if g is None else g.cpu() for g in grads]))
+            rmse = sequences_rmse([seq], "ins_gnss", params.apply(base, training=False, device=device))
+        assert mode.slips == {}, mode.slips
+        outputs[device] = (torch.stack(values).cpu(), rmse)
+    assert torch.equal(outputs["meta"][0], outputs["cpu"][0]) and outputs["meta"][1] == outputs["cpu"][1]
+    assert int((outputs["cpu"][0][:, 1:] != 0).sum()) >= 3 * 5  # the gradients reach the parameters
