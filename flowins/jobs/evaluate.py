@@ -1,6 +1,6 @@
 """The evaluation job: run each fusion combination on a recording and report Table I.
 
-``recording -> flow pairs (cached) -> navigate per combination -> metrics, plots``. For
+``recording -> flow pairs (cached) -> navigate every combination (one batch) -> metrics, plots``. For
 every combination: the EKF and the RTS smoother, their RMSE after Procrustes (rotation +
 translation) alignment to the ground truth, a Fig. 5 style PNG, TUM trajectories and one
 JSON of all metrics; plus the Fig. 2 flow panel for a few frame pairs. The steps live in
@@ -68,10 +68,7 @@ def run(cfg: Mapping[str, Any]) -> list[Row]:
     unscored = [truth_extent_problem(rec.truth) for rec in recs]  # a ground truth that can't score a track, or None
     for problem in dict.fromkeys(u for u in unscored if u):
         log.warning("warning: %s", problem)
-    rows, metrics = [], {}
-    for name in cfg["combinations"]:
-        row, metrics[name] = _combination(name, cfg, recs, nav_cfg, flows, outs, unscored, seeds)
-        rows.append(row)
+    rows, metrics = _combinations(cfg, recs, nav_cfg, flows, outs, unscored, seeds)
     if cfg["plots"] and isinstance(flows[0].get("dense"), FlowPairs) and cfg["flow_panels"] > 0:
         flow_panels(recs[0], cfg, outs[0], cfg["flow_panels"])
     _report(rows, metrics, cfg, recs, nav_cfg, unscored, seeds)
@@ -114,22 +111,66 @@ def _flows(cfg: Mapping[str, Any], rec: Recording) -> dict[str, FlowPairs | str]
     return flows
 
 
-def _combination(name: str, cfg: Mapping[str, Any], recs: list[Recording], nav_cfg: NavigationConfig,
-                 flows: list[dict[str, FlowPairs | str]], outs: list[Path], unscored: list[str | None],
-                 seeds: list[int] | None) -> tuple[Row, dict[str, Any]]:
-    """One row of the table: navigate every recording with the combination's sources (one
-    batched pass), export, score; several recordings give the mean ± std over them."""
-    m_cfg = cfg["methods"][name]
-    sources = frozenset(key for key, used in m_cfg.items() if used)
-    reason = "the sequence has no GNSS" if "gnss" in sources and any(rec.gnss is None for rec in recs) else None
-    pairs: list[FlowPairs | None] = [None] * len(recs)
+def _combinations(cfg: Mapping[str, Any], recs: list[Recording], nav_cfg: NavigationConfig,
+                  flows: list[dict[str, FlowPairs | str]], outs: list[Path], unscored: list[str | None],
+                  seeds: list[int] | None) -> tuple[list[Row], dict[str, Any]]:
+    """The table's rows: every combination on every recording, the flow rows in one batched
+    filter pass (:func:`~flowins.navigation.navigate_batch`: each run as it runs alone, up to
+    rounding; on a GPU one batch instead of one launch-bound run per row), then each row
+    exported and scored; several recordings give the mean ± std over them."""
+    planned = {name: _runs(name, cfg, recs, nav_cfg, flows) for name in cfg["combinations"]}
+    # the batch steps its runs together from event to event, so runs whose events differ in
+    # kind and rate would pad each other: the flow rows (one event per frame) form one batch,
+    # every other row its own (its recordings together)
+    batches: dict[str, list[str]] = {}
+    for name, plan in planned.items():
+        if isinstance(plan, list):
+            batches.setdefault("flow" if plan[0].flow is not None else name, []).append(name)
+    results: dict[str, list[NavigationResult]] = {}
+    seconds: dict[str, float] = {}
+    for names in batches.values():
+        runs = [run for name in names for run in planned[name]]
+        t1 = time.perf_counter()
+        done = iter(navigate_batch(runs, config=nav_cfg, progress=cfg["progress"]))
+        wall = time.perf_counter() - t1
+        for name in names:
+            results[name], seconds[name] = [next(done) for _ in planned[name]], wall / len(runs)
+        if len(names) > 1:
+            log.info(f"  {', '.join(names)}: {len(runs)} runs in one batched filter pass on {nav_cfg.device}, {wall:.1f} s")
+    rows, metrics = [], {}
+    for name, plan in planned.items():
+        if isinstance(plan, str):
+            row, metrics[name] = (Row(name, _sources(cfg, name), None, None, f"not applicable: {plan}"),
+                                  {"status": "not applicable", "reason": plan})
+        else:
+            row, metrics[name] = _score(name, cfg, recs, results[name], flows, outs, unscored, seeds, seconds[name])
+        rows.append(row)
+    return rows, metrics
+
+
+def _sources(cfg: Mapping[str, Any], name: str) -> frozenset[str]:
+    return frozenset(key for key, used in cfg["methods"][name].items() if used)
+
+
+def _pairs(name: str, cfg: Mapping[str, Any], flows: list[dict[str, FlowPairs | str]]) -> list[FlowPairs | str | None]:
+    """The flow pairs (or why there are none) of combination ``name`` on each recording."""
+    sources = _sources(cfg, name)
+    pairs: list[FlowPairs | str | None] = [None] * len(flows)
     for kind in ("sparse", "dense"):
         if kind in sources:
             pairs = [rec_flows[kind] for rec_flows in flows]
-            reason = next((p for p in pairs if isinstance(p, str)), reason)
+    return pairs
+
+
+def _runs(name: str, cfg: Mapping[str, Any], recs: list[Recording], nav_cfg: NavigationConfig,
+          flows: list[dict[str, FlowPairs | str]]) -> list[NavigationRun] | str:
+    """The combination's :class:`NavigationRun` on each recording, or why it is not applicable."""
+    sources = _sources(cfg, name)
+    reason = "the sequence has no GNSS" if "gnss" in sources and any(rec.gnss is None for rec in recs) else None
+    pairs = _pairs(name, cfg, flows)
+    reason = next((p for p in pairs if isinstance(p, str)), reason)
     if reason is not None:
-        return Row(name, sources, None, None, f"not applicable: {reason}"), {"status": "not applicable", "reason": reason}
-    t1 = time.perf_counter()
+        return reason
     runs = []
     for rec, flow in zip(recs, pairs):
         calibration = rec.sequence.imu_to_camera
@@ -139,14 +180,20 @@ def _combination(name: str, cfg: Mapping[str, Any], recs: list[Recording], nav_c
                                   camera=FlowCamera.from_sequence(rec.sequence) if flow is not None else None,
                                   truth=rec.truth, forward_b=forward_b, start_gnss=rec.gnss,
                                   streams=platform_streams(rec.platform)))
-    results = navigate_batch(runs, config=nav_cfg, progress=cfg["progress"])
-    seconds = time.perf_counter() - t1
+    return runs
+
+
+def _score(name: str, cfg: Mapping[str, Any], recs: list[Recording], results: list[NavigationResult],
+           flows: list[dict[str, FlowPairs | str]], outs: list[Path], unscored: list[str | None],
+           seeds: list[int] | None, seconds_per_run: float) -> tuple[Row, dict[str, Any]]:
+    """One row of the table from its results on every recording: export, score, log."""
+    sources = _sources(cfg, name)
     per_run = []
-    for rec, flow, result, out, problem in zip(recs, pairs, results, outs, unscored):
+    for rec, flow, result, out, problem in zip(recs, _pairs(name, cfg, flows), results, outs, unscored):
         m = _export(out, name, result, rec, plots=cfg["plots"], score=rec.truth is not None and problem is None)
         if flow is not None:
             m.update(flow_statistics(result, flow))
-        m["seconds"] = seconds / len(recs)
+        m["seconds"] = seconds_per_run
         m["warnings"] = run_warnings(result) + ([problem] if problem else [])
         per_run.append(m)
     rec, result = recs[0], results[0]
@@ -161,6 +208,7 @@ def _combination(name: str, cfg: Mapping[str, Any], recs: list[Recording], nav_c
                 log.info(f"  {'':<16} GNSS: {entry['fixes']} fixes held for the heading to the end: {entry['reason']}")
         return Row(name, sources, m["filter_rmse_m"], m["smoother_rmse_m"], note, seconds=m["seconds"],
                    start=result.start.describe() if result.start is not None else ""), m
+    seconds = seconds_per_run * len(recs)
     summary: dict[str, Any] = {"seeds": [int(s) for s in seeds], "seconds": seconds}
     for kind in ("filter", "smoother"):
         values = [m[f"{kind}_rmse_m"] for m in per_run]

@@ -83,7 +83,8 @@ def test_every_combination_runs_on_a_simulated_walk_and_flow_bounds_the_drift(sm
                      "flow=dis", "flow_pairs.input_scale=1.0", "plots=false", "progress=false",
                      "combinations=[ins_dense]"])
     (again,) = run(cfg2)
-    assert again.filter_rmse_m == rows["ins_dense"].filter_rmse_m
+    # (alone, not batched with the other flow rows: equal up to rounding)
+    assert again.filter_rmse_m == pytest.approx(rows["ins_dense"].filter_rmse_m, abs=1e-8)
     assert len(list((tmp_path / "cache" / "flow").glob("dense-*.npz"))) == 1
 
 

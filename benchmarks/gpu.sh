@@ -1,0 +1,53 @@
+#!/usr/bin/env bash
+# Every GPU figure of docs/performance.md ("One GPU"), on one CUDA machine, in one go:
+#   bash benchmarks/gpu.sh [CPU_METRICS_JSON]
+# run from anywhere (it works in the checkout; the package may come from PYTHONPATH). Each
+# section prints its wall time. CPU_METRICS_JSON: a CPU run's metrics.json of `python
+# evaluate.py` (default: benchmarks/table1_cpu.json) that the GPU Table I is compared with, per cell.
+# The simulation and the training walks are cached in $FLOWINS_GPU_CACHE (default
+# ~/.cache/flowins-gpu); the dense flow of the timed job is removed first, so that run
+# computes it on the GPU (the issue's "simulation cached").
+set -euo pipefail
+cd "$(dirname "$0")/.."
+export PYTHONUNBUFFERED=1 MPLBACKEND=Agg
+cache=${FLOWINS_GPU_CACHE:-$HOME/.cache/flowins-gpu}
+reference=${1:-benchmarks/table1_cpu.json}
+out=$(mktemp -d)
+started=$SECONDS
+section() { echo; echo "== [$((SECONDS - started)) s] $*"; }
+
+section "the machine"
+python - <<'PY'
+import torch
+if not torch.cuda.is_available():
+    raise SystemExit("error: torch.cuda.is_available() is False: no CUDA GPU for benchmarks/gpu.sh")
+print(f"{torch.cuda.get_device_name(0)}, torch {torch.__version__}, CUDA {torch.version.cuda}, "
+      f"{torch.cuda.get_device_properties(0).total_memory / 2**30:.0f} GiB")
+PY
+
+section "1. the device tests (tests/test_cuda.py: both devices agree)"
+python -m pytest -q -p no:cacheprovider -m cuda tests/test_cuda.py
+
+section "2. the 300 s walk simulated once (CPU; cached in $cache)"
+python evaluate.py cache_dir="$cache" progress=false plots=false 'combinations=[ins]' hydra.run.dir="$out/simulate" \
+  | tail -n 3
+rm -rf "$cache/flow"
+
+section "3. python evaluate.py flow.device=cuda filter.device=cuda (simulation cached; target <= 60 s)"
+t0=$SECONDS
+python evaluate.py flow.device=cuda filter.device=cuda cache_dir="$cache" progress=false plots=false \
+  hydra.run.dir="$out/gpu"
+echo "evaluate.py on the GPU: $((SECONDS - t0)) s"
+python benchmarks/gpu_table.py "$out/gpu/metrics.json" "$reference"
+
+section "4. bench_flow_filter.py --device cuda --batch 256 (cached flow; target >= 2000x in all)"
+python benchmarks/bench_flow_filter.py --device cuda --batch 256 --repeats 1 --reference-s 0 --breakdown-s 0 \
+  --count-ops-s 0 2>&1 | grep -v "^filter:"
+
+section "5. python train.py experiment=mistuned trainer=gpu (target: 4x the 2-core CPU's time, held out within 5 %)"
+t0=$SECONDS
+python train.py experiment=mistuned trainer=gpu flow.device=cuda cache_dir="$cache" progress=false \
+  hydra.run.dir="$out/train" 2>&1 | tail -n 25
+echo "train.py on the GPU: $((SECONDS - t0)) s"
+
+section "done in $((SECONDS - started)) s; outputs in $out"
