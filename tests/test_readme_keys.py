@@ -11,6 +11,7 @@ import re
 from pathlib import Path
 
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
@@ -91,7 +92,19 @@ def _has(cfg: dict, key: str) -> bool:
 
 
 def validate(primary: str, cfg: dict) -> None:
-    """What each job checks before its work."""
+    """What each job checks before its work; on a machine without CUDA a documented GPU
+    setting (``flow.device=cuda``, ``filter.device=cuda``, ``trainer=gpu``) must stop with the
+    refusal that says so."""
+    needs_cuda = ("cuda" in (cfg["flow"].get("device"), cfg["filter"]["device"])
+                  or cfg.get("trainer", {}).get("accelerator") == "gpu")
+    if needs_cuda and not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="sees no CUDA GPU here"):
+            _validate(primary, cfg)
+    else:
+        _validate(primary, cfg)
+
+
+def _validate(primary: str, cfg: dict) -> None:
     recording = bool(cfg["sequence"].get("path"))
     if primary == "evaluate":
         evaluate_settings(cfg)
