@@ -15,14 +15,14 @@ Reads the default simulated walk and its dense flow pairs (both cached by
   (300 s, 293 s, 286 s, ...), so that the runs differ in values, gating and length. Its
   real-time factor is the seconds of data of all B runs per second of wall time.
 
-``--device cuda`` runs the filter and the smoother on the GPU (``filter.device``); the flow is
-the cached one, computed wherever it was. Timings there synchronise the GPU before reading the clock.
+``--device cuda`` runs the filter and the smoother on the GPU (``filter.device``), and reads the
+flow that ``evaluate.py flow.device=cuda`` cached (or computes it there). Timings there synchronise the GPU before reading the clock.
 
 The last line is ``RESULT single=<x>x batched=<x>x batch=<B> device=<device>``.
 
     python benchmarks/bench_flow_filter.py [--points 256] [--batch 8] [--reference-s 20] [--repeats 3]
                                            [--breakdown-s 60] [--count-ops-s 20] [--profile-s 0]
-                                           [--device cpu|cuda]
+                                           [--device cpu|cuda] [--quick]
 """
 from __future__ import annotations
 
@@ -223,11 +223,14 @@ def main() -> None:
                         help="also profile the first this many seconds, alone and as the batch (0: skip)")
     parser.add_argument("--count-ops-s", type=float, default=20.0,
                         help="also count PyTorch operations per frame over the first this many seconds (0: skip)")
-    parser.add_argument("--device", default="cpu", help="where the filter and the smoother run: cpu | cuda | cuda:N")
+    parser.add_argument("--device", default="cpu",
+                        help="where the filter and the smoother run, and the flow if it is not cached: cpu | cuda | cuda:N")
+    parser.add_argument("--quick", action="store_true", help="the 60 s walk instead of the 300 s one")
     args = parser.parse_args()
     with initialize_config_dir(config_dir=CONFIGS, version_base=None):
-        cfg = OmegaConf.to_container(compose("evaluate", overrides=[f"filter.flow.n_points={args.points}"]), resolve=False)
-    rec = load_recording(cfg["sequence"], quick=False, progress=True)
+        cfg = OmegaConf.to_container(compose("evaluate", overrides=[f"filter.flow.n_points={args.points}",
+                                                                    f"flow.device={args.device}"]), resolve=False)
+    rec = load_recording(cfg["sequence"], quick=args.quick, progress=True)
     pairs = load_flow("dense", rec, cfg, progress=True)
     config = dataclasses.replace(filter_setup(cfg, [rec], recorded=False).navigation,
                                  device=check_device(args.device, "--device"))

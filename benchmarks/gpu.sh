@@ -7,47 +7,68 @@
 # The simulation and the training walks are cached in $FLOWINS_GPU_CACHE (default
 # ~/.cache/flowins-gpu); the dense flow of the timed job is removed first, so that run
 # computes it on the GPU (the issue's "simulation cached").
+# A check of the script itself on a CPU: GPU_SH_DEVICE=cpu GPU_SH_QUICK=1 bash benchmarks/gpu.sh
+# (every section on the CPU, the 60 s walk, a batch of 4, one training epoch; the device
+# tests are skipped there). Its figures mean nothing.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 export PYTHONUNBUFFERED=1 MPLBACKEND=Agg
 cache=${FLOWINS_GPU_CACHE:-$HOME/.cache/flowins-gpu}
+device=${GPU_SH_DEVICE:-cuda}
+quick=()
+bench_quick=()
+batch=256
+epochs=()
+if [ "${GPU_SH_QUICK:-0}" = 1 ]; then
+  quick=(quick=true)
+  bench_quick=(--quick)
+  batch=4
+  epochs=(trainer.max_epochs=1)
+fi
 reference=${1:-benchmarks/table1_cpu.json}
 out=$(mktemp -d)
 started=$SECONDS
 section() { echo; echo "== [$((SECONDS - started)) s] $*"; }
 
 section "the machine"
-python - <<'PY'
+GPU_SH_DEVICE=$device python - <<'PY'
+import os
+
 import torch
-if not torch.cuda.is_available():
+if os.environ["GPU_SH_DEVICE"] == "cpu":
+    print(f"the CPU (a check of the script), torch {torch.__version__}")
+elif not torch.cuda.is_available():
     raise SystemExit("error: torch.cuda.is_available() is False: no CUDA GPU for benchmarks/gpu.sh")
-print(f"{torch.cuda.get_device_name(0)}, torch {torch.__version__}, CUDA {torch.version.cuda}, "
-      f"{torch.cuda.get_device_properties(0).total_memory / 2**30:.0f} GiB")
+else:
+    print(f"{torch.cuda.get_device_name(0)}, torch {torch.__version__}, CUDA {torch.version.cuda}, "
+          f"{torch.cuda.get_device_properties(0).total_memory / 2**30:.0f} GiB")
 PY
 
 section "1. the device tests (tests/test_cuda.py: both devices agree)"
 python -m pytest -q -p no:cacheprovider -m cuda tests/test_cuda.py
 
 section "2. the 300 s walk simulated once (CPU; cached in $cache)"
-python evaluate.py cache_dir="$cache" progress=false plots=false 'combinations=[ins]' hydra.run.dir="$out/simulate" \
+python evaluate.py "${quick[@]}" cache_dir="$cache" progress=false plots=false 'combinations=[ins]' hydra.run.dir="$out/simulate" \
   | tail -n 3
 rm -rf "$cache/flow"
 
 section "3. python evaluate.py flow.device=cuda filter.device=cuda (simulation cached; target <= 60 s)"
 t0=$SECONDS
-python evaluate.py flow.device=cuda filter.device=cuda cache_dir="$cache" progress=false plots=false \
-  hydra.run.dir="$out/gpu"
+python evaluate.py "${quick[@]}" flow.device="$device" filter.device="$device" cache_dir="$cache" progress=false \
+  plots=false hydra.run.dir="$out/gpu"
 echo "evaluate.py on the GPU: $((SECONDS - t0)) s"
 python benchmarks/gpu_table.py "$out/gpu/metrics.json" "$reference"
 
 section "4. bench_flow_filter.py --device cuda --batch 256 (cached flow; target >= 2000x in all)"
-python benchmarks/bench_flow_filter.py --device cuda --batch 256 --repeats 1 --reference-s 0 --breakdown-s 0 \
-  --count-ops-s 0 2>&1 | grep -v "^filter:"
+FLOWINS_CACHE="$cache" python benchmarks/bench_flow_filter.py "${bench_quick[@]}" --device "$device" --batch "$batch" \
+  --repeats 1 --reference-s 0 --breakdown-s 0 --count-ops-s 0 2>&1 | grep -v "^filter:"
 
 section "5. python train.py experiment=mistuned trainer=gpu (target: 4x the 2-core CPU's time, held out within 5 %)"
 t0=$SECONDS
-python train.py experiment=mistuned trainer=gpu flow.device=cuda cache_dir="$cache" progress=false \
-  hydra.run.dir="$out/train" 2>&1 | tail -n 25
+trainer=gpu
+[ "$device" = cpu ] && trainer=cpu
+python train.py experiment=mistuned trainer="$trainer" "${epochs[@]}" flow.device="$device" cache_dir="$cache" \
+  progress=false hydra.run.dir="$out/train" 2>&1 | tail -n 25
 echo "train.py on the GPU: $((SECONDS - t0)) s"
 
 section "done in $((SECONDS - started)) s; outputs in $out"
