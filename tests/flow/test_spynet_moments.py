@@ -139,3 +139,23 @@ def test_moments_mode_needs_the_finest_level_and_a_known_mode():
         SpyNetProvider(mc_mode="bogus")
     # the finest level, named by number, is accepted
     assert SpyNetProvider(mc_mode="moments", dropout_level=5, mc_passes=0).mc_mode == "moments"
+
+
+def test_spynet_on_another_device_meets_no_cpu_tensor_and_gives_the_cpu_flow(pair, fake_device):
+    """The provider moved to a device (``conftest.FakeDevice``, a GPU's stand-in): the images
+    follow it and every pyramid level, warp, dropout moment and σ floor stays there; the
+    flow and σ are the CPU's (one float32 network, to rounding)."""
+    _, crops = pair
+    out = {}
+    for device in ("cpu", "meta"):
+        provider = SpyNetProvider(p=0.2, mc_mode="moments", sigma_floor=0.02)
+        if device == "meta":
+            fake_device.place(provider)
+        with fake_device() as mode:
+            assert provider.device.type == device
+            result = provider(*crops)
+            assert result.flow.device.type == device and result.dropout_unit.device.type == device
+            out[device] = [x.cpu() for x in (result.flow, result.sigma, result.dropout_unit)]
+        assert mode.slips == {}, mode.slips
+    for cpu, moved in zip(out["cpu"], out["meta"]):
+        assert torch.allclose(moved, cpu, rtol=1e-4, atol=1e-4)
