@@ -4,9 +4,9 @@
 # run from anywhere (it works in the checkout; the package may come from PYTHONPATH). Each
 # section prints its wall time. CPU_METRICS_JSON: a CPU run's metrics.json of `python
 # evaluate.py` (default: benchmarks/table1_cpu.json) that the GPU Table I is compared with, per cell.
-# The simulation and the training walks are cached in $FLOWINS_GPU_CACHE (default
-# ~/.cache/flowins-gpu); the dense flow of the timed job is removed first, so that run
-# computes it on the GPU (the issue's "simulation cached").
+# The simulations, the sparse flow (Lucas-Kanade runs on the CPU on any machine) and the
+# training walks' flow are cached in $FLOWINS_GPU_CACHE (default ~/.cache/flowins-gpu); the
+# dense flow is removed before the timed job, so that it computes it on the GPU.
 # A check of the script itself on a CPU: GPU_SH_DEVICE=cpu GPU_SH_QUICK=1 bash benchmarks/gpu.sh
 # (every section on the CPU, the 60 s walk, a batch of 4, one training epoch; the device
 # tests are skipped there). Its figures mean nothing.
@@ -14,6 +14,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 export PYTHONUNBUFFERED=1 MPLBACKEND=Agg
 cache=${FLOWINS_GPU_CACHE:-$HOME/.cache/flowins-gpu}
+export FLOWINS_CACHE=$cache
 device=${GPU_SH_DEVICE:-cuda}
 quick=()
 bench_quick=()
@@ -47,28 +48,28 @@ PY
 section "1. the device tests (tests/test_cuda.py: both devices agree)"
 python -m pytest -q -p no:cacheprovider -m cuda tests/test_cuda.py
 
-section "2. the 300 s walk simulated once (CPU; cached in $cache)"
-python evaluate.py "${quick[@]}" cache_dir="$cache" progress=false plots=false 'combinations=[ins]' hydra.run.dir="$out/simulate" \
-  | tail -n 3
-rm -rf "$cache/flow"
+section "2. the 300 s walk simulated and its sparse flow computed, once (CPU; cached in $cache)"
+python evaluate.py "${quick[@]}" progress=false plots=false 'combinations=[ins,ins_sparse]' \
+  hydra.run.dir="$out/simulate" | grep -E "sequence:|flow:"
+rm -f "$cache"/flow/dense-*.npz
 
-section "3. python evaluate.py flow.device=cuda filter.device=cuda (simulation cached; target <= 60 s)"
+section "3. python evaluate.py flow.device=cuda filter.device=cuda (simulation and sparse flow cached; target <= 60 s)"
 t0=$SECONDS
-python evaluate.py "${quick[@]}" flow.device="$device" filter.device="$device" cache_dir="$cache" progress=false \
-  plots=false hydra.run.dir="$out/gpu"
+python evaluate.py "${quick[@]}" flow.device="$device" filter.device="$device" progress=false plots=false \
+  hydra.run.dir="$out/gpu"
 echo "evaluate.py on the GPU: $((SECONDS - t0)) s"
 python benchmarks/gpu_table.py "$out/gpu/metrics.json" "$reference"
 
 section "4. bench_flow_filter.py --device cuda --batch 256 (cached flow; target >= 2000x in all)"
-FLOWINS_CACHE="$cache" python benchmarks/bench_flow_filter.py "${bench_quick[@]}" --device "$device" --batch "$batch" \
+python benchmarks/bench_flow_filter.py "${bench_quick[@]}" --device "$device" --batch "$batch" \
   --repeats 1 --reference-s 0 --breakdown-s 0 --count-ops-s 0 2>&1 | grep -v "^filter:"
 
 section "5. python train.py experiment=mistuned trainer=gpu (target: 4x the 2-core CPU's time, held out within 5 %)"
 t0=$SECONDS
 trainer=gpu
 [ "$device" = cpu ] && trainer=cpu
-python train.py experiment=mistuned trainer="$trainer" "${epochs[@]}" flow.device="$device" cache_dir="$cache" \
-  progress=false hydra.run.dir="$out/train" 2>&1 | tail -n 25
+python train.py experiment=mistuned trainer="$trainer" "${epochs[@]}" flow.device="$device" progress=false \
+  hydra.run.dir="$out/train" 2>&1 | tail -n 25
 echo "train.py on the GPU: $((SECONDS - t0)) s"
 
 section "done in $((SECONDS - started)) s; outputs in $out"
