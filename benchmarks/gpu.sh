@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Every GPU figure of docs/performance.md ("One GPU"), on one CUDA machine, in one go:
 #   bash benchmarks/gpu.sh [CPU_METRICS_JSON]
-# run from anywhere (it works in the checkout; the package may come from PYTHONPATH). Each
+# run from anywhere (it works in the checkout, with or without flowins installed). Each
 # section prints its wall time. CPU_METRICS_JSON: a CPU run's metrics.json of `python
 # evaluate.py` (default: benchmarks/table1_cpu.json) that the GPU Table I is compared with, per cell.
 # The simulations, the sparse flow (Lucas-Kanade runs on the CPU on any machine) and the
@@ -12,7 +12,8 @@
 # tests are skipped there). Its figures mean nothing.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-export PYTHONUNBUFFERED=1 MPLBACKEND=Agg
+# the checkout's package for every script and child process (a CUDA machine may run it uninstalled)
+export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1 MPLBACKEND=Agg
 cache=${FLOWINS_GPU_CACHE:-$HOME/.cache/flowins-gpu}
 export FLOWINS_CACHE=$cache
 device=${GPU_SH_DEVICE:-cuda}
@@ -64,10 +65,14 @@ section "4. bench_flow_filter.py --device cuda --batch 256 (cached flow; target 
 python benchmarks/bench_flow_filter.py "${bench_quick[@]}" --device "$device" --batch "$batch" \
   --repeats 1 --reference-s 0 --breakdown-s 0 --count-ops-s 0 2>&1 | grep -v "^filter:"
 
-section "5. python train.py experiment=mistuned trainer=gpu (target: 4x the 2-core CPU's time, held out within 5 %)"
-t0=$SECONDS
 trainer=gpu
 [ "$device" = cpu ] && trainer=cpu
+section "5. the training walks simulated and their flow computed (train.py trainer.max_epochs=0)"
+python train.py experiment=mistuned trainer="$trainer" trainer.max_epochs=0 flow.device="$device" progress=false \
+  hydra.run.dir="$out/train-data" 2>&1 | tail -n 3
+
+section "6. python train.py experiment=mistuned trainer=gpu (walks and flow cached; target: 4x the 2-core CPU's time, held out within 5 %)"
+t0=$SECONDS
 python train.py experiment=mistuned trainer="$trainer" "${epochs[@]}" flow.device="$device" progress=false \
   hydra.run.dir="$out/train" 2>&1 | tail -n 25
 echo "train.py on the GPU: $((SECONDS - t0)) s"
