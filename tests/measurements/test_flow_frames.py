@@ -126,7 +126,7 @@ def test_flow_frames_on_another_device_are_the_cpu_run(fake_device):
     from flowins.filter.smoother import rts_smooth
     from flowins.measurements.flow_update import FlowRecovery, FlowUpdate
 
-    run, _, _ = _flow_run(5.0, 8.0, 60, 3, own_camera=False)
+    run, _, _ = _flow_run(5.0, 7.0, 60, 3, own_camera=False)
     updates = (FlowUpdate(iterations=2, n_points=40, gate=Gate(probability=0.9),
                           recovery=FlowRecovery(after_frames=2, max_accepted=0.99)),
                FlowUpdate(sequential=True, n_points=20, augmentation_mode="paper", selection="grid"))
