@@ -34,7 +34,7 @@ class MixedDtypes(TorchFunctionMode):
     to see both kinds of slip on a CPU. Casts (``to``, ``copy_``, assignment) are allowed."""
 
     CASTS: typing.ClassVar[set] = {torch.Tensor.to, torch.Tensor.type_as, torch.Tensor.copy_, torch.Tensor.__setitem__,
-             torch.as_tensor, torch.Tensor.double, torch.Tensor.float, torch.Tensor.type}
+                                   torch.as_tensor, torch.Tensor.double, torch.Tensor.float, torch.Tensor.type}
 
     def __init__(self):
         super().__init__()
@@ -43,15 +43,8 @@ class MixedDtypes(TorchFunctionMode):
     def __torch_function__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
         if func not in self.CASTS:
-            dtypes = set()
-            stack = list(args) + list(kwargs.values())
-            while stack:
-                a = stack.pop()
-                if isinstance(a, torch.Tensor):
-                    if a.ndim > 0 and a.is_floating_point():
-                        dtypes.add(a.dtype)
-                elif isinstance(a, (list, tuple)):
-                    stack.extend(a)
+            dtypes = {a.dtype for a in tree_flatten((args, kwargs))[0]
+                      if isinstance(a, torch.Tensor) and a.ndim > 0 and a.is_floating_point()}
             if len(dtypes) > 1:
                 key = f"{getattr(func, '__name__', func)} at {_where()}: {sorted(map(str, dtypes))}"
                 self.slips[key] = self.slips.get(key, 0) + 1

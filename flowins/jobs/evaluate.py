@@ -3,10 +3,10 @@
 ``recording -> flow pairs (cached) -> navigate each combination (the flow rows as one
 batch) -> metrics, plots``. For every combination: the EKF and the RTS smoother, their RMSE
 after Procrustes (rotation + translation) alignment to the ground truth, a Fig. 5 style
-PNG, TUM trajectories and one JSON of all metrics; plus the Fig. 2 flow panel for a few frame pairs. The steps live in
-the package (:mod:`flowins.settings`, :mod:`flowins.data.load`, :mod:`flowins.flow.load`,
-:mod:`flowins.navigation`, :mod:`flowins.evaluation`); this module strings them together
-and writes what they return.
+PNG, TUM trajectories and one JSON of all metrics; plus the Fig. 2 flow panel for a few
+frame pairs. The steps live in the package (:mod:`flowins.settings`,
+:mod:`flowins.data.load`, :mod:`flowins.flow.load`, :mod:`flowins.navigation`,
+:mod:`flowins.evaluation`); this module strings them together and writes what they return.
 """
 from __future__ import annotations
 
