@@ -13,6 +13,7 @@ import torch
 from torch import Tensor
 
 from flowins.data.streams import GnssStream, ImuStream, PoseStream
+from flowins.filter.augmentation import with_window
 from flowins.filter.ekf import Gate
 from flowins.filter.chain import FilterTrack
 from flowins.filter.runner import FilterInput, run_filters
@@ -25,6 +26,7 @@ from flowins.measurements.flow_update import FlowFrame, FlowUpdate
 from flowins.measurements.gnss import GnssRecovery, correlation_inflation, gnss_fixes, gnss_noise
 from flowins.measurements.gnss_heading import HeadingAlignment
 from flowins.measurements.registry import NavigationContext, measurement_kind
+from flowins.measurements.tracks import TrackUpdate, track_frames
 from flowins.measurements.vehicle import VehicleConstraint  # noqa: F401  (registers the kind "vehicle")
 from flowins.measurements.zero_velocity import ZeroVelocity
 from flowins.state import STATE
@@ -58,6 +60,9 @@ class NavigationConfig:
     #: the start and the measurements are prepared on the CPU and moved there
     device: torch.device = field(default_factory=lambda: torch.device("cpu"))
     flow_update: FlowUpdate = field(default_factory=FlowUpdate)
+    #: the multi-view update of sparse tracks over a window of cloned poses (``filter.tracks``;
+    #: :mod:`flowins.measurements.tracks`); its window 0 (the default) leaves it off
+    tracks: TrackUpdate = field(default_factory=TrackUpdate)
     #: the settings of each registered measurement kind by name (``filter.measurements.<name>``,
     #: :func:`~flowins.measurements.registry.measurement_settings`); a kind not named here
     #: uses its settings' defaults
@@ -196,6 +201,9 @@ class NavigationRun:
     frame: LocalTangentPlane | None = None
     #: frame pairs (dense or sparse) whose points update the filter as the paper's flow frames (needs ``camera``)
     flow: FlowPairs | None = None
+    #: sparse tracks over many frames (:class:`~flowins.data.sequence.Tracks`, undistorted pixels) for the
+    #: multi-view update (needs ``camera`` and ``config.tracks.window >= 1``; not with ``flow``)
+    tracks: Any = None
     #: the flow's camera (:class:`~flowins.measurements.flow.FlowCamera`: K and the IMU->camera transform)
     camera: Any = None
     #: ground-truth poses (``M``) that may set the start (``filter.init.mode`` groundtruth, or auto)
@@ -246,6 +254,18 @@ def prepare_navigation(run: NavigationRun, *, config: NavigationConfig = Navigat
         frames, outside = flow_frames(run.flow, run.camera, config.flow_update, t_min_s=start.t_s, t_max_s=t_end_s,
                                       name=run.flow.kind, jacobians=config.jacobians)
         events = events + frames
+    clones = 1
+    if run.tracks is not None:
+        if run.camera is None:
+            raise ValueError("navigate: tracks need the camera (a FlowCamera with K and the IMU->camera transform)")
+        if run.flow is not None:
+            raise ValueError("navigate: a run takes flow pairs or tracks, not both (each frame of either shifts the "
+                             "window of cloned poses)")
+        if config.tracks.window < 1:
+            raise ValueError("navigate: tracks need filter.tracks.window >= 1 (the cloned poses they are seen from)")
+        clones = config.tracks.window
+        events = events + track_frames(run.tracks, run.camera, config.tracks, t_min_s=start.t_s, t_max_s=t_end_s,
+                                       name=run.tracks.name)
     streams = dict(run.streams)
     for name, settings in config.measurements.items():  # a kind switched on that needs no recorded stream
         kind = measurement_kind(name)
@@ -259,7 +279,8 @@ def prepare_navigation(run: NavigationRun, *, config: NavigationConfig = Navigat
             settings = kind.settings() if settings is None else settings
             events += [e for e in kind.events(stream, settings, context) if e.time_s >= start.t_s]
     like = {"dtype": config.dtype, "device": torch.device(config.device)}
-    mean0, cov0 = start.mean.to(**like), start.cov.to(**like)
+    mean0, cov0 = with_window(start.mean.to(**like), start.cov.to(**like), clones,
+                              nugget_var=config.initial.augmentation_nugget_var)
     return NavigationSetup(mean0, cov0, events, frame, enu, outside, start, len(before))
 
 
@@ -360,6 +381,22 @@ def flow_statistics(result: NavigationResult, pairs: FlowPairs) -> dict[str, Any
         "mean_accepted": sum(e["accepted"] for e in frames) / n,
         "mean_low_parallax": sum(e["low_parallax"] for e in frames) / n,
         "mean_degenerate": sum(e["degenerate"] + e["behind"] for e in frames) / n,
+    }
+
+
+def track_statistics(result: NavigationResult) -> dict[str, Any]:
+    """How the multi-view track update fared in a run: frames, tracks used per frame (of those
+    complete there), valid, accepted, left out."""
+    log = [entry for entry in result.filter.log if entry.get("kind") == "tracks"]
+    n = max(1, len(log))
+    return {
+        "track_frames": len(log),
+        "mean_tracks": sum(e["tracks"] for e in log) / n,
+        "mean_candidates": sum(e["candidates"] for e in log) / n,
+        "mean_valid": sum(e["valid"] for e in log) / n,
+        "mean_accepted": sum(e.get("accepted", 0.0) for e in log) / n,
+        "mean_low_parallax": sum(e["low_parallax"] for e in log) / n,
+        "mean_degenerate": sum(e["degenerate"] + e["behind"] for e in log) / n,
     }
 
 

@@ -30,6 +30,7 @@ from flowins.ins.imu_model import ImuModel, imu_model, still_noise_densities
 from flowins.ins.initialization import InitialUncertainty, still_interval
 from flowins.ins.mechanization import ProcessNoise
 from flowins.measurements.flow_update import FlowUpdate
+from flowins.measurements.tracks import TrackUpdate
 from flowins.measurements.gnss import GnssRecovery
 from flowins.measurements.gnss_heading import HeadingAlignment
 from flowins.measurements.registry import measurement_settings
@@ -268,7 +269,7 @@ def navigation_config(cfg: Mapping[str, Any], imu: ImuModel | None = None) -> Na
             raise ValueError(f"filter.{key} is null and no imu preset was given; set filter.{key} or choose imu=...")
     noise.update(acc_scale_walk=cfg["acc_scale_walk"], discretization=cfg["discretization"])
     simple = ("gnss_noise_scale", "gnss_correlation_s", "output_every", "scheme", "gravity_mps2", "jacobians", "device")
-    groups = ("init", "initial", "gnss_gate", "gnss_recovery", "gnss_heading", "flow", "dtype", "measurements")
+    groups = ("init", "initial", "gnss_gate", "gnss_recovery", "gnss_heading", "flow", "tracks", "dtype", "measurements")
     known = (*noise, *simple, *groups)
     for key in cfg:
         if key not in known:
@@ -285,6 +286,7 @@ def navigation_config(cfg: Mapping[str, Any], imu: ImuModel | None = None) -> Na
         gnss_heading=build(HeadingAlignment, cfg["gnss_heading"], "filter.gnss_heading"),
         dtype=_DTYPES[cfg["dtype"]],
         flow_update=build(FlowUpdate, cfg["flow"], "filter.flow"),
+        tracks=build(TrackUpdate, cfg["tracks"], "filter.tracks") if cfg.get("tracks") is not None else TrackUpdate(),
         measurements=measurement_settings(cfg.get("measurements") or {}),
     )
 

@@ -18,6 +18,14 @@ q_prev     4     -       augmented orientation of the previous camera frame
 Every other module addresses the state through the names defined here
 (``STATE.p``, ``STATE.q_prev``, ...), never through index literals. The process
 noise vector has its own layout, :data:`NOISE`.
+
+A sliding window of ``N`` cloned camera poses (the multi-view track update,
+:mod:`flowins.measurements.tracks`) extends the layout: the core, then clone 0
+(``p_prev``, ``q_prev``: the previous camera frame), clone 1 (the frame before), ...,
+clone ``N - 1``, 7 entries each, so a state has ``D = 19 + 7 N`` entries
+(:func:`state_dim`, :func:`window_layout`); ``N = 1`` is the 26-dim layout above.
+Functions that act on every pose of a state (:func:`normalize_quaternions`,
+:func:`pose_slices`) read ``N`` from its last dimension.
 """
 from __future__ import annotations
 
@@ -106,6 +114,38 @@ NOISE = _Layout(
 NOISE_DIM: int = NOISE.dim  # 15
 
 
+def state_dim(clones: int) -> int:
+    """``D = 19 + 7 N``: the state's size with a window of ``N >= 1`` cloned poses."""
+    if not (isinstance(clones, int) and not isinstance(clones, bool) and clones >= 1):
+        raise ValueError(f"a state has a window of N >= 1 cloned poses, got N = {clones!r}")
+    return CORE_DIM + 7 * clones
+
+
+def window_size(dim: int) -> int:
+    """``N``, the number of cloned poses of a state of size ``dim`` (``19 + 7 N``); ValueError otherwise."""
+    clones, rest = divmod(dim - CORE_DIM, 7)
+    if rest or clones < 1:
+        raise ValueError(f"a state has 19 + 7 N entries (N >= 1 cloned poses, {STATE_DIM} for N = 1), got {dim}")
+    return clones
+
+
+@cache
+def window_layout(clones: int) -> _Layout:
+    """The layout with ``N = clones`` cloned poses: :data:`STATE`'s fields (clone 0 is
+    ``p_prev``, ``q_prev``), then ``p_clone1``, ``q_clone1``, ..., ``p_clone{N-1}``, ``q_clone{N-1}``."""
+    extra = tuple(item for k in range(1, clones) for item in ((f"p_clone{k}", 3), (f"q_clone{k}", 4)))
+    state_dim(clones)  # checks N
+    return _Layout(STATE.sizes + extra)
+
+
+def pose_slices(dim: int) -> tuple[tuple[slice, slice], ...]:
+    """``((p, q), (p_prev, q_prev), (p_clone1, q_clone1), ...)``: the slices of the current pose
+    and of each cloned pose, newest first, of a state of size ``dim``."""
+    layout = window_layout(window_size(dim))
+    names = ("p", "q"), ("p_prev", "q_prev"), *((f"p_clone{k}", f"q_clone{k}") for k in range(1, window_size(dim)))
+    return tuple((layout.slice(p), layout.slice(q)) for p, q in names)
+
+
 class State(NamedTuple):
     """The state split into named parts (each with the leading batch shape)."""
 
@@ -120,9 +160,14 @@ class State(NamedTuple):
 
 
 def split(x: Tensor) -> State:
-    """Split ``x`` of shape ``(..., 26)`` into a :class:`State` of views."""
+    """Split ``x`` of shape ``(..., 26)`` into a :class:`State` of views; a state with a window
+    of ``N > 1`` clones ``(..., 19 + 7 N)`` gives its core and clone 0 (``p_prev``, ``q_prev``)."""
     if x.shape[-1] != STATE_DIM:
-        raise ValueError(f"state must have last dimension {STATE_DIM}, got shape {tuple(x.shape)}")
+        try:
+            window_size(x.shape[-1])
+        except ValueError:
+            raise ValueError(f"state must have last dimension {STATE_DIM} (or 19 + 7 N), got shape "
+                             f"{tuple(x.shape)}") from None
     return State(*(x[..., STATE.slice(name)] for name in STATE.names))
 
 
@@ -164,25 +209,29 @@ def make_state(
 
 
 def normalize_quaternions(x: Tensor) -> Tensor:
-    """Re-normalise the two quaternions ``q`` and ``q_prev`` of ``x`` ``(..., 26)``.
+    """Re-normalise the quaternions ``q``, ``q_prev`` (and those of the further clones) of
+    ``x`` ``(..., 19 + 7 N)``.
 
     Out of place and differentiable; a zero quaternion is left at zero instead of
     producing NaN (the norm is clamped away from zero).
     """
-    if x.shape[-1] != STATE_DIM:
-        raise ValueError(f"state must have last dimension {STATE_DIM}, got shape {tuple(x.shape)}")
-    index = _quaternion_index(x.device)
-    q = x[..., index].unflatten(-1, (2, 4))
+    try:
+        clones = window_size(x.shape[-1])
+    except ValueError:
+        raise ValueError(f"state must have last dimension {STATE_DIM} (or 19 + 7 N), got shape {tuple(x.shape)}") from None
+    index = _quaternion_index(x.device, clones)
+    q = x[..., index].unflatten(-1, (1 + clones, 4))
     norm = torch.linalg.vector_norm(q, dim=-1, keepdim=True).clamp_min(torch.finfo(x.dtype).tiny ** 0.5)
     return x.index_copy(-1, index, (q / norm).flatten(-2))
 
 
 @cache
-def _quaternion_index(device: torch.device) -> Tensor:
-    """Indices of ``q`` then ``q_prev`` in the state ``(8,)`` (an integer tensor: no gradient,
-    so the cache is safe in and out of inference mode)."""
+def _quaternion_index(device: torch.device, clones: int = 1) -> Tensor:
+    """Indices of ``q``, ``q_prev``, ... in a state with ``clones`` cloned poses ``(4 + 4 N,)``
+    (an integer tensor: no gradient, so the cache is safe in and out of inference mode)."""
     with torch.inference_mode(False):
-        return STATE.indices("q", "q_prev").to(device)
+        quaternions = [q for _, q in pose_slices(state_dim(clones))]
+        return torch.cat([torch.arange(q.start, q.stop) for q in quaternions]).to(device)
 
 
 def symmetrize(cov: Tensor) -> Tensor:

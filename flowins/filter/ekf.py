@@ -129,14 +129,25 @@ class Gate:
         if not 0.0 < self.probability < 1.0:
             raise ValueError(f"Gate.probability must be in (0, 1), got {self.probability}")
 
-    def threshold_for(self, dof: int) -> float | Tensor:
-        return chi2_quantile(self.probability, dof) if self.threshold is None else self.threshold
+    def threshold_for(self, dof: int | Tensor) -> float | Tensor:
+        """The NIS threshold for ``dof`` degrees of freedom: an int, or a tensor of them (one per
+        block, the thresholds then a tensor of its shape)."""
+        if self.threshold is not None:
+            return self.threshold
+        if isinstance(dof, Tensor):
+            values = sorted(set(dof.reshape(-1).tolist()))
+            table = torch.tensor([chi2_quantile(self.probability, max(int(d), 1)) for d in values], dtype=torch.float64)
+            where = torch.searchsorted(torch.tensor(values, dtype=dof.dtype), dof.cpu())
+            return table[where].to(device=dof.device)
+        return chi2_quantile(self.probability, dof)
 
-    def weights(self, nis: Tensor, dof: int) -> Tensor:
-        """Weights in ``[0, 1]`` with the shape of ``nis``."""
+    def weights(self, nis: Tensor, dof: int | Tensor) -> Tensor:
+        """Weights in ``[0, 1]`` with the shape of ``nis`` (``dof`` an int, or one per block)."""
         if self.mode == "off":
             return torch.ones_like(nis)
         threshold = self.threshold_for(dof)
+        if isinstance(threshold, Tensor) and threshold.dtype != nis.dtype:
+            threshold = threshold.to(nis.dtype)
         if self.mode == "hard":
             return (nis <= threshold).to(nis.dtype)
         return torch.sigmoid((threshold - nis) / self.softness)
@@ -243,6 +254,39 @@ def scalar_update(
     return new_mean, symmetrize(new_cov)
 
 
+def information_update(mean: Tensor, cov: Tensor, information: Tensor, projected: Tensor) -> tuple[Tensor, Tensor]:
+    """The update of measurements given by their information ``G = Σᵢ Hᵢᵀ Rᵢ⁻¹ Hᵢ`` ``(..., D, D)``
+    and ``b = Σᵢ Hᵢᵀ Rᵢ⁻¹ vᵢ`` ``(..., D)``, in ``D x D`` algebra (:func:`scalar_update` for
+    blocks of any size and full noise).
+
+    With a square root ``P = F Fᵀ`` and ``W = I + Fᵀ G F`` (eigenvalues ``>= 1``),
+    ``A = F W⁻¹ Fᵀ = (P⁻¹ + G)⁻¹``; the gain satisfies ``K H = A G`` and ``K v = A b``, and the
+    covariance is the Joseph form ``(I - A G) P (I - A G)ᵀ + A G A`` (``K R Kᵀ = A G A``), so
+    it stays symmetric positive semi-definite.
+    """
+    eye = _eye(cov.shape[-1], cov.dtype, cov.device)
+    F = _cholesky_psd(cov)
+    Ft = F.transpose(-1, -2)
+    W = torch.linalg.cholesky(symmetrize(eye + Ft @ information @ F))
+    A = F @ torch.cholesky_solve(Ft, W)
+    AG = A @ information
+    D = eye - AG
+    new_cov = D @ cov @ D.transpose(-1, -2) + AG @ A.transpose(-1, -2)
+    new_mean = mean + (A @ projected.unsqueeze(-1)).squeeze(-1)
+    return new_mean, symmetrize(new_cov)
+
+
+def block_information(innovation: Tensor, H: Tensor, noise_cov: Tensor) -> tuple[Tensor, Tensor]:
+    """``G = Σᵢ Hᵢᵀ Rᵢ⁻¹ Hᵢ`` ``(..., D, D)`` and ``b = Σᵢ Hᵢᵀ Rᵢ⁻¹ vᵢ`` ``(..., D)`` of ``M`` blocks
+    (innovation ``(..., M, d)``, H ``(..., M, d, D)``, noise_cov ``(..., M, d, d)``), one small
+    Cholesky solve per block."""
+    L = torch.linalg.cholesky(symmetrize(noise_cov))
+    Rinv_H = torch.cholesky_solve(H, L)  # (..., M, d, D)
+    Rinv_v = torch.cholesky_solve(innovation.unsqueeze(-1), L)  # (..., M, d, 1)
+    Ht = H.transpose(-1, -2)
+    return (Ht @ Rinv_H).sum(-3), (Ht @ Rinv_v).squeeze(-1).sum(-2)
+
+
 def block_nis(cov: Tensor, innovation: Tensor, H: Tensor, noise_cov: Tensor) -> Tensor:
     """NIS ``v_iᵀ S_i⁻¹ v_i`` of each of ``M`` measurement blocks.
 
@@ -305,6 +349,7 @@ def ekf_update(
     sequential: bool = False,
     normalize: Callable[[Tensor], Tensor] | None = None,
     likelihood: bool = False,
+    dof: Tensor | None = None,
 ) -> UpdateResult:
     """Gated EKF update with ``M`` independent measurement blocks of dimension ``d``.
 
@@ -324,6 +369,13 @@ def ekf_update(
         likelihood: also return each block's innovation negative log-likelihood
             (:attr:`UpdateResult.nll`, :func:`block_nll`; with ``sequential`` each block's
             against the covariance updated by the blocks before it).
+        dof: ``(..., M)`` the degrees of freedom each block's gate tests (default ``d``): a
+            block padded to ``d`` with rows that carry nothing (zero innovation and ``H``,
+            noise uncorrelated with its real rows) has fewer.
+
+    Stacked blocks with ``M d > D`` (many blocks of several rows, such as the multi-view
+    track update) update in information form (:func:`information_update`), ``D x D`` algebra
+    instead of an ``M d x M d`` innovation covariance.
     """
     if innovation.ndim < 2 or H.shape[:-1] != innovation.shape or noise_cov.shape[-2:] != innovation.shape[-1:] * 2:
         raise ValueError(
@@ -331,7 +383,7 @@ def ekf_update(
             f"{tuple(innovation.shape)}, {tuple(H.shape)}, {tuple(noise_cov.shape)}"
         )
     gate = gate or Gate(mode="off")
-    dof = innovation.shape[-1]
+    dof = innovation.shape[-1] if dof is None else dof
     if sequential:
         nis_list, weight_list, nll_list = [], [], []
         prior_mean = mean
@@ -341,7 +393,8 @@ def ekf_update(
             # (first order: v_i - H_i (m - m_prior), exact for linear measurements)
             shift = (Hi[..., 0, :, :] @ (mean - prior_mean).unsqueeze(-1)).squeeze(-1)
             v = innovation[..., i : i + 1, :] - shift.unsqueeze(-2)
-            result = ekf_update(mean, cov, innovation=v, H=Hi, noise_cov=Ri, gate=gate, likelihood=likelihood)
+            dof_i = dof if not isinstance(dof, Tensor) else dof[..., i : i + 1]
+            result = ekf_update(mean, cov, innovation=v, H=Hi, noise_cov=Ri, gate=gate, likelihood=likelihood, dof=dof_i)
             mean, cov = result.mean, result.cov
             nis_list.append(result.nis)
             weight_list.append(result.weight)
@@ -356,6 +409,8 @@ def ekf_update(
         if d == 1:  # independent scalars (the epipolar flow update): D x D algebra
             mean, cov = scalar_update(mean, cov, (w * innovation)[..., 0], (w.unsqueeze(-1) * H)[..., 0, :],
                                       noise_cov[..., 0, 0])
+        elif M * d > H.shape[-1]:
+            mean, cov = information_update(mean, cov, *block_information(w * innovation, w.unsqueeze(-1) * H, noise_cov))
         else:
             mean, cov = joseph_update(
                 mean,

@@ -44,15 +44,15 @@ from flowins.state import CORE_DIM, NOISE_DIM, STATE_DIM, State, join, split, sy
 
 
 class Propagated(NamedTuple):
-    mean: Tensor  # (..., m, 26) state at each node
-    cov: Tensor  # (..., m, 26, 26)
-    transition: Tensor  # (..., m, 26, 26) Φ_j from the previous node (or the start) to node j
+    mean: Tensor  # (..., m, D) state at each node (D = 19 + 7 N, 26 for N = 1 cloned pose)
+    cov: Tensor  # (..., m, D, D)
+    transition: Tensor  # (..., m, D, D) Φ_j from the previous node (or the start) to node j
 
 
 def _run_pieces(
     x0: Tensor, acc_mps2: Tensor, gyro_rps: Tensor, dt_s: Tensor, gravity_mps2: float | Tensor, scheme: str
 ) -> tuple[Tensor, StepPieces]:
-    """Noise-free states after each of ``K`` steps ``(..., K, 26)`` from ``x0`` ``(..., 26)``
+    """Noise-free states after each of ``K`` steps ``(..., K, D)`` from ``x0`` ``(..., D)``
     and the steps' :class:`StepPieces`.
 
     With the noise at zero the biases and scale are constant over the run, so
@@ -90,6 +90,8 @@ def _run_pieces(
             q_prev=s.q_prev.unsqueeze(-2).expand(*shape, 4),
         )
     )
+    if x0.shape[-1] != STATE_DIM:  # the further cloned poses are constant too
+        means = torch.cat((means, x0[..., STATE_DIM:].unsqueeze(-2).expand(*shape, x0.shape[-1] - STATE_DIM)), -1)
     return means, StepPieces(q_before, theta, E, E_rot, dE, R_E, q_rot, C, acc_unbiased, a, T_a, dt)
 
 
@@ -124,7 +126,7 @@ def propagate_mean(
     gravity_mps2: float | Tensor,
     scheme: str = "midpoint",
 ) -> Tensor:
-    """States after each of ``K`` steps ``(..., K, 26)`` from ``x0`` ``(..., 26)``, noise-free.
+    """States after each of ``K`` steps ``(..., K, D)`` from ``x0`` ``(..., D)``, noise-free.
 
     Equal to ``K`` sequential :func:`mechanize` calls, computed with a log-depth
     quaternion scan and cumulative sums.
@@ -239,9 +241,10 @@ def propagate_batched(
     """Fast path: propagate ``(x0, P0)`` over ``K`` steps, reporting at the nodes.
 
     Args:
-        x0 ``(26,)``, P0 ``(26, 26)``; acc/gyro ``(K, 3)``, dt ``(K,)``; node_steps:
-            increasing step indices ``(m,)`` after which a node is reported, the last
-            ``K - 1``. Or a batch of ``B`` runs: x0 ``(B, 26)``, P0 ``(B, 26, 26)``,
+        x0 ``(D,)``, P0 ``(D, D)`` (``D = 19 + 7 N``, 26 for the paper's one cloned pose; the
+            cloned poses are constant, an identity transition); acc/gyro ``(K, 3)``, dt ``(K,)``;
+            node_steps: increasing step indices ``(m,)`` after which a node is reported, the last
+            ``K - 1``. Or a batch of ``B`` runs: x0 ``(B, D)``, P0 ``(B, D, D)``,
             acc/gyro ``(B, K, 3)``, dt ``(B, K)`` and node_steps a :class:`NodePlan`
             (:func:`plan_nodes`); a row's steps with ``Δt = 0`` are identities (padding).
         noise: one for all rows, or one per row; or ``variances`` ``(K, 15)`` or ``(B, K, 15)``,
@@ -257,7 +260,8 @@ def propagate_batched(
         return Propagated(*(t[0] for t in out))
     plan = node_steps
     B, K = dt_s.shape
-    means, pieces = _run_pieces(x0, acc_mps2, gyro_rps, dt_s, gravity_mps2, scheme)  # (B, K, 26)
+    dim = x0.shape[-1]
+    means, pieces = _run_pieces(x0, acc_mps2, gyro_rps, dt_s, gravity_mps2, scheme)  # (B, K, D)
     F, G = core_jacobians_from_pieces(pieces, scheme)  # (B, K, 19, 19), (B, K, 19, 15)
     if (noise is None) == (variances is None):
         raise ValueError("propagate_batched: give the process noise or the steps' variances, one of them")
@@ -266,11 +270,11 @@ def propagate_batched(
     steps = torch.cat((torch.stack((F, W), dim=-3).reshape(B * K, 2, CORE_DIM, CORE_DIM), _identity_step(F.dtype, F.device)))
     grouped = steps[plan.group.reshape(-1)].unflatten(0, plan.group.shape)  # (B, m, L, 2, 19, 19)
     Phi_core, S_core = _interval_compose(grouped[..., 0, :, :], grouped[..., 1, :, :])
-    Phi, S = embed_core(Phi_core)[0], pad_core(S_core)  # (B, m, 26, 26)
+    Phi, S = embed_core(Phi_core, dim=dim)[0], pad_core(S_core, dim=dim)  # (B, m, D, D)
     covs = _node_covariances(P0, Phi, S)
     # node means: the state after each node's step, the start for a padding node (step -1)
     node_mean = torch.cat((x0.unsqueeze(-2), means), dim=-2).gather(
-        -2, (plan.node_step + 1).unsqueeze(-1).expand(*plan.node_step.shape, STATE_DIM))
+        -2, (plan.node_step + 1).unsqueeze(-1).expand(*plan.node_step.shape, dim))
     return Propagated(node_mean, covs, Phi)
 
 
@@ -318,13 +322,14 @@ def propagate_reference(
     gravity_mps2: float | Tensor,
     scheme: str = "midpoint",
 ) -> Propagated:
-    """Reference path: the plain per-sample EKF prediction with ``jacrev`` Jacobians."""
+    """Reference path: the plain per-sample EKF prediction with ``jacrev`` Jacobians (states of any
+    ``D = 19 + 7 N``, as :func:`propagate_batched`)."""
     K = dt_s.shape[0]
     _check_nodes(node_steps, K)
     is_node = torch.zeros(K, dtype=torch.bool)
     is_node[node_steps.cpu()] = True
     Q = noise.covariance(dt_s)
-    eye = torch.eye(STATE_DIM, dtype=x0.dtype, device=x0.device)
+    eye = torch.eye(x0.shape[-1], dtype=x0.dtype, device=x0.device)
     x, P, Phi = x0, P0, eye
     means, covs, transitions = [], [], []
     zeros = x0.new_zeros(NOISE_DIM)

@@ -19,7 +19,7 @@ from flowins.progress import progress as track_progress
 from flowins.filter.chain import BatchChain, BatchEvent, Event, FilterTrack
 from flowins.filter.propagation import plan_nodes, propagate_batched, propagate_reference
 from flowins.ins.mechanization import STANDARD_GRAVITY_MPS2, ProcessNoise
-from flowins.state import NOISE_DIM, STATE_DIM, symmetrize
+from flowins.state import NOISE_DIM, STATE_DIM, symmetrize, window_size
 
 
 def _step_grid(t_imu: Tensor, event_times: Tensor) -> tuple[Tensor, Tensor]:
@@ -32,8 +32,9 @@ def _step_grid(t_imu: Tensor, event_times: Tensor) -> tuple[Tensor, Tensor]:
 @dataclass(frozen=True)
 class FilterInput:
     """One run of :func:`run_filters`: IMU samples ``t_s (N,)``, ``acc_mps2``/``gyro_rps``
-    ``(N, 3)``, the prior ``mean0 (26,)``, ``cov0 (26, 26)`` at ``t_s[0]``, its events and,
-    optionally, its own process noise (default: the batch's)."""
+    ``(N, 3)``, the prior ``mean0 (D,)``, ``cov0 (D, D)`` at ``t_s[0]`` (``D = 19 + 7 N``: 26 for the
+    paper's one cloned pose, more with a window of ``N`` clones, :func:`flowins.filter.augmentation.with_window`),
+    its events and, optionally, its own process noise (default: the batch's)."""
 
     t_s: Tensor
     acc_mps2: Tensor
@@ -65,8 +66,8 @@ def run_filter(
     Args:
         t_s ``(N,)`` IMU times (strictly increasing; validate with
         :class:`flowins.data.ImuStream`), acc_mps2 / gyro_rps ``(N, 3)``.
-        mean0 ``(26,)``, cov0 ``(26, 26)``: the prior at ``t_s[0]``; their dtype is the
-            filter's dtype.
+        mean0 ``(D,)``, cov0 ``(D, D)``: the prior at ``t_s[0]``, ``D = 19 + 7 N`` (26 for the paper's
+            one cloned pose); their dtype is the filter's dtype.
         events: measurement events, each with ``time_s`` in ``[t_s[0], t_s[-1]]``;
             events at the same time are applied in the given order.
         output_every: a node every this many IMU samples (plus one at every event).
@@ -119,8 +120,8 @@ def run_filters(
     in float64).
 
     Args:
-        runs: the :class:`FilterInput` of each run; every ``mean0`` has the same dtype and
-            device (the filter's).
+        runs: the :class:`FilterInput` of each run; every ``mean0`` has the same size ``D``
+            (``19 + 7 N``), dtype and device (the filter's).
         noise: the process noise of the runs without their own.
         output_every, gravity_mps2, jacobians, scheme, likelihood: as for :func:`run_filter`, for
             all runs.
@@ -132,10 +133,11 @@ def run_filters(
     if not runs:
         return []
     like = runs[0].mean0
+    dim = _state_size(runs[0], 0)
     for i, run in enumerate(runs):
-        if run.mean0.shape != (STATE_DIM,) or run.cov0.shape != (STATE_DIM, STATE_DIM):
-            raise ValueError(f"run {i}: mean0 must be ({STATE_DIM},) and cov0 ({STATE_DIM}, {STATE_DIM}); "
-                             f"got {tuple(run.mean0.shape)}, {tuple(run.cov0.shape)}")
+        if _state_size(run, i) != dim:
+            raise ValueError(f"run {i}: mean0 has {run.mean0.shape[-1]} entries, run 0's {dim}; the runs of a "
+                             f"batch have one state size (one window of cloned poses)")
         if run.mean0.dtype != like.dtype or run.mean0.device != like.device:
             raise ValueError(f"run {i}: mean0 is {run.mean0.dtype} on {run.mean0.device}, run 0's "
                              f"{like.dtype} on {like.device}; a batch has one dtype and device")
@@ -147,8 +149,8 @@ def run_filters(
     plans = [_prepare(run, output_every, dtype, device, n) for run, n in zip(runs, noises)]
     B = len(runs)
     chain = BatchChain(B, likelihood=likelihood)
-    eye = torch.eye(STATE_DIM, dtype=dtype, device=device)
-    chain.add_nodes([[plan.t0] for plan in plans], eye.expand(B, 1, STATE_DIM, STATE_DIM),
+    eye = torch.eye(dim, dtype=dtype, device=device)
+    chain.add_nodes([[plan.t0] for plan in plans], eye.expand(B, 1, dim, dim),
                     torch.stack([run.mean0 for run in runs]).unsqueeze(1),
                     symmetrize(torch.stack([run.cov0 for run in runs])).unsqueeze(1))
     apply_events(chain, [plan.early for plan in plans])
@@ -193,6 +195,20 @@ def run_filters(
                         out.transition, out.mean, out.cov, real=nodes.real)
         apply_events(chain, [[] if segment is None else segment[4] for segment in segments])
     return chain.finish()
+
+
+def _state_size(run: FilterInput, i: int) -> int:
+    """``D`` of run ``i``'s prior: ``mean0`` ``(D,)``, ``cov0`` ``(D, D)``, ``D = 19 + 7 N`` (ValueError otherwise)."""
+    shape, cov_shape = tuple(run.mean0.shape), tuple(run.cov0.shape)
+    dim = shape[0] if len(shape) == 1 else -1
+    try:
+        window_size(dim)
+    except ValueError:
+        dim = -1
+    if dim < 0 or cov_shape != (dim, dim):
+        raise ValueError(f"run {i}: mean0 must be (D,) and cov0 (D, D) with D = 19 + 7 N, N >= 1 cloned poses "
+                         f"({STATE_DIM} for the paper's one); got {shape}, {cov_shape}")
+    return dim
 
 
 def apply_events(chain: BatchChain, events: Sequence[Sequence[Event]]) -> None:

@@ -45,6 +45,7 @@ def update(
     sequential: bool = False,
     valid: Tensor | None = None,
     likelihood: bool = True,
+    dof: Tensor | None = None,
     **info: Any,
 ) -> UpdateResult:
     """Update one run's newest node with ``M`` measurement blocks of dimension ``d``.
@@ -58,6 +59,8 @@ def update(
         valid ``(M,)`` bool: the blocks that carry a measurement (default: all).
         likelihood: whether the update adds its innovation likelihood when the chain keeps
             one; False for a pseudo-measurement, whose residual is no data.
+        dof ``(M,)``: each block's degrees of freedom when fewer than ``d`` (a block padded with
+            rows that carry nothing); they set its gate and its count of scalar measurements.
         info: the log entry's facts (``kind``, ``name``, ...); none: no log entry.
 
     Returns the :class:`~flowins.filter.ekf.UpdateResult`, its ``weight`` zero on invalid
@@ -68,9 +71,9 @@ def update(
                          "(update_rows updates rows of a batch)")
     keep = likelihood and chain.likelihood
     result = _step(chain.mean, chain.cov, H=H, residual=residual, noise_cov=noise_cov, gate=gate,
-                   sequential=sequential, valid=valid, likelihood=keep)
+                   sequential=sequential, valid=valid, likelihood=keep, dof=dof)
     if keep:
-        chain.add_likelihood(*_likelihood(result, residual.shape[-1]))
+        chain.add_likelihood(*_likelihood(result, residual.shape[-1] if dof is None else dof))
     if info:
         nis, accepted = _summary(result, valid).tolist()
         info = {**info, "nis": nis, "accepted": accepted}
@@ -93,15 +96,16 @@ def update_rows(
     valid: Tensor | None = None,
     likelihood: bool = True,
     infos: Sequence[dict[str, Any]] | None = None,
+    dof: Tensor | None = None,
 ) -> UpdateResult:
     """:func:`update` of the rows ``rows`` of ``chain`` at once (``r`` of them).
 
     Shapes carry the rows first: H ``(r, M, d, D)``, residual ``(r, M, d)``, noise_cov
-    ``(r, M, d, d)``, valid ``(r, M)``; ``infos[i]`` is row ``rows[i]``'s log entry. A row
+    ``(r, M, d, d)``, valid and dof ``(r, M)``; ``infos[i]`` is row ``rows[i]``'s log entry. A row
     without a valid block keeps its node and is only logged.
     """
     result = step_rows(chain, rows, H=H, residual=residual, noise_cov=noise_cov, gate=gate, sequential=sequential,
-                       valid=valid, likelihood=likelihood)
+                       valid=valid, likelihood=likelihood, dof=dof)
     if infos is not None:
         summary = _summary(result, valid).tolist()
         infos = [{**info, "nis": nis, "accepted": accepted} if info else info
@@ -123,6 +127,7 @@ def step_rows(
     valid: Tensor | None = None,
     likelihood: bool = True,
     prior: tuple[Tensor, Tensor] | None = None,
+    dof: Tensor | None = None,
 ) -> UpdateResult:
     """The update of :func:`update_rows` without writing the chain: one step of an
     iterated update, whose result the caller writes with :func:`commit_rows`.
@@ -137,9 +142,9 @@ def step_rows(
     mean, cov = chain.newest(rows) if prior is None else prior
     keep = likelihood and chain.likelihood
     result = _step(mean, cov, H=H, residual=residual, noise_cov=noise_cov, gate=gate, sequential=sequential,
-                   valid=valid, likelihood=keep)
+                   valid=valid, likelihood=keep, dof=dof)
     if keep:
-        chain.add_likelihood(rows, *_likelihood(result, residual.shape[-1]))
+        chain.add_likelihood(rows, *_likelihood(result, residual.shape[-1] if dof is None else dof))
     return result
 
 
@@ -168,20 +173,22 @@ def commit_rows(
 
 
 def _step(mean: Tensor, cov: Tensor, *, H: Tensor, residual: Tensor, noise_cov: Tensor, gate: Gate | None,
-          sequential: bool, valid: Tensor | None, likelihood: bool) -> UpdateResult:
+          sequential: bool, valid: Tensor | None, likelihood: bool, dof: Tensor | None = None) -> UpdateResult:
     """The gated update; the weight of invalid blocks set to zero."""
     if valid is not None and valid.shape != residual.shape[:-1]:
         raise ValueError(f"update: valid must be {tuple(residual.shape[:-1])} (one flag per block of the "
                          f"residual {tuple(residual.shape)}), got {tuple(valid.shape)}")
     result = ekf_update(mean, cov, innovation=residual, H=H, noise_cov=noise_cov, gate=gate, sequential=sequential,
-                        normalize=normalize_quaternions, likelihood=likelihood)
+                        normalize=normalize_quaternions, likelihood=likelihood, dof=dof)
     return result if valid is None else result._replace(weight=result.weight * valid)
 
 
-def _likelihood(result: UpdateResult, dim: int) -> tuple[Tensor, Tensor]:
-    """``(nll, count)`` ``(...)``: the gate-weighted block likelihoods and scalar measurements."""
+def _likelihood(result: UpdateResult, dim: int | Tensor) -> tuple[Tensor, Tensor]:
+    """``(nll, count)`` ``(...)``: the gate-weighted block likelihoods and scalar measurements
+    (``dim`` the blocks' dimension, or each block's degrees of freedom ``(..., M)``)."""
     kept = result.weight.detach()
-    return (kept * result.nll).sum(-1), dim * kept.sum(-1)
+    count = (dim * kept).sum(-1) if isinstance(dim, Tensor) else dim * kept.sum(-1)
+    return (kept * result.nll).sum(-1), count
 
 
 def _summary(result: UpdateResult, valid: Tensor | None) -> Tensor:

@@ -8,11 +8,13 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from flowins.cache import cache_root
 from flowins.config import instantiate
 from flowins.data.load import Recording
+from flowins.data.sequence import Tracks
 from flowins.flow.pairs import FlowPairs, cache_key, cached, dense_pairs, sparse_pairs, track_pairs
 
 log = logging.getLogger("flowins")
@@ -57,3 +59,68 @@ def load_flow(kind: str, rec: Recording, cfg: Mapping[str, Any], *, progress: bo
     if rate is not None:
         pairs = pairs.at_dropout_rate(float(rate))
     return pairs.undistorted(seq.camera)
+
+
+TRACKS_FORMAT = 1
+
+
+def load_tracks(rec: Recording, cfg: Mapping[str, Any], *, progress: bool) -> Tracks | str:
+    """The recording's sparse tracks over many frames for the multi-view update
+    (``filter.tracks.window >= 1``), in the ideal pinhole image, or the reason they can't be had:
+    its own ``tracks.csv`` (``sparse.source=tracks``), or ``sparse.tracker`` run over its frames
+    with track ids kept across them (:func:`~flowins.flow.sparse.track_sequence`: the end points
+    of one pair seed the next, fresh corners top them up), computed once and cached."""
+    seq = rec.sequence
+    if seq is None or seq.camera is None:
+        return "the sequence has no camera"
+    if cfg["sparse"].get("source") == "tracks":
+        if seq.tracks is None:
+            return "sparse.source=tracks but the sequence has no tracks.csv"
+        return undistort_tracks(seq.tracks, seq.camera)
+    if seq.frames is None:
+        return "the sequence has no camera frames"
+    from flowins.flow.sparse import track_sequence
+
+    target = cfg["sparse"]["tracker"]
+    provider = instantiate(target, "sparse.tracker")
+    key = cache_key(kind="tracks", source=rec.content_key, provider=target, tracks_format=TRACKS_FORMAT)
+    path = Path(cfg["cache_dir"] or cache_root()) / "flow" / f"tracks-{key}.npz"
+    label = str(target.get("_target_", "")).rsplit(".", 1)[-1]
+    if path.is_file():
+        log.info(f"sparse tracks: {label}, read from the cache {path}")
+        return undistort_tracks(read_tracks(path), seq.camera)
+    if progress:
+        log.info(f"sparse tracks: running {label} over {len(seq.frames)} frames with track ids kept")
+    tracks = track_sequence(seq.frames, provider, name=f"{label} tracks").tracks
+    write_tracks(path, tracks)
+    return undistort_tracks(tracks, seq.camera)
+
+
+def write_tracks(path: Path, tracks: Tracks) -> None:
+    """One ``.npz`` of the track rows (written to a partial file, then renamed)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".partial.npz")
+    np.savez_compressed(tmp, version=TRACKS_FORMAT, t_s=tracks.t_s.numpy(), track_id=tracks.track_id.numpy(),
+                        uv_px=tracks.uv_px.numpy(), name=str(tracks.name))
+    tmp.replace(path)
+
+
+def read_tracks(path: Path) -> Tracks:
+    with np.load(path, allow_pickle=False) as z:
+        if "version" not in z or int(z["version"]) != TRACKS_FORMAT:
+            raise ValueError(f"{path}: not a flowins tracks file of format version {TRACKS_FORMAT}")
+        return Tracks(torch.from_numpy(z["t_s"]), torch.from_numpy(z["track_id"]), torch.from_numpy(z["uv_px"]),
+                      name=str(z["name"]))
+
+
+def undistort_tracks(tracks: Tracks, camera) -> Tracks:
+    """``tracks`` with their pixels in the ideal pinhole image of ``camera`` (radial-tangential
+    distortion removed; itself without distortion)."""
+    from flowins.geometry.camera import undistort
+
+    if not any(camera.distortion):
+        return tracks
+    f = torch.tensor([camera.fx, camera.fy], dtype=torch.float64)
+    c = torch.tensor([camera.cx, camera.cy], dtype=torch.float64)
+    uv = undistort((tracks.uv_px - c) / f, tuple(camera.distortion)) * f + c
+    return Tracks(tracks.t_s, tracks.track_id, uv, name=tracks.name, frame_times_s=tracks.frame_times_s)

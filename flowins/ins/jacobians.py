@@ -69,7 +69,7 @@ def rotation_increments(theta: Tensor, scheme: str) -> tuple[Tensor, Tensor, Ten
 
 
 def step_pieces(x: Tensor, acc_mps2: Tensor, gyro_rps: Tensor, dt_s: Tensor, scheme: str) -> StepPieces:
-    """:class:`StepPieces` of ``mechanize`` at the states ``x`` ``(..., 26)``."""
+    """:class:`StepPieces` of ``mechanize`` at the states ``x`` ``(..., D)`` (the core only matters)."""
     s = split(x)
     dt = dt_s.unsqueeze(-1)
     theta = (gyro_rps - s.b_w) * dt
@@ -149,29 +149,32 @@ def _core_constants(dtype: torch.dtype, device: torch.device) -> tuple[Tensor, .
     return (torch.zeros(4, 3, dtype=dtype, device=device), walks[10:].clone(), eye[10:].clone(), left, pv)
 
 
-def pad_core(M: Tensor) -> Tensor:
+def pad_core(M: Tensor, *, dim: int = STATE_DIM) -> Tensor:
     """``(…, 19, k)`` or ``(…, 19, 19)`` core block -> zero-padded full-state rows
-    ``(…, 26, k)``, resp. ``(…, 26, 26)`` when the block is square."""
-    extra = STATE_DIM - CORE_DIM
+    ``(…, D, k)``, resp. ``(…, D, D)`` when the block is square, for a state of ``D = dim``
+    entries (``19 + 7 N``: 26 for the one cloned pose of the paper, the default)."""
+    extra = dim - CORE_DIM
     return torch.nn.functional.pad(M, (0, extra if M.shape[-1] == CORE_DIM else 0, 0, extra))
 
 
-def embed_core(F_core: Tensor, G_core: Tensor | None = None) -> tuple[Tensor, Tensor | None]:
-    """Full-state ``(…, 26, 26)`` transition (identity on the augmented pose) and
-    ``(…, 26, 15)`` noise Jacobian (zero rows there) from their core blocks."""
-    return pad_core(F_core) + _augmented_identity(F_core.dtype, F_core.device), None if G_core is None else pad_core(G_core)
+def embed_core(F_core: Tensor, G_core: Tensor | None = None, *, dim: int = STATE_DIM) -> tuple[Tensor, Tensor | None]:
+    """Full-state ``(…, D, D)`` transition (identity on the cloned poses) and ``(…, D, 15)``
+    noise Jacobian (zero rows there) from their core blocks, ``D = dim`` (default 26)."""
+    F = pad_core(F_core, dim=dim) + _augmented_identity(F_core.dtype, F_core.device, dim)
+    return F, None if G_core is None else pad_core(G_core, dim=dim)
 
 
 @cached_constant
-def _augmented_identity(dtype: torch.dtype, device: torch.device) -> Tensor:
-    """``(26, 26)``: identity on the augmented pose, zero on the core."""
-    return torch.diag((torch.arange(STATE_DIM, device=device) >= CORE_DIM).to(dtype))
+def _augmented_identity(dtype: torch.dtype, device: torch.device, dim: int = STATE_DIM) -> Tensor:
+    """``(D, D)``: identity on the cloned poses, zero on the core (one per ``D = dim``)."""
+    return torch.diag((torch.arange(dim, device=device) >= CORE_DIM).to(dtype))
 
 
 def mechanization_jacobians(
     x: Tensor, acc_mps2: Tensor, gyro_rps: Tensor, dt_s: Tensor, scheme: str = "midpoint"
 ) -> tuple[Tensor, Tensor]:
-    """``(F_x, F_ε)`` of ``mechanize`` at ``(x, ε = 0)``, ``(..., 26, 26)`` and ``(..., 26, 15)``.
+    """``(F_x, F_ε)`` of ``mechanize`` at ``(x, ε = 0)``, ``(..., D, D)`` and ``(..., D, 15)`` for
+    states ``x`` ``(..., D)``, ``D = 19 + 7 N`` (26 for the paper's one cloned pose).
 
     Exact (not approximated) closed forms; batched over any leading dimensions,
     e.g. all ``K`` steps of a run at once with ``x`` holding the state before each step.
@@ -179,4 +182,5 @@ def mechanization_jacobians(
     For ``scheme="midpoint"`` the velocity rows use ``q_½ = q ⊙ 𝒬{θ/2}`` in place of
     ``q'``, and the position rows become ``∂p'/∂· = ∂p/∂· + Δt ∂v/∂· + (Δt/2)(∂v'/∂· - ∂v/∂·)``.
     """
-    return embed_core(*core_jacobians_from_pieces(step_pieces(x, acc_mps2, gyro_rps, dt_s, scheme), scheme))
+    return embed_core(*core_jacobians_from_pieces(step_pieces(x, acc_mps2, gyro_rps, dt_s, scheme), scheme),
+                      dim=x.shape[-1])

@@ -41,7 +41,7 @@ from torch import Tensor
 
 from flowins.constants import STANDARD_GRAVITY_MPS2, cached_constant
 from flowins.geometry import quaternion as quat
-from flowins.state import NOISE, NOISE_DIM, State, join, split
+from flowins.state import NOISE, NOISE_DIM, STATE_DIM, State, join, split
 
 
 
@@ -64,7 +64,8 @@ def mechanize(
     """One step of the mechanization, ``x_k = f(x_{k-1}, ε_k)``.
 
     Args:
-        x: state ``(..., 26)`` at ``t_{k-1}``.
+        x: state ``(..., 26)`` at ``t_{k-1}`` (or ``(..., 19 + 7 N)`` with a window of ``N`` cloned
+            poses, all constant).
         noise: process noise ``ε_k`` ``(..., 15)`` in the :data:`flowins.state.NOISE`
             layout (zeros for the mean prediction).
         acc_mps2: accelerometer sample ``ã_k`` ``(..., 3)``.
@@ -74,7 +75,7 @@ def mechanize(
         scheme: ``"midpoint"`` (second order) or ``"paper"`` (the literal equation).
 
     Returns:
-        state ``(..., 26)`` at ``t_k``. Pure and differentiable (``torch.func``-friendly).
+        state ``(..., D)`` at ``t_k``, ``D`` that of ``x``. Pure and differentiable (``torch.func``-friendly).
     """
     s = split(x)
     dt = torch.as_tensor(dt_s, dtype=x.dtype, device=x.device).unsqueeze(-1)
@@ -87,7 +88,7 @@ def mechanize(
     q_rot = q_new if scheme == "paper" else quat.multiply(s.q, quat.from_rotation_vector(0.5 * omega * dt))
     v_new = s.v + (quat.rotate(q_rot, acc) - gravity_vector(gravity_mps2, like=x)) * dt
     p_new = s.p + (s.v if scheme == "paper" else 0.5 * (s.v + v_new)) * dt
-    return join(
+    out = join(
         State(
             p=p_new,
             v=v_new,
@@ -99,6 +100,10 @@ def mechanize(
             q_prev=s.q_prev,
         )
     )
+    if x.shape[-1] == STATE_DIM:
+        return out
+    # a window of N > 1 cloned poses: the further clones are constant as well
+    return torch.cat((out, x[..., STATE_DIM:].expand(*out.shape[:-1], x.shape[-1] - STATE_DIM)), -1)
 
 
 SCHEMES = ("midpoint", "paper")

@@ -26,14 +26,15 @@ from flowins.evaluation import plot_trajectory, trajectory_errors, write_tum
 from flowins.evaluation.gnss_floor import describe_gnss_floor, gnss_floor_metrics
 from flowins.evaluation.metrics import truth_extent_problem
 from flowins.evaluation.report import Row, format_table
-from flowins.flow.load import load_flow
+from flowins.data.sequence import Tracks
+from flowins.flow.load import load_flow, load_tracks
 from flowins.flow.pairs import FlowPairs, read_frame, run_provider
 from flowins.ins.initialization import forward_axis
 from flowins.jobs.cli import console_logging
 from flowins.measurements.flow import FlowCamera
 from flowins.measurements.vehicle import platform_streams
 from flowins.navigation import (NavigationConfig, NavigationResult, NavigationRun, flow_statistics, navigate_batch,
-                                run_warnings)
+                                run_warnings, track_statistics)
 from flowins.settings import evaluate_settings, filter_setup
 from flowins.state import STATE
 
@@ -99,12 +100,20 @@ def _load(cfg: Mapping[str, Any]) -> Recording:
     return rec
 
 
-def _flows(cfg: Mapping[str, Any], rec: Recording) -> dict[str, FlowPairs | str]:
-    """The sparse and dense flow pairs the combinations use (or why they can't be had)."""
-    flows: dict[str, FlowPairs | str] = {}
+def _flows(cfg: Mapping[str, Any], rec: Recording) -> dict[str, FlowPairs | Tracks | str]:
+    """The sparse and dense flow pairs the combinations use (or why they can't be had); with
+    ``filter.tracks.window >= 1`` the sparse rows get tracks over many frames instead."""
+    flows: dict[str, FlowPairs | Tracks | str] = {}
     for kind in ("sparse", "dense"):
         if any(cfg["methods"][name][kind] for name in cfg["combinations"]):
             t1 = time.perf_counter()
+            if kind == "sparse" and int(cfg["filter"]["tracks"]["window"]) >= 1:
+                flows[kind] = load_tracks(rec, cfg, progress=cfg["progress"])
+                if isinstance(flows[kind], Tracks):
+                    log.info(f"sparse tracks: {int(torch.unique(flows[kind].track_id).numel())} tracks over "
+                             f"{len(flows[kind].frame_times)} frames for the multi-view update "
+                             f"(window {cfg['filter']['tracks']['window']}; {time.perf_counter() - t1:.1f} s)")
+                continue
             flows[kind] = load_flow(kind, rec, cfg, progress=cfg["progress"])
             if isinstance(flows[kind], FlowPairs):
                 log.info(f"{kind} flow: {len(flows[kind])} frame pairs ({time.perf_counter() - t1:.1f} s)")
@@ -125,7 +134,8 @@ def _combinations(cfg: Mapping[str, Any], recs: list[Recording], nav_cfg: Naviga
     batches: dict[str, list[str]] = {}
     for name, plan in planned.items():
         if isinstance(plan, list):
-            batches.setdefault("flow" if plan[0].flow is not None else name, []).append(name)
+            batches.setdefault("flow" if plan[0].flow is not None else "tracks" if plan[0].tracks is not None
+                               else name, []).append(name)
     results: dict[str, list[NavigationResult]] = {}
     seconds: dict[str, float] = {}
     for names in batches.values():
@@ -176,7 +186,9 @@ def _runs(name: str, cfg: Mapping[str, Any], recs: list[Recording], nav_cfg: Nav
         calibration = rec.sequence.imu_to_camera
         forward_b = forward_axis(nav_cfg.start.moving.forward_axis,
                                  None if calibration is None else calibration.rotation_matrix)
-        runs.append(NavigationRun(rec.imu, rec.gnss if "gnss" in sources else None, flow=flow,
+        tracks = flow if isinstance(flow, Tracks) else None
+        runs.append(NavigationRun(rec.imu, rec.gnss if "gnss" in sources else None,
+                                  flow=None if tracks is not None else flow, tracks=tracks,
                                   camera=FlowCamera.from_sequence(rec.sequence) if flow is not None else None,
                                   truth=rec.truth, forward_b=forward_b, start_gnss=rec.gnss,
                                   streams=platform_streams(rec.platform)))
@@ -191,7 +203,9 @@ def _score(name: str, cfg: Mapping[str, Any], recs: list[Recording], results: li
     per_run = []
     for rec, flow, result, out, problem in zip(recs, _pairs(name, cfg, flows), results, outs, unscored):
         m = _export(out, name, result, rec, plots=cfg["plots"], score=rec.truth is not None and problem is None)
-        if flow is not None:
+        if isinstance(flow, Tracks):
+            m.update(track_statistics(result))
+        elif flow is not None:
             m.update(flow_statistics(result, flow))
         m["seconds"] = seconds_per_run
         m["warnings"] = run_warnings(result) + ([problem] if problem else [])

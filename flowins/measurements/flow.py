@@ -24,6 +24,10 @@ Conditioning: the world origin is moved to camera 1's centre and the triangulati
 works in normalised coordinates ``K⁻¹ (u, v, 1)``; the projections are converted back
 to pixels, so ``h`` is exactly the paper's.
 
+States with a window of ``N > 1`` cloned poses (``D = 19 + 7 N``, :mod:`flowins.state`) are
+measured as their 26-dim part (the core and clone 0, the previous frame); ``H_x`` has zero
+columns for the further clones.
+
 Degenerate geometry never produces NaN or inf. A point is *degenerate* when the
 triangulation's two smallest singular values meet (no baseline, or flow that only a
 rotation explains: every point on the ray fits), *behind* when the solution sits at
@@ -45,7 +49,7 @@ from torch.func import jacrev, vmap
 from flowins.constants import cached_constant
 from flowins.geometry import quaternion as quat
 from flowins.geometry.triangulation import camera_matrix, project_homogeneous, solve_dlt, triangulate
-from flowins.state import STATE, STATE_DIM, split
+from flowins.state import STATE, STATE_DIM, split, window_size
 
 
 class CameraTerms(NamedTuple):
@@ -422,7 +426,7 @@ def _neg_eye(dtype: torch.dtype, device: torch.device) -> Tensor:
 
 class FlowLinearisation(NamedTuple):
     residual: Tensor  # (..., M, 2) h
-    H_x: Tensor  # (..., M, 2, 26)
+    H_x: Tensor  # (..., M, 2, D)
     H_r: Tensor  # (..., M, 2, 2)
     aux: FlowAux
 
@@ -431,7 +435,8 @@ def flow_linearisation(x: Tensor, flow_px: Tensor, uv1_px: Tensor, camera: FlowC
     """``h`` and its Jacobians ``H_x``, ``H_r`` of ``M`` points at once, in closed form.
 
     The same function as :func:`flow_residual`, differentiated by hand (no
-    ``torch.func``), for states ``x`` ``(..., 26)`` and points ``(..., M, 2)``. It is computed
+    ``torch.func``), for states ``x`` ``(..., 26)`` and points ``(..., M, 2)`` (a state ``(..., D)``
+    with a window of cloned poses is measured as its 26-dim part, zero-padded). It is computed
     in camera 1's frame, ``P₁' = [I | 0]``, ``P₂' = [R | t]``: the DLT matrix there is the world
     one times an orthogonal matrix, so its equilibrated singular values, the projections
     and ``h`` are the same, and only the last two rows ``A_r = L_r P₂'`` (``L = [-I | x₂]``)
@@ -456,6 +461,10 @@ def flow_linearisation(x: Tensor, flow_px: Tensor, uv1_px: Tensor, camera: FlowC
     (``s_3 > s_4``, in front of both cameras) for the derivatives to be finite: screen
     with :func:`flow_measurements`.
     """
+    dim = state_size(x, "flow_linearisation")
+    if dim != STATE_DIM:
+        lin = flow_linearisation(x[..., :STATE_DIM], flow_px, uv1_px, camera)
+        return lin._replace(H_x=pad_state(lin.H_x, dim))
     camera = camera.to(x)
     lin = _linearise(x, cast_like(flow_px, x), cast_like(uv1_px, x), camera)
     H = _chain(lin.dh, lin.J)
@@ -463,11 +472,28 @@ def flow_linearisation(x: Tensor, flow_px: Tensor, uv1_px: Tensor, camera: FlowC
     return FlowLinearisation(lin.residual, H[..., :STATE_DIM], H[..., STATE_DIM:], aux)
 
 
+def state_size(x: Tensor, where: str) -> int:
+    """``D`` of the states ``x`` ``(..., D)``: 26, or ``19 + 7 N`` with a window of ``N`` cloned poses
+    (a ValueError naming ``where`` otherwise)."""
+    try:
+        window_size(x.shape[-1])
+    except ValueError:
+        raise ValueError(f"{where}: x must be (..., {STATE_DIM}) or (..., 19 + 7 N) with a window of N cloned "
+                         f"poses, got {tuple(x.shape)}") from None
+    return x.shape[-1]
+
+
+def pad_state(H: Tensor, dim: int) -> Tensor:
+    """Jacobians ``(..., 26)`` along the 26-dim state -> ``(..., D)`` along a state with a window of
+    ``N`` cloned poses, ``D = dim = 19 + 7 N``: zero columns for the clones after clone 0."""
+    return torch.nn.functional.pad(H, (0, dim - STATE_DIM))
+
+
 class FlowMeasurements(NamedTuple):
     """Linearised flow measurements of ``M`` points per sequence (batch dims ``...``)."""
 
     residual: Tensor  # (..., M, 2) h(m, δ), px (the EKF innovation is -h); 0 where not valid
-    H_x: Tensor  # (..., M, 2, 26); 0 where not valid
+    H_x: Tensor  # (..., M, 2, D); 0 where not valid
     H_r: Tensor  # (..., M, 2, 2); 0 where not valid
     valid: Tensor  # (..., M) bool: a real point, not degenerate, in front, enough parallax
     n_degenerate: Tensor  # (...) int64: real points whose triangulation is ill-conditioned
@@ -489,6 +515,10 @@ def flow_measurements(
     jacobians: str = "analytic",
 ) -> FlowMeasurements:
     """``h``, ``H_x``, ``H_r`` of ``M`` flow points per state ``x`` ``(..., 26)``.
+
+    A state with a window of ``N > 1`` cloned poses ``(..., 19 + 7 N)`` is measured as its
+    26-dim part (the core and clone 0), and ``H_x`` ``(..., M, 2, 19 + 7 N)`` has zero columns
+    for the further clones.
 
     Args:
         flow_px ``(..., M, 2)``, uv1_px ``(..., M, 2)``; camera shared or with the batch dims.
@@ -512,8 +542,11 @@ def flow_measurements(
     are screened without it and the valid ones alone are linearised again, so that
     degenerate points and padding have no part in the graph.
     """
-    if x.shape[-1] != STATE_DIM:
-        raise ValueError(f"flow_measurements: x must be (..., {STATE_DIM}), got {tuple(x.shape)}")
+    dim = state_size(x, "flow_measurements")
+    if dim != STATE_DIM:
+        m = flow_measurements(x[..., :STATE_DIM], flow_px, uv1_px, camera, mask=mask, min_conditioning=min_conditioning,
+                              min_depth=min_depth, min_parallax_px=min_parallax_px, jacobians=jacobians)
+        return m._replace(H_x=pad_state(m.H_x, dim))
     if flow_px.shape[-1:] != (2,) or uv1_px.shape != flow_px.shape or flow_px.shape[:-2] != x.shape[:-1]:
         raise ValueError(f"flow_measurements: flow_px and uv1_px must both be (..., M, 2) with x's batch dims "
                          f"{tuple(x.shape[:-1])}; got {tuple(flow_px.shape)}, {tuple(uv1_px.shape)}")
@@ -630,7 +663,7 @@ class EpipolarUpdate(NamedTuple):
     in order; those not valid contribute nothing (innovation 0, H 0, noise 1)."""
 
     innovation: Tensor  # (..., M, 1) -wᵀh
-    H: Tensor  # (..., M, 1, 26) wᵀ H_x
+    H: Tensor  # (..., M, 1, D) wᵀ H_x
     noise_cov: Tensor  # (..., M, 1, 1) wᵀ H_r R H_rᵀ w
     direction: Tensor  # (..., M, 2) w, unit
     valid: Tensor  # (..., M) the measurements' valid flags
@@ -671,7 +704,7 @@ def epipolar_update(measurements: FlowMeasurements, sigma_px: Tensor, *,
         noise = noise * p2 / torch.sub(p2, torch.linalg.vecdot(sigma, sigma), alpha=0.5).clamp_min(floor)
     noise = torch.where(valid, noise, 1.0)
     innovation = -torch.linalg.vecdot(w, m.residual)
-    H = w.unsqueeze(-2) @ m.H_x  # (..., M, 1, 26)
+    H = w.unsqueeze(-2) @ m.H_x  # (..., M, 1, D)
     return EpipolarUpdate(innovation.unsqueeze(-1), H, noise[..., None, None], w, valid)
 
 

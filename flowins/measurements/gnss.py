@@ -34,17 +34,17 @@ from flowins.measurements.gnss_heading import (
     heading_noise,
     heading_transform,
 )
-from flowins.state import STATE, split
+from flowins.state import STATE, pose_slices, split
 
 
 def gnss_position(x: Tensor, lever_arm_m: Tensor) -> Tensor:
-    """``h(x)`` ``(..., 3)`` for states ``(..., 26)`` and a lever arm ``(3,)``."""
+    """``h(x)`` ``(..., 3)`` for states ``(..., D)`` and a lever arm ``(3,)``."""
     s = split(x)
     return s.p + quat.rotate(s.q, lever_arm_m.to(x.dtype).expand_as(s.p))
 
 
 def gnss_jacobian(x: Tensor, lever_arm_m: Tensor) -> Tensor:
-    """``∂h/∂x`` ``(..., 3, 26)`` by ``torch.func.jacrev``."""
+    """``∂h/∂x`` ``(..., 3, D)`` by ``torch.func.jacrev``."""
     jac = jacrev(gnss_position)
     if x.ndim == 1:
         return jac(x, lever_arm_m)
@@ -53,7 +53,7 @@ def gnss_jacobian(x: Tensor, lever_arm_m: Tensor) -> Tensor:
 
 
 def gnss_jacobian_analytic(x: Tensor, lever_arm_m: Tensor | None) -> Tensor:
-    """Closed form of :func:`gnss_jacobian`: ``[I₃, 0, ∂(C(q)ℓ)/∂q, 0]`` ``(..., 3, 26)``.
+    """Closed form of :func:`gnss_jacobian`: ``[I₃, 0, ∂(C(q)ℓ)/∂q, 0]`` ``(..., 3, D)``.
 
     ``lever_arm_m=None`` means a zero lever arm, whose ``∂/∂q`` block is zero.
     """
@@ -143,18 +143,22 @@ class GnssRecovery:
 
 def reset_matrices(mean: Tensor, fixes: list[tuple[float, Tensor, Tensor]], recovery: GnssRecovery
                    ) -> tuple[Tensor, Tensor, Tensor, bool]:
-    """``(A (26, 26), b (26,), Q (26, 26), velocity_reset)`` of the reset to the last of
-    ``fixes`` ``[(t_s, z (3,), R (3, 3)), ...]`` (:class:`GnssRecovery`)."""
+    """``(A (D, D), b (D,), Q (D, D), velocity_reset)`` of the reset to the last of
+    ``fixes`` ``[(t_s, z (3,), R (3, 3)), ...]`` (:class:`GnssRecovery`) for a state ``mean``
+    ``(D,)``: ``p := z`` and every cloned pose's position moves with it (``p_k := p_k - p + z``),
+    so the relative poses the flow measures are kept."""
     dim = mean.shape[-1]
     A = torch.eye(dim, dtype=mean.dtype, device=mean.device)
     b = mean.new_zeros(dim)
     Q = mean.new_zeros(dim, dim)
     t_last, z, R = fixes[-1]
+    positions = [p for p, _ in pose_slices(dim)]  # p, then each clone's
     A[STATE.p, STATE.p] = 0.0
-    A[STATE.p_prev, STATE.p] = -torch.eye(3, dtype=mean.dtype, device=mean.device)
-    for rows in (STATE.p, STATE.p_prev):
+    for clone in positions[1:]:
+        A[clone, STATE.p] = -torch.eye(3, dtype=mean.dtype, device=mean.device)
+    for rows in positions:
         b[rows] = z
-        for cols in (STATE.p, STATE.p_prev):
+        for cols in positions:
             Q[rows, cols] = R
     t_first, z_first, R_first = fixes[0]
     span = t_last - t_first
@@ -278,7 +282,7 @@ class GnssFix:
         h = heading_jacobian(mean).reshape(1, 1, -1)
         sigma_c = torch.as_tensor(a.condition_sigma_rad, dtype=mean.dtype, device=mean.device)
         update(chain, H=h, residual=mean.new_zeros(1, 1), noise_cov=(sigma_c**2).reshape(1, 1, 1), likelihood=False)
-        A, b = heading_transform(fit, dtype=mean.dtype)
+        A, b = heading_transform(fit, dtype=mean.dtype, dim=mean.shape[-1])
         Q = heading_noise(A @ chain.mean + b, fit)
         chain.change_frame(A, Q, b, kind="heading", name=self.name, status="aligned", yaw_rad=float(fit.yaw_rad.detach()),
                            sigma_rad=float(fit.sigma_rad.detach()), fixes=int(fit.used.sum()),

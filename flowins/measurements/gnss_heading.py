@@ -19,8 +19,9 @@ with ``c_p``, ``c_g`` the weighted centroids, and the filter is reset in two ste
    errors linearly tied to it; what is left is the track's error in its own heading
    frame.
 2. *Rotate into the fixes' frame*: the state map ``x ↦ A x + b`` rotates ``p``,
-   ``v``, ``p_prev`` about the vertical through ``c_p``, moves ``c_p`` to ``c_g`` and
-   left-multiplies ``q``, ``q_prev`` by the yaw quaternion; biases and scale are body
+   ``v``, ``p_prev`` (and every further cloned pose's position) about the vertical through
+   ``c_p``, moves ``c_p`` to ``c_g`` and left-multiplies ``q``, ``q_prev`` (and every further
+   clone's quaternion) by the yaw quaternion; biases and scale are body
    quantities and stay. The estimate's uncertainty enters as process noise
    ``Q = J_θ Σ_θ J_θᵀ`` with ``θ = (ψ, c_g)``, ``σ²_ψ = 1 / Σ w_i |p_i - c_p|²`` and
    ``Σ_c = I / Σ w_i`` (the rotation about the centroid and the centroid are
@@ -41,7 +42,7 @@ from torch import Tensor
 from flowins.filter.ekf import chi2_quantile
 from flowins.geometry import quaternion as quat
 from flowins.geometry.procrustes import planar_rotation, rotation_2d
-from flowins.state import STATE, STATE_DIM, split
+from flowins.state import STATE, STATE_DIM, pose_slices, split, window_layout, window_size
 
 
 @dataclass(frozen=True)
@@ -82,7 +83,7 @@ class HeadingAlignment:
 
 
 def heading_jacobian(x: Tensor) -> Tensor:
-    """``∂θ_z/∂x`` ``(..., 26)``: the rotation angle about the world vertical of a change of ``q``.
+    """``∂θ_z/∂x`` ``(..., D)``: the rotation angle about the world vertical of a change of ``q``.
 
     ``q + δq = (1, ½δθ) ⊙ q`` gives ``δθ = 2 vec(δq ⊙ q*)``, whose vertical component
     is row ``z`` of ``2 R⊙(q*)``. Unlike an Euler yaw it is defined at every attitude
@@ -94,7 +95,7 @@ def heading_jacobian(x: Tensor) -> Tensor:
 
 
 def heading_conditional_covariance(x: Tensor, P: Tensor, sl: slice) -> Tensor:
-    """Covariance ``(k, k)`` of the block ``sl`` of ``P (26, 26)`` given the heading of ``q``
+    """Covariance ``(k, k)`` of the block ``sl`` of ``P (D, D)`` given the heading of ``q``
     (its rotation about the vertical, :func:`heading_jacobian`)."""
     h = heading_jacobian(x)
     Ph = P @ h
@@ -145,8 +146,11 @@ def fit_heading(filter_xy_m: Tensor, fix_xy_m: Tensor, var_m2: Tensor, *, outlie
     return HeadingFit(psi, sigma, c_p, c_g, 1.0 / W, used)
 
 
-def heading_transform(fit: HeadingFit, *, dtype: torch.dtype = torch.float64) -> tuple[Tensor, Tensor]:
-    """The state map ``x ↦ A x + b`` of the fit: ``A (26, 26)``, ``b (26,)``."""
+def heading_transform(fit: HeadingFit, *, dtype: torch.dtype = torch.float64, dim: int = STATE_DIM) -> tuple[Tensor, Tensor]:
+    """The state map ``x ↦ A x + b`` of the fit: ``A (D, D)``, ``b (D,)`` for a state of ``D = dim``
+    entries (``19 + 7 N``; 26, the default, for the paper's one cloned pose). Every pose's position
+    (``p`` and each clone's) is rotated about the vertical and shifted, ``v`` rotated, every
+    pose's quaternion left-multiplied by the yaw quaternion; the rest is kept."""
     psi = fit.yaw_rad.to(dtype)
     R2 = rotation_2d(psi)
     like = {"dtype": dtype, "device": psi.device}
@@ -155,27 +159,36 @@ def heading_transform(fit: HeadingFit, *, dtype: torch.dtype = torch.float64) ->
     L = quat.left_matrix(torch.stack((torch.cos(0.5 * psi), zero, zero, torch.sin(0.5 * psi))))
     shift = fit.centre_fix_m.to(dtype) - R2 @ fit.centre_filter_m.to(dtype)
     shift3 = torch.cat((shift, shift.new_zeros(1)))
-    rotated = {"p": R3, "v": R3, "p_prev": R3, "q": L, "q_prev": L}
-    shifted = {"p": shift3, "p_prev": shift3}
-    sizes = dict(STATE.sizes)
-    A = torch.block_diag(*(rotated.get(name, torch.eye(sizes[name], **like)) for name in STATE.names))
-    b = torch.cat([shifted.get(name, torch.zeros(sizes[name], **like)) for name in STATE.names])
-    return A, b
+    layout = window_layout(window_size(dim))
+    poses = pose_slices(dim)
+    positions = {p.start for p, _ in poses}
+    quaternions = {q.start for _, q in poses}
+    blocks, shifts = [], []
+    for name, size in layout.sizes:
+        start = layout.slice(name).start
+        if start in positions:
+            blocks.append(R3)
+            shifts.append(shift3)
+            continue
+        blocks.append(R3 if start == STATE.v.start else L if start in quaternions else torch.eye(size, **like))
+        shifts.append(torch.zeros(size, **like))
+    return torch.block_diag(*blocks), torch.cat(shifts)
 
 
 def heading_noise(x: Tensor, fit: HeadingFit) -> Tensor:
-    """``Q = J_θ Σ_θ J_θᵀ`` ``(26, 26)`` at the transformed state ``x``, ``θ = (ψ, c_g)``."""
+    """``Q = J_θ Σ_θ J_θᵀ`` ``(D, D)`` at the transformed state ``x`` ``(D,)``, ``θ = (ψ, c_g)``
+    (every pose's position and quaternion, ``p``, ``q`` and each clone's, and ``v`` depend on ``θ``)."""
     s = split(x)
-    J = x.new_zeros(STATE_DIM, 3)
+    poses = pose_slices(x.shape[-1])
+    J = x.new_zeros(x.shape[-1], 3)
     S = x.new_tensor([[0.0, -1.0], [1.0, 0.0]])
     e_z = x.new_tensor([0.0, 0.0, 0.0, 1.0])
-    for p_name in ("p", "p_prev"):
-        sl = STATE.slice(p_name)
-        rel = getattr(s, p_name)[:2] - fit.centre_fix_m.to(x)
+    for sl, _ in poses:
+        rel = x[sl][:2] - fit.centre_fix_m.to(x)
         J[sl.start : sl.start + 2, 0] = S @ rel
         J[sl.start : sl.start + 2, 1:] = torch.eye(2, dtype=x.dtype, device=x.device)
     J[STATE.v.start : STATE.v.start + 2, 0] = S @ s.v[:2]
-    for q_name in ("q", "q_prev"):
-        J[STATE.slice(q_name), 0] = 0.5 * quat.multiply(e_z, getattr(s, q_name))
+    for _, sl in poses:
+        J[sl, 0] = 0.5 * quat.multiply(e_z, x[sl])
     sigma = torch.stack((fit.sigma_rad**2, fit.centre_var_m2, fit.centre_var_m2)).to(x)
     return (J * sigma) @ J.T

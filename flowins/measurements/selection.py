@@ -30,8 +30,8 @@ from torch import Tensor
 
 from flowins.constants import cached_constant
 from flowins.flow.points import FlowPoints
-from flowins.measurements.flow import cast_like, normalise_pixels, ray_angle, scaled_rotations
-from flowins.state import STATE, STATE_DIM
+from flowins.measurements.flow import cast_like, normalise_pixels, ray_angle, scaled_rotations, state_size
+from flowins.state import STATE
 
 METHODS = ("parallax", "sigma", "grid")
 
@@ -81,8 +81,7 @@ def _positions(M: int, device: torch.device) -> Tensor:
 def _rotation_parallax_angle(x: Tensor, points: FlowPoints, K: Tensor, R_ci: Tensor) -> Tensor:
     """The angle (rad) ``(..., M)`` between each point's two viewing rays with the rotation of the
     state compensated (see :func:`rotation_parallax_px`)."""
-    if x.shape[-1] != STATE_DIM:
-        raise ValueError(f"rotation_parallax_px: x must be (..., {STATE_DIM}), got {tuple(x.shape)}")
+    state_size(x, "rotation_parallax_px")  # q and q_prev (clone 0) sit where they do in the 26-dim state
     # R(q) |q|² of both orientations: the angle does not depend on the scale
     R_b = scaled_rotations(x[..., _orientations(x.device)].view(*x.shape[:-1], 2, 4))
     R_ci = cast_like(R_ci, x)
@@ -113,7 +112,8 @@ def rotation_parallax_px(x: Tensor, points: FlowPoints, K: Tensor, R_ci: Tensor)
     viewing rays in the world frame times the focal length ``(..., M)``.
 
     Args:
-        x ``(..., 26)`` state (uses ``q`` and ``q_prev`` only); points with tensors ``(..., M, 2)``;
+        x ``(..., 26)`` state, or ``(..., 19 + 7 N)`` with a window of cloned poses (uses ``q`` and
+        ``q_prev`` only); points with tensors ``(..., M, 2)``;
         K ``(3, 3)``, R_ci ``(3, 3)``, shared or with the batch dims.
     """
     K = cast_like(K, x)
@@ -133,8 +133,8 @@ def select_points(
     mask: Tensor | None = None,
 ) -> Tensor:
     """Indices ``(..., min(n_points, M))`` of the candidates a frame's update uses (see the module
-    doc), for states ``x`` ``(..., 26)`` and points with tensors ``(..., M, 2)``; ``K``, ``R_ci``
-    shared or with the batch dims; ``mask`` ``(..., M)`` False for padding, which is picked
+    doc), for states ``x`` ``(..., 26)`` (or ``(..., 19 + 7 N)``) and points with tensors
+    ``(..., M, 2)``; ``K``, ``R_ci`` shared or with the batch dims; ``mask`` ``(..., M)`` False for padding, which is picked
     after every real candidate of its row (:func:`spread_top_k`).
 
     Scores are compared within a row only, so they leave out factors common to a row (the

@@ -1,0 +1,397 @@
+"""The multi-view update of sparse feature tracks over a sliding window of cloned poses.
+
+The state keeps ``N`` cloned camera poses (:func:`flowins.state.window_layout`): at each
+camera frame the filter first updates with the tracks that are complete, then shifts the
+window (:func:`flowins.filter.augmentation.augment_pose_rows`), so that clone ``a - 1``
+holds the pose ``a`` frames back. A track is used once, over all the frames it was seen in
+the window, when it ends (it is not seen in the current frame) or when it has ``N + 1``
+views (the current frame and every clone; its observations are then consumed and the
+track starts afresh at the next frame). This is the MSCKF of Mourikis and Roumeliotis
+(2007), as OpenVINS implements it; ``N = 1`` uses a track between two consecutive frames,
+like the paper's two-view update.
+
+For one track seen in ``m`` views ``j`` (pose ``p_j``, ``q_j``: the current pose for age 0,
+clone ``a - 1`` for age ``a``) at pixels ``z_j``:
+
+* the point ``X`` (world) is triangulated from all its views: the linear system of every
+  view (:func:`flowins.geometry.triangulation.solve_dlt`, ``2m x 4`` rows in normalised
+  coordinates, the origin at the newest view's centre), then Gauss-Newton steps on the
+  pixel residuals;
+* each view's residual is ``r_j = z_j - π(K, R_cw,j (X - c_j))`` (pixels), linearised as
+  ``r ≈ H_x δx + H_f δX + n``, ``n ~ N(0, σ² I)``;
+* ``X`` is projected out: with ``Π = I - H_f (H_fᵀ H_f)⁻¹ H_fᵀ`` (the projector on the left
+  null space of ``H_f``, rank ``2m - 3``), the update uses ``Π r = Π H_x δx + Π n``. Its
+  information ``H_xᵀ Π H_x / σ²`` and ``H_xᵀ Π r / σ²`` are those of any orthonormal
+  basis ``N`` of that null space (``N Nᵀ = Π``), the MSCKF's ``Nᵀ r``; the noise given
+  to the update is ``σ² Π + (I - Π)`` (``σ²`` on the null space, 1 on the directions that
+  carry nothing), so the NIS and the likelihood are those of the ``2m - 3`` projected
+  rows, and the χ² gate tests ``2m - 3`` degrees of freedom. The result equals the update
+  with ``X`` in the state (no prior on it) and then marginalised; a test checks it.
+
+A track is left out (``valid = False``) when its views do not fix the point: the
+triangulation degenerate (conditioning below ``min_conditioning``), the point behind or
+too close to a camera (``min_depth_m``), or the widest angle between its rays below
+``min_parallax_rad``.
+
+Batches: every function takes a leading row dimension ``r`` (runs of the batched filter),
+``M`` tracks per row (padded, with a mask) and ``V = N + 1`` views per track (padded).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from flowins.constants import cached_constant
+from flowins.filter.augmentation import augment_pose_rows
+from flowins.filter.chain import BatchChain, ChainBuilder
+from flowins.filter.ekf import Gate
+from flowins.filter.updater import update_rows
+from flowins.geometry import quaternion as quat
+from flowins.geometry.triangulation import camera_matrix, solve_dlt
+from flowins.measurements.flow import FlowCamera, normalise_pixels, ray_angle
+from flowins.measurements.flow_update import stack_cameras
+from flowins.state import pose_slices, state_dim, window_size
+
+
+@dataclass(frozen=True)
+class TrackUpdate:
+    """How sparse tracks update the filter (config ``filter.tracks``).
+
+    Attributes:
+        window: ``N``, the cloned poses in the state; a track is used over at most ``N + 1``
+            frames. 0: off (the paper's two-view update of consecutive frames instead).
+        sigma_px: the 1-σ of each tracked pixel (both coordinates).
+        max_tracks: at most this many tracks per frame update, the longest first (None: all).
+        min_parallax_rad: leave out tracks whose rays meet at less than this angle.
+        min_depth_m: leave out tracks whose point is closer than this to a camera (or behind it).
+        min_conditioning: leave out tracks whose triangulation conditioning ``(σ₃ - σ₄) / σ₁`` is below this.
+        refine_iterations: Gauss-Newton steps on the triangulated point.
+        gate: the χ² gate of each track (``2m - 3`` degrees of freedom).
+    """
+
+    window: int = 0
+    sigma_px: float | Tensor = 1.0
+    max_tracks: int | None = 128
+    min_parallax_rad: float = 0.005
+    min_depth_m: float = 0.05
+    min_conditioning: float = 1e-9
+    refine_iterations: int = 2
+    gate: Gate = field(default_factory=Gate)
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.window, int) and not isinstance(self.window, bool) and self.window >= 0):
+            raise ValueError(f"filter.tracks.window must be an integer >= 0 (0: off), got {self.window!r}")
+        if self.max_tracks is not None and not (isinstance(self.max_tracks, int) and self.max_tracks >= 1):
+            raise ValueError(f"filter.tracks.max_tracks must be an integer >= 1 or null, got {self.max_tracks!r}")
+        if not (isinstance(self.refine_iterations, int) and self.refine_iterations >= 0):
+            raise ValueError(f"filter.tracks.refine_iterations must be an integer >= 0, got {self.refine_iterations!r}")
+        for key in ("min_parallax_rad", "min_depth_m", "min_conditioning"):
+            if not getattr(self, key) >= 0.0:
+                raise ValueError(f"filter.tracks.{key} must be >= 0, got {getattr(self, key)!r}")
+        sigma = self.sigma_px
+        if not isinstance(sigma, Tensor) and not sigma > 0.0:
+            raise ValueError(f"filter.tracks.sigma_px must be > 0, got {sigma!r}")
+
+    @property
+    def views(self) -> int:
+        """``V = N + 1``: the most frames a track is used over."""
+        return self.window + 1
+
+
+# ----------------------------------------------------------------------------- the model
+
+
+@cached_constant
+def pose_index(dim: int, device: torch.device) -> Tensor:
+    """``(N + 1, 7)``: the state indices of ``(p, q)`` of the pose of each age (0: the current
+    pose, ``a``: clone ``a - 1``) in a state of size ``dim``."""
+    return torch.stack([torch.cat((torch.arange(p.start, p.stop), torch.arange(q.start, q.stop)))
+                        for p, q in pose_slices(dim)]).to(device)
+
+
+class Projection(NamedTuple):
+    """:func:`project` of a point into a camera."""
+
+    pixel: Tensor  # (..., 2) px
+    depth: Tensor  # (...,) m, along the optical axis
+    H_pose: Tensor | None  # (..., 2, 7) ∂pixel/∂(p, q) of the IMU pose
+    H_point: Tensor  # (..., 2, 3) ∂pixel/∂X
+
+
+def project(X: Tensor, p: Tensor, q: Tensor, K: Tensor, R_ci: Tensor, centre_b: Tensor, *,
+            pose_jacobian: bool = True) -> Projection:
+    """The pixel of the world point ``X`` ``(..., 3)`` seen by the camera on the IMU pose ``p``
+    ``(..., 3)``, ``q`` ``(..., 4)`` (intrinsics ``K``, IMU→camera rotation ``R_ci`` and the camera
+    centre in the body ``centre_b``, each broadcast), with its Jacobians (``H_pose`` None
+    without ``pose_jacobian``).
+
+    ``X_c = R_ci (R(q)ᵀ (X - p) - c_b)``, ``pixel = (f_x x_c / z_c + c_x, f_y y_c / z_c + c_y)``.
+    """
+    w = X - p
+    R_bw = quat.to_matrix(q).transpose(-1, -2)
+    R_cw = R_ci @ R_bw
+    X_c = (R_ci @ ((R_bw @ w.unsqueeze(-1)).squeeze(-1) - centre_b).unsqueeze(-1)).squeeze(-1)
+    z = X_c[..., 2]
+    z_safe = torch.where(z.abs() > torch.finfo(z.dtype).tiny ** 0.5, z, torch.ones_like(z))
+    f = torch.stack((K[..., 0, 0], K[..., 1, 1]), -1)
+    xy = X_c[..., :2] / z_safe.unsqueeze(-1)
+    pixel = f * xy + K[..., :2, 2]
+    # ∂pixel/∂X_c = [f/z I | -f xy / z]
+    d_pixel = torch.cat((torch.diag_embed(f / z_safe.unsqueeze(-1)), (-f * xy / z_safe.unsqueeze(-1)).unsqueeze(-1)), -1)
+    H_point = d_pixel @ R_cw
+    if not pose_jacobian:
+        return Projection(pixel, z, None, H_point)
+    # ∂(R(q)ᵀ w)/∂q = ∂(C(q*) w)/∂q* · diag(1, -1, -1, -1)
+    d_rot = quat.rotate_jacobian(quat.conjugate(q), w) * _conjugation(q.dtype, q.device)
+    H_pose = torch.cat((-H_point, d_pixel @ R_ci @ d_rot), -1)
+    return Projection(pixel, z, H_pose, H_point)
+
+
+@cached_constant
+def _conjugation(dtype: torch.dtype, device: torch.device) -> Tensor:
+    return torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=dtype, device=device)
+
+
+class TrackPoints(NamedTuple):
+    """Triangulated points ``(..., 3)`` of tracks and whether each fixes its point."""
+
+    point: Tensor
+    conditioning: Tensor  # (...,) (σ₃ - σ₄) / σ₁ of the linear system
+    in_front: Tensor  # (...,) bool: the homogeneous solution is a finite point in front of the newest view
+
+
+def triangulate_views(R_wc: Tensor, c_w: Tensor, xy: Tensor, mask: Tensor) -> TrackPoints:
+    """The point seen at normalised image coordinates ``xy`` ``(..., V, 2)`` by cameras
+    (camera→world ``R_wc`` ``(..., V, 3, 3)``, centres ``c_w`` ``(..., V, 3)``) where ``mask``
+    ``(..., V)`` holds; the first view of each track is real (the origin of the system)."""
+    origin = c_w[..., 0, :]
+    P = camera_matrix(R_wc, c_w - origin.unsqueeze(-2))  # (..., V, 3, 4)
+    rows = xy.unsqueeze(-1) * P[..., 2:3, :] - P[..., :2, :]  # (..., V, 2, 4)
+    rows = rows * mask[..., None, None].to(rows.dtype)
+    solution = solve_dlt(rows.flatten(-3, -2), P[..., 0, :, :])
+    h = solution.point
+    w = h[..., 3]
+    tiny = torch.finfo(h.dtype).tiny ** 0.5
+    in_front = w > tiny * torch.linalg.vector_norm(h[..., :3], dim=-1).clamp_min(1.0) * 1e3
+    point = h[..., :3] / torch.where(in_front, w, torch.ones_like(w)).unsqueeze(-1) + origin
+    return TrackPoints(point, solution.conditioning, in_front)
+
+
+class TrackMeasurements(NamedTuple):
+    """The projected measurement of ``M`` tracks of ``V`` views (rows ``2V`` per track)."""
+
+    residual: Tensor  # (r, M, 2V) Π r, px
+    H: Tensor  # (r, M, 2V, D) Π H_x
+    noise_cov: Tensor  # (r, M, 2V, 2V) σ² Π + (I - Π)
+    dof: Tensor  # (r, M) 2m - 3
+    valid: Tensor  # (r, M) bool
+    n_degenerate: Tensor  # (r,) tracks left out: no finite point in front, or conditioning too low
+    n_behind: Tensor  # (r,) left out: the point behind or too close to a camera
+    n_low_parallax: Tensor  # (r,) left out: rays meeting at less than min_parallax_rad
+    point: Tensor  # (r, M, 3) the triangulated points
+
+
+def track_measurements(x: Tensor, uv_px: Tensor, ages: Tensor, mask: Tensor, camera: FlowCamera,
+                       update: TrackUpdate, *, track_mask: Tensor | None = None) -> TrackMeasurements:
+    """The multi-view measurements of tracks at the states ``x`` ``(r, D)`` (see the module doc).
+
+    Args:
+        uv_px ``(r, M, V, 2)``: each track's pixel in each of its views, the newest first;
+        ages ``(r, M, V)``: each view's age (0: the current pose, ``a``: clone ``a - 1``);
+        mask ``(r, M, V)``: the real views (each real track has at least two, first);
+        camera: shared, or with a leading dimension ``r``;
+        track_mask ``(r, M)``: the real tracks (default: those with two views or more).
+    """
+    r, M, V = ages.shape
+    D = x.shape[-1]
+    if V - 1 > window_size(D):
+        raise ValueError(f"track_measurements: views of age up to {V - 1} need a window of {V - 1} clones; the state "
+                         f"({D} entries) has {window_size(D)}")
+    like = dict(dtype=x.dtype, device=x.device)
+    cam = camera.to(x)
+    expand = (lambda t, event: t) if not cam.batch_shape else (lambda t, event: t.reshape(r, 1, 1, *t.shape[-event:]))
+    K, R_ci, centre_b = expand(cam.K, 2), expand(cam.R_ci, 2), expand(cam.centre_b, 1)
+    index = pose_index(D, x.device)[ages]  # (r, M, V, 7)
+    pose = x.unsqueeze(1).unsqueeze(1).expand(r, M, V, D).gather(-1, index)
+    p, q = pose[..., :3], pose[..., 3:]
+    R_wb = quat.to_matrix(q)
+    R_wc = R_wb @ R_ci.transpose(-1, -2)
+    c_w = p + (R_wb @ centre_b.unsqueeze(-1)).squeeze(-1)
+    views = mask.sum(-1)
+    real = (views >= 2) if track_mask is None else track_mask & (views >= 2)
+    maskf = mask.to(x.dtype)
+    tri = triangulate_views(R_wc, c_w, normalise_pixels(uv_px, K), mask)
+    X = tri.point
+    eye3 = torch.eye(3, **like)
+    for _ in range(update.refine_iterations):  # Gauss-Newton on the pixel residuals
+        proj = project(X.unsqueeze(-2), p, q, K, R_ci, centre_b, pose_jacobian=False)
+        Hf = proj.H_point * maskf[..., None, None]
+        res = (uv_px - proj.pixel) * maskf.unsqueeze(-1)
+        normal = torch.einsum("rmvia,rmvib->rmab", Hf, Hf) + 1e-12 * eye3
+        step = torch.linalg.solve(normal, torch.einsum("rmvia,rmvi->rma", Hf, res))
+        ok = tri.in_front & torch.isfinite(step).all(-1)
+        X = torch.where(ok.unsqueeze(-1), X + torch.where(ok.unsqueeze(-1), step, 0.0), X)
+    proj = project(X.unsqueeze(-2), p, q, K, R_ci, centre_b)
+    # validity: a finite point in front of every view, not too close, with parallax
+    degenerate = ~tri.in_front | ~(tri.conditioning > update.min_conditioning) | ~torch.isfinite(X).all(-1)
+    behind = ((proj.depth <= update.min_depth_m) & mask).any(-1) & ~degenerate
+    rays = X.unsqueeze(-2) - c_w
+    angle = ray_angle(rays[..., :1, :], rays) * maskf  # each view's ray against the newest's
+    low = ~(angle.amax(-1) >= update.min_parallax_rad) & ~degenerate & ~behind
+    valid = real & ~degenerate & ~behind & ~low
+    rowmask = (mask & valid.unsqueeze(-1)).to(x.dtype).repeat_interleave(2, -1)  # (r, M, 2V)
+    residual = (uv_px - proj.pixel).flatten(-2) * rowmask
+    Hf = proj.H_point.reshape(r, M, 2 * V, 3) * rowmask.unsqueeze(-1)
+    Hx = x.new_zeros(r, M, V, 2, D).scatter(-1, index.unsqueeze(-2).expand(r, M, V, 2, 7), proj.H_pose)
+    Hx = Hx.reshape(r, M, 2 * V, D) * rowmask.unsqueeze(-1)
+    # Π = I - H_f (H_fᵀ H_f)⁻¹ H_fᵀ (identity on the padded rows and on invalid tracks)
+    eye = torch.eye(2 * V, **like)
+    normal = Hf.transpose(-1, -2) @ Hf + torch.where(valid, 0.0, 1.0)[..., None, None] * eye3
+    Pi = eye - Hf @ torch.linalg.solve(normal, Hf.transpose(-1, -2))
+    sigma = torch.as_tensor(update.sigma_px, **like)
+    Pi_real = Pi * (rowmask.unsqueeze(-1) * rowmask.unsqueeze(-2))
+    noise = sigma**2 * Pi_real + (eye - Pi_real)
+    dof = (2 * views - 3).clamp_min(1) * valid
+    counts = [flag.sum(-1) for flag in (degenerate & real, behind & real, low & real)]
+    return TrackMeasurements((Pi @ residual.unsqueeze(-1)).squeeze(-1), Pi @ Hx, noise, dof, valid, *counts, X)
+
+
+# ----------------------------------------------------------------------------- the schedule
+
+
+class TrackViews(NamedTuple):
+    """The tracks one frame updates with: ``uv_px`` ``(M, V, 2)``, ``ages`` ``(M, V)`` and
+    ``mask`` ``(M, V)`` (the newest view first), and how many tracks were complete there
+    (``candidates``, of which the ``M`` longest are kept)."""
+
+    uv_px: Tensor
+    ages: Tensor
+    mask: Tensor
+    candidates: int
+
+
+def schedule_tracks(t_s: Tensor, track_id: Tensor, uv_px: Tensor, frame_times_s: Tensor, *, window: int,
+                    max_tracks: int | None = None) -> list[TrackViews]:
+    """Which tracks each frame updates with (see the module doc), from track rows
+    ``(t_s, track_id, uv_px)`` (grouped by time) and the frames ``frame_times_s`` ``(F,)``
+    (sorted; rows at other times are not used).
+
+    A track's observations in consecutive frames form a segment; a segment is used at the
+    frame where it ends (the track is not seen there: its views are the clones) or where it
+    reaches ``window + 1`` views (its views the current pose and every clone), and at the
+    last frame; a segment of one view is not used. A frame with more complete segments than
+    ``max_tracks`` keeps the longest (the others are counted in ``candidates``).
+    """
+    if window < 1:
+        raise ValueError(f"schedule_tracks: window must be >= 1, got {window}")
+    V = window + 1
+    frames = frame_times_s.tolist()
+    rows_by_time: dict[float, tuple[np.ndarray, np.ndarray]] = {}
+    times, counts = torch.unique_consecutive(t_s, return_counts=True)
+    start = 0
+    ids_all, uv_all = track_id.numpy(), uv_px.numpy()
+    for t, n in zip(times.tolist(), counts.tolist()):
+        rows_by_time[t] = (ids_all[start:start + n], uv_all[start:start + n])
+        start += n
+    active: dict[int, list[tuple[int, np.ndarray]]] = {}
+    out = []
+    empty_ids, empty_uv = np.zeros(0, np.int64), np.zeros((0, 2))
+    for k, t in enumerate(frames):
+        ids, uvs = rows_by_time.get(t, (empty_ids, empty_uv))
+        seen = set(ids.tolist())
+        complete = [active.pop(i) for i in [i for i in active if i not in seen]]
+        for i, uv in zip(ids.tolist(), uvs):
+            segment = active.setdefault(i, [])
+            segment.append((k, uv))
+            if len(segment) == V:
+                complete.append(active.pop(i))
+        if k == len(frames) - 1:
+            complete += list(active.values())
+        complete = [s for s in complete if len(s) >= 2]
+        candidates = len(complete)
+        complete.sort(key=len, reverse=True)  # stable: the longest first, then in order
+        if max_tracks is not None:
+            complete = complete[:max_tracks]
+        uv = np.zeros((len(complete), V, 2))
+        ages = np.zeros((len(complete), V), np.int64)
+        mask = np.zeros((len(complete), V), bool)
+        for m, segment in enumerate(complete):
+            for j, (frame, pixel) in enumerate(reversed(segment)):
+                uv[m, j], ages[m, j], mask[m, j] = pixel, k - frame, True
+        out.append(TrackViews(torch.from_numpy(uv), torch.from_numpy(ages), torch.from_numpy(mask), candidates))
+    return out
+
+
+# ----------------------------------------------------------------------------- the event
+
+
+@dataclass(frozen=True)
+class TrackFrame:
+    """A camera frame of the multi-view track update: the complete tracks update the filter
+    (:func:`track_measurements`), then the window of cloned poses shifts."""
+
+    time_s: float
+    views: TrackViews
+    camera: FlowCamera
+    update: TrackUpdate
+    name: str = "tracks frame"
+
+    def batch_key(self) -> tuple:
+        return (TrackFrame, id(self.update))
+
+    def apply(self, chain: ChainBuilder) -> None:
+        type(self).apply_batch(chain.batch, [chain.row], [self])
+
+    @classmethod
+    def apply_batch(cls, chain: BatchChain, rows: list[int], frames: list[TrackFrame]) -> None:
+        u = frames[0].update
+        dim = chain.mean.shape[-1]
+        if dim != state_dim(u.window):
+            raise ValueError(f"{frames[0].name}: filter.tracks.window={u.window} needs a state of {state_dim(u.window)} "
+                             f"entries, the filter's has {dim} (start it with flowins.filter.augmentation.with_window)")
+        with_tracks = [i for i, frame in enumerate(frames) if frame.views.ages.shape[0]]
+        if with_tracks:
+            _track_update(chain, [rows[i] for i in with_tracks], [frames[i] for i in with_tracks])
+        augment_pose_rows(chain, rows, mode="limit")
+
+
+def _track_update(chain: BatchChain, rows: list[int], frames: list[TrackFrame]) -> None:
+    u = frames[0].update
+    mean, _ = chain.newest(rows)
+    M = max(frame.views.ages.shape[0] for frame in frames)
+    uv = torch.stack([_pad_rows(f.views.uv_px.to(mean), M) for f in frames])
+    ages = torch.stack([_pad_rows(f.views.ages.to(mean.device), M) for f in frames])
+    mask = torch.stack([_pad_rows(f.views.mask.to(mean.device), M) for f in frames])
+    camera = stack_cameras([f.camera for f in frames])
+    m = track_measurements(mean, uv, ages, mask, camera, u)
+    infos = []
+    counts = torch.stack((m.valid.sum(-1), m.n_degenerate, m.n_behind, m.n_low_parallax), -1).tolist()
+    for frame, (valid, degenerate, behind, low) in zip(frames, counts):
+        infos.append(dict(kind="tracks", name=frame.name, candidates=frame.views.candidates,
+                          tracks=int(frame.views.ages.shape[0]), valid=int(valid), degenerate=int(degenerate),
+                          behind=int(behind), low_parallax=int(low)))
+    update_rows(chain, rows, H=m.H, residual=m.residual, noise_cov=m.noise_cov, gate=u.gate, valid=m.valid,
+                dof=m.dof, infos=infos)
+
+
+def _pad_rows(t: Tensor, M: int) -> Tensor:
+    """``t`` ``(m, ...)`` padded with zeros (False) to ``(M, ...)``."""
+    if t.shape[0] == M:
+        return t
+    return torch.cat((t, t.new_zeros(M - t.shape[0], *t.shape[1:])))
+
+
+def track_frames(tracks, camera: FlowCamera, update: TrackUpdate, *, t_min_s: float, t_max_s: float,
+                 name: str = "tracks") -> list[TrackFrame]:
+    """One :class:`TrackFrame` per camera frame of ``tracks`` (a :class:`~flowins.data.sequence.Tracks`:
+    its ``frame_times_s``, or the times of its rows) inside ``[t_min_s, t_max_s]``."""
+    frame_times = tracks.frame_times_s if tracks.frame_times_s is not None else tracks.frame_times
+    frame_times = frame_times[(frame_times >= t_min_s) & (frame_times <= t_max_s)]
+    schedule = schedule_tracks(tracks.t_s, tracks.track_id, tracks.uv_px, frame_times, window=update.window,
+                               max_tracks=update.max_tracks)
+    return [TrackFrame(float(t), views, camera, update, f"{name} frame at {float(t):.3f} s")
+            for t, views in zip(frame_times.tolist(), schedule)]
