@@ -116,7 +116,6 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--sigma", type=float, default=0.3, help="the tracks' pixel σ the filter uses")
     args = parser.parse_args()
-    torch.set_num_threads(max(1, torch.get_num_threads()))
     flight, imu, tracks, cam, frames = recording(args.duration, args.seed)
     per_frame = torch.unique_consecutive(tracks.t_s, return_counts=True)[1].double().mean()
     print(f"flight: {args.duration:.0f} s, {len(imu)} IMU samples (200 Hz), {frames} frames (20 Hz, 752x480), "

@@ -278,13 +278,13 @@ def information_update(mean: Tensor, cov: Tensor, information: Tensor, projected
 
 def block_information(innovation: Tensor, H: Tensor, noise_cov: Tensor) -> tuple[Tensor, Tensor]:
     """``G = Σᵢ Hᵢᵀ Rᵢ⁻¹ Hᵢ`` ``(..., D, D)`` and ``b = Σᵢ Hᵢᵀ Rᵢ⁻¹ vᵢ`` ``(..., D)`` of ``M`` blocks
-    (innovation ``(..., M, d)``, H ``(..., M, d, D)``, noise_cov ``(..., M, d, d)``), one small
-    Cholesky solve per block."""
-    L = torch.linalg.cholesky(symmetrize(noise_cov))
-    Rinv_H = torch.cholesky_solve(H, L)  # (..., M, d, D)
-    Rinv_v = torch.cholesky_solve(innovation.unsqueeze(-1), L)  # (..., M, d, 1)
+    (innovation ``(..., M, d)``, H ``(..., M, d, D)``, noise_cov ``(..., M, d, d)``), each block's
+    ``R⁻¹`` from its Cholesky factor (a batched ``cholesky_solve`` with ``D`` right-hand sides is
+    two orders of magnitude slower on the CPU than the ``d x d`` inverse and a product)."""
+    Rinv = torch.cholesky_inverse(torch.linalg.cholesky(symmetrize(noise_cov)))
     Ht = H.transpose(-1, -2)
-    return (Ht @ Rinv_H).sum(-3), (Ht @ Rinv_v).squeeze(-1).sum(-2)
+    Ht_Rinv = Ht @ Rinv  # (..., M, D, d)
+    return (Ht_Rinv @ H).sum(-3), (Ht_Rinv @ innovation.unsqueeze(-1)).squeeze(-1).sum(-2)
 
 
 def block_nis(cov: Tensor, innovation: Tensor, H: Tensor, noise_cov: Tensor) -> Tensor:

@@ -70,8 +70,19 @@ def _factor_predicted(cov: Tensor, t_s: Tensor) -> tuple[Tensor, Tensor]:
     """LU factors of predicted covariances ``(K, D, D)``. A covariance that is singular at
     the filter's precision (in float32 the pose copy's nugget is below the rounding of the
     position variances) is factorised with a jitter of ``ε·max(diag)``, raised by 10x until
-    it factorises; one that still fails at ``1e-3·max(diag)`` raises, naming its time."""
+    it factorises; one that still fails at ``1e-3·max(diag)`` raises, naming its time.
+
+    A matrix whose pivots come out invalid (outside ``1 .. D``) is factorised again on its own:
+    after a ``torch.set_num_threads`` call, the batched ``getrf`` of torch 2.13's MKL returns
+    invalid pivots for some matrices of a batch of large ones (103 of 530 at 159 x 159, a
+    window of 20 clones), and ``lu_solve`` would refuse them."""
     LU, pivots, info = torch.linalg.lu_factor_ex(cov)
+    D = cov.shape[-1]
+    invalid = torch.nonzero(((pivots < 1) | (pivots > D)).any(-1)).squeeze(-1).tolist()
+    for i in invalid:
+        LU_i, piv_i, info_i = torch.linalg.lu_factor_ex(cov[i])
+        LU, pivots, info = LU.index_copy(0, torch.tensor([i], device=cov.device), LU_i[None]), pivots.index_copy(
+            0, torch.tensor([i], device=cov.device), piv_i[None]), info.index_copy(0, torch.tensor([i], device=cov.device), info_i[None])
     bad = torch.nonzero(info != 0).squeeze(-1)
     if bad.numel() == 0:
         return LU, pivots

@@ -74,7 +74,7 @@ class TrackUpdate:
     """
 
     window: int = 0
-    sigma_px: float | Tensor = 1.0
+    sigma_px: float | Tensor = 0.3
     max_tracks: int | None = 128
     min_parallax_rad: float = 0.005
     min_depth_m: float = 0.05
@@ -232,7 +232,8 @@ def track_measurements(x: Tensor, uv_px: Tensor, ages: Tensor, mask: Tensor, cam
         Hf = proj.H_point * maskf[..., None, None]
         res = (uv_px - proj.pixel) * maskf.unsqueeze(-1)
         normal = torch.einsum("rmvia,rmvib->rmab", Hf, Hf) + 1e-12 * eye3
-        step = torch.linalg.solve(normal, torch.einsum("rmvia,rmvi->rma", Hf, res))
+        # explicit 3 x 3 inverses: batched torch.linalg.solve is ten times slower on the CPU
+        step = (torch.linalg.inv(normal) @ torch.einsum("rmvia,rmvi->rma", Hf, res).unsqueeze(-1)).squeeze(-1)
         ok = tri.in_front & torch.isfinite(step).all(-1)
         X = torch.where(ok.unsqueeze(-1), X + torch.where(ok.unsqueeze(-1), step, 0.0), X)
     proj = project(X.unsqueeze(-2), p, q, K, R_ci, centre_b)
@@ -251,7 +252,7 @@ def track_measurements(x: Tensor, uv_px: Tensor, ages: Tensor, mask: Tensor, cam
     # Π = I - H_f (H_fᵀ H_f)⁻¹ H_fᵀ (identity on the padded rows and on invalid tracks)
     eye = torch.eye(2 * V, **like)
     normal = Hf.transpose(-1, -2) @ Hf + torch.where(valid, 0.0, 1.0)[..., None, None] * eye3
-    Pi = eye - Hf @ torch.linalg.solve(normal, Hf.transpose(-1, -2))
+    Pi = eye - Hf @ (torch.linalg.inv(normal) @ Hf.transpose(-1, -2))
     sigma = torch.as_tensor(update.sigma_px, **like)
     Pi_real = Pi * (rowmask.unsqueeze(-1) * rowmask.unsqueeze(-2))
     noise = sigma**2 * Pi_real + (eye - Pi_real)

@@ -17,7 +17,7 @@ import pytorch_lightning as pl
 from torch.utils.data import DataLoader, Dataset, DistributedSampler
 
 from flowins.data.load import load_recording
-from flowins.flow.load import load_flow
+from flowins.flow.load import load_flow, load_tracks
 from flowins.flow.pairs import FlowPairs
 from flowins.measurements.flow import FlowCamera
 from flowins.measurements.vehicle import platform_streams
@@ -59,14 +59,20 @@ def load_training_sequence(
     if rec.truth is None:
         raise ValueError(f"{rec.name}: training needs ground truth; the sequence has none")
     pairs: dict[str, FlowPairs | None] = {"dense": None, "sparse": None}
+    tracks = None
     for kind, index in (("sparse", 1), ("dense", 2)):
         if any(METHODS[m][index] for m in methods):
+            if kind == "sparse" and int(((cfg.get("filter") or {}).get("tracks") or {}).get("window") or 0) >= 1:
+                tracks = load_tracks(rec, cfg, progress=progress)  # the multi-view update (filter.tracks)
+                if isinstance(tracks, str):
+                    raise ValueError(f"{rec.name}: sparse tracks unavailable: {tracks}")
+                continue
             flow = load_flow(kind, rec, cfg, progress=progress)
             if isinstance(flow, str):
                 raise ValueError(f"{rec.name}: {kind} flow unavailable: {flow}")
             pairs[kind] = flow
     return TrainingSequence(rec.name, rec.imu, rec.gnss, rec.truth, FlowCamera.from_sequence(rec.sequence),
-                            pairs["dense"], pairs["sparse"], rec.sensor, platform_streams(rec.platform))
+                            pairs["dense"], pairs["sparse"], tracks, rec.sensor, platform_streams(rec.platform))
 
 
 class _Sequences(Dataset):

@@ -43,6 +43,7 @@ The parameters (units of the filter config, ``configs/filter/default.yaml``):
 ``flow_sigma_floor_px``
 ``dropout_p``               Monte Carlo dropout rate of the flow network
 ``vehicle_*_sigma_mps``     σ of the vehicle constraint's sideways and vertical velocity
+``tracks_sigma_px``         1-σ of a tracked pixel in the multi-view track update
 ``*_gate_threshold``,       the χ² gates of the flow points and the GNSS fixes: soft
 ``*_gate_softness``         (``sigmoid((threshold - NIS) / softness)``) while training,
                             hard (``NIS <= threshold``) at inference
@@ -91,10 +92,11 @@ _FIELDS: dict[str, tuple[str, str]] = {
     "gnss_gate_softness": ("gate", "gnss"),
     "vehicle_lateral_sigma_mps": ("vehicle", "lateral_sigma_mps"),
     "vehicle_vertical_sigma_mps": ("vehicle", "vertical_sigma_mps"),
+    "tracks_sigma_px": ("tracks", "sigma_px"),
     "dropout_p": ("dropout", "p"),
 }
 #: names a checkpoint written before they existed lacks: it loads with their defaults
-ADDED_NAMES: frozenset[str] = frozenset({"vehicle_lateral_sigma_mps", "vehicle_vertical_sigma_mps"})
+ADDED_NAMES: frozenset[str] = frozenset({"vehicle_lateral_sigma_mps", "vehicle_vertical_sigma_mps", "tracks_sigma_px"})
 NAMES: tuple[str, ...] = tuple(_FIELDS)
 #: the noise parameters (what a "mis-tuned" start multiplies)
 NOISE_NAMES: tuple[str, ...] = (
@@ -245,6 +247,8 @@ def starting_values(config: NavigationConfig, *, dropout_p: float = 0.2) -> dict
             value = getattr(config, field)
         elif where == "vehicle":
             value = getattr(_vehicle(config), field)
+        elif where == "tracks":
+            value = getattr(config.tracks, field)
         elif where == "gate":
             gate = config.flow_update.gate if field == "flow" else config.gnss_gate
             dof = 1 if field == "flow" else 3  # one epipolar scalar per point; a 3-D fix
@@ -359,6 +363,7 @@ class FilterParameters(nn.Module):
         return replace(config, noise=noise, initial=initial, gnss_noise_scale=v["gnss_noise_scale"],
                        device=config.device if device is None else device,
                        gnss_gate=gate("gnss", config.gnss_gate), flow_update=flow,
+                       tracks=replace(config.tracks, sigma_px=v["tracks_sigma_px"]),
                        measurements={**config.measurements, "vehicle": vehicle})
 
     @classmethod
@@ -381,7 +386,7 @@ class FilterParameters(nn.Module):
         if any(n not in raw for n in ADDED_NAMES) and all(n in raw for n in NAMES if n not in ADDED_NAMES):
             # written before these parameters existed: they load at their defaults, not learned
             for n in ADDED_NAMES - set(raw):
-                default = float(getattr(VehicleSettings(), _FIELDS[n][1]))
+                default = float(starting_values(NavigationConfig())[n])
                 if "center" in layouts:  # at its start: a = 0
                     found["center"][n] = torch.tensor(default, dtype=torch.float64)
                     found["bound"][n] = torch.tensor(DEFAULT_BOUND_DECADES, dtype=torch.float64)

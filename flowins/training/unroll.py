@@ -12,11 +12,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
 
+from flowins.data.sequence import Tracks
 from flowins.data.streams import GnssStream, ImuStream, PoseStream
 from flowins.evaluation.alignment import (
     Alignment,
@@ -60,20 +61,24 @@ class TrainingSequence:
     camera: FlowCamera | None = None
     dense: FlowPairs | None = None
     sparse: FlowPairs | None = None
+    #: sparse tracks over many frames (:class:`~flowins.data.sequence.Tracks`) for the sparse methods'
+    #: multi-view update (``filter.tracks.window >= 1``), in place of ``sparse``
+    tracks: Any = None
     #: the IMU preset the recording names (its metadata's ``imu``), or None
     sensor: str | None = None
     #: further measurement streams by kind (:attr:`flowins.navigation.NavigationRun.streams`),
     #: e.g. the vehicle constraint of a recording whose metadata names ``platform: vehicle``
     streams: dict = field(default_factory=dict)
 
-    def sources(self, method: str) -> tuple[GnssStream | None, FlowPairs | None]:
-        """The GNSS stream and flow pairs ``method`` uses; a clear error when one is missing."""
+    def sources(self, method: str) -> tuple[GnssStream | None, FlowPairs | Tracks | None]:
+        """The GNSS stream and flow pairs (the tracks, for a sparse method of a sequence that has
+        them) ``method`` uses; a clear error when one is missing."""
         if method not in METHODS:
             raise ValueError(f"unknown method {method!r}; expected one of {list(METHODS)}")
         gnss, sparse, dense = METHODS[method]
         if gnss and self.gnss is None:
             raise ValueError(f"{self.name}: method {method} needs GNSS, the sequence has none")
-        flow = self.dense if dense else self.sparse if sparse else None
+        flow = self.dense if dense else (self.tracks if self.tracks is not None else self.sparse) if sparse else None
         if (dense or sparse) and flow is None:
             raise ValueError(f"{self.name}: method {method} needs {'dense' if dense else 'sparse'} flow pairs")
         return (self.gnss if gnss else None), flow
@@ -149,13 +154,18 @@ def run_windows(
         gnss, flow = seq.sources(method)
         imu = seq.imu
         t_a, t_b = float(imu.t_s[i_a]), float(imu.t_s[i_b])
+        tracks = flow if isinstance(flow, Tracks) else None
+        if tracks is not None:
+            flow = None  # the whole recording's schedule: the clones carry over from window to window
         if flow is not None:
             # only the pairs this window uses (and the one before, whose end frame augments)
             flow = flow.select((flow.t2_s > t_a - 1.0) & (flow.t2_s <= t_b))
             if dropout_p is not None:
                 flow = flow.at_dropout_rate(dropout_p)
-        setup = prepare_navigation(NavigationRun(imu, gnss, flow=flow, camera=seq.camera if flow is not None else None,
-                                                 streams=seq.streams), config=config)
+        has_camera = flow is not None or tracks is not None
+        setup = prepare_navigation(NavigationRun(imu, gnss, flow=flow, tracks=tracks,
+                                                 camera=seq.camera if has_camera else None, streams=seq.streams),
+                                   config=config)
         if setup.start.index != 0:
             raise ValueError(f"training starts the filter at the first IMU sample; filter.init.mode={setup.start.mode} "
                              f"starts it at row {setup.start.index}: use filter.init.mode=still or moving")

@@ -7,6 +7,7 @@ import torch
 from flowins.data.simulate.tracks import landmark_tracks, scatter_landmarks
 from flowins.data.synthetic import Walk, WalkConfig, increment_imu
 from flowins.filter.augmentation import with_window
+from flowins.filter.ekf import Gate
 from flowins.filter.runner import FilterInput, run_filters
 from flowins.filter.smoother import rts_smooth
 from flowins.geometry import quaternion as quat
@@ -117,3 +118,26 @@ def test_every_window_size_keeps_its_clones_where_the_frames_were(window):
         assert float(quat.angle_between(last[q], walk.quaternion(t)[0])) < 2e-4
     variances = track.node_cov.diagonal(dim1=-2, dim2=-1)
     assert bool(torch.isfinite(track.node_cov).all()) and float(variances.min()) >= 0.0
+
+
+def test_gradient_of_the_track_noise_matches_finite_differences():
+    """The track update is in the torch graph: d(position error²)/d(σ_px) through the filter
+    (4 s of the walk, window 3) against a central difference."""
+    walk, t_imu, acc, gyro, tracks = _scene(seed=3, noise_px=0.3)
+    keep = t_imu <= T0 + 4.0
+    t_imu, acc, gyro = t_imu[keep], acc[keep], gyro[keep]
+
+    def loss(sigma):
+        update = TrackUpdate(window=3, sigma_px=sigma, gate=Gate(mode="off"))
+        events = track_frames(tracks, CAMERA, update, t_min_s=T0, t_max_s=float(t_imu[-1]))
+        track = _run(walk, t_imu, acc, gyro, events, window=3, velocity_error=(0.2, 0.0, 0.0))
+        truth = _truth(walk, track.t)
+        return ((track.mean[:, STATE.p] - truth[:, STATE.p]) ** 2).sum()
+
+    sigma = torch.tensor(0.4, dtype=torch.float64, requires_grad=True)
+    (grad,) = torch.autograd.grad(loss(sigma), sigma)
+    h = 1e-5
+    with torch.no_grad():
+        numeric = (loss(torch.tensor(0.4 + h, dtype=torch.float64)) - loss(torch.tensor(0.4 - h, dtype=torch.float64))) / (2 * h)
+    assert abs(float(grad)) > 1e-6
+    torch.testing.assert_close(grad, numeric, rtol=1e-4, atol=0)

@@ -576,6 +576,7 @@ def test_a_selection_history_gives_the_values_it_scored(tmp_path):
 
 
 def test_a_checkpoint_from_before_the_vehicle_constraint_loads_it_at_its_defaults(tmp_path):
+    from flowins.measurements.tracks import TrackUpdate
     from flowins.measurements.vehicle import VehicleSettings
     from flowins.training.module import FilterLearner
     from flowins.training.parameters import ADDED_NAMES
@@ -587,8 +588,9 @@ def test_a_checkpoint_from_before_the_vehicle_constraint_loads_it_at_its_default
     torch.save({"state_dict": state}, tmp_path / "old.ckpt")
     loaded = FilterParameters.from_checkpoint(tmp_path / "old.ckpt").values()
     for name in NAMES:
-        if name in ADDED_NAMES:
-            assert loaded[name] == pytest.approx(getattr(VehicleSettings(), name.removeprefix("vehicle_")), rel=1e-12)
+        if name in ADDED_NAMES:  # the settings' own defaults
+            default = TrackUpdate().sigma_px if name == "tracks_sigma_px" else getattr(VehicleSettings(), name.removeprefix("vehicle_"))
+            assert loaded[name] == pytest.approx(default, rel=1e-12)
         else:
             assert loaded[name] == pytest.approx(params.values()[name], rel=1e-12), name
     # the learned sigmas reach the constraint's settings
