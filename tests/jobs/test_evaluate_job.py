@@ -88,6 +88,24 @@ def test_every_combination_runs_on_a_simulated_walk_and_flow_bounds_the_drift(sm
     assert len(list((tmp_path / "cache" / "flow").glob("dense-*.npz"))) == 1
 
 
+def test_sparse_rows_on_whole_tracks_run_cache_their_tracks_and_bound_the_drift(small_walk, tmp_path):
+    """``filter.tracks.window=5``: Lucas-Kanade with ids kept over the frames, the multi-view update."""
+    from flowins.flow.load import read_tracks
+
+    out, cache = tmp_path / "out", tmp_path / "cache"
+    cfg = _compose([f"sequence.path={small_walk}", f"output_dir={out}", f"cache_dir={cache}", "plots=false",
+                    "progress=false", "combinations=[ins_sparse]", "filter.tracks.window=5"])
+    (row,) = run(cfg)
+    assert row.filter_rmse_m is not None and row.filter_rmse_m < 10.0  # INS alone: > 10 m (the test above)
+    m = json.loads((out / "metrics.json").read_text())["ins_sparse"]
+    assert m["track_frames"] > 500 and 0 < m["mean_accepted"] <= m["mean_valid"] <= m["mean_tracks"] <= 128
+    (path,) = (cache / "flow").glob("tracks-*.npz")
+    tracks = read_tracks(path)
+    # ids kept across frames: tracks seen in many frames, at most one row per id and frame
+    _, counts = torch.unique(tracks.track_id, return_counts=True)
+    assert float(counts.double().mean()) > 3.0 and int(counts.max()) <= 601
+
+
 def test_a_float32_filter_is_refused_with_the_reason():
     """float32 filtering gave a 3.6e6 m smoother (ins_gnss) and NaN (ins_dense) on the 60 s
     walk: the config says so instead of producing them."""
