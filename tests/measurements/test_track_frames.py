@@ -141,3 +141,24 @@ def test_gradient_of_the_track_noise_matches_finite_differences():
         numeric = (loss(torch.tensor(0.4 + h, dtype=torch.float64)) - loss(torch.tensor(0.4 - h, dtype=torch.float64))) / (2 * h)
     assert abs(float(grad)) > 1e-6
     torch.testing.assert_close(grad, numeric, rtol=1e-4, atol=0)
+
+
+def test_the_track_update_on_another_device_is_the_cpu_run(fake_device):
+    """Track frames (window 3), their window shifts and the smoother on the fake device of
+    ``conftest.FakeDevice``: no op meets a CPU tensor there, and the numbers are the CPU run's."""
+    walk, t_imu, acc, gyro, tracks = _scene(seed=4, noise_px=0.3)
+    keep = t_imu <= T0 + 2.0
+    t_imu, acc, gyro = t_imu[keep], acc[keep], gyro[keep]
+    update = TrackUpdate(window=3, sigma_px=0.3)
+    events = track_frames(tracks, CAMERA, update, t_min_s=T0, t_max_s=float(t_imu[-1]))
+    cpu = _run(walk, t_imu, acc, gyro, events, window=3)
+    mean0, cov0 = cpu.node_mean[0], cpu.node_cov[0]
+    noise = ProcessNoise(acc_noise=1e-3, gyro_noise=1e-4, acc_bias_walk=1e-4, gyro_bias_walk=1e-5)
+    with fake_device() as mode:
+        run = FilterInput(t_imu, acc, gyro, mean0.to("meta"), cov0.to("meta"), events)
+        moved = run_filters([run], noise=noise, output_every=10)[0]
+        smoothed = rts_smooth(moved)
+        assert moved.node_mean.device.type == "meta" and smoothed.node_cov.device.type == "meta"
+    assert mode.slips == {}, mode.slips
+    assert sum(e["valid"] for e in moved.log if e["kind"] == "tracks") > 0
+    assert torch.equal(moved.node_mean, cpu.node_mean) and torch.equal(smoothed.node_cov, rts_smooth(cpu).node_cov)
