@@ -56,7 +56,7 @@ def _run(walk, t_imu, acc, gyro, events, *, window: int, velocity_error=(0.0, 0.
     noise = ProcessNoise(acc_noise=1e-3, gyro_noise=1e-4, acc_bias_walk=1e-4, gyro_bias_walk=1e-5)
     gyro = gyro + gyro_bias
     run = FilterInput(t_imu, acc, gyro, mean0, cov0, events)
-    return run_filters([run], noise=noise, output_every=int(round(0.1 / float(t_imu[1] - t_imu[0]))))[0]
+    return run_filters([run], noise=noise, output_every=round(0.1 / float(t_imu[1] - t_imu[0])))[0]
 
 
 def _errors(track, walk):
@@ -91,7 +91,7 @@ def test_tracks_correct_a_wrong_velocity_and_a_gyro_bias_that_inertial_navigatio
     with_tracks = _run(walk, t_imu, acc, gyro, track_frames(tracks, CAMERA, update, t_min_s=T0, t_max_s=T1),
                        window=5, **bad)
     p_alone, _ = _errors(alone, walk)
-    p_tracks, q_tracks = _errors(with_tracks, walk)
+    p_tracks, _ = _errors(with_tracks, walk)
     assert float(p_alone[-1]) > 2.0
     assert float(p_tracks[-1]) < 0.05 * float(p_alone[-1])
     b_w = with_tracks.mean[-1, STATE.b_w]
