@@ -121,11 +121,14 @@ def state_dim(clones: int) -> int:
     return CORE_DIM + 7 * clones
 
 
-def window_size(dim: int) -> int:
-    """``N``, the number of cloned poses of a state of size ``dim`` (``19 + 7 N``); ValueError otherwise."""
+def window_size(dim: int, *, where: str | None = None) -> int:
+    """``N``, the number of cloned poses of a state of size ``dim`` (``19 + 7 N``); a ValueError
+    otherwise, naming ``where`` (the caller and what it was given) when given."""
     clones, rest = divmod(dim - CORE_DIM, 7)
     if rest or clones < 1:
-        raise ValueError(f"a state has 19 + 7 N entries (N >= 1 cloned poses, {STATE_DIM} for N = 1), got {dim}")
+        prefix = "" if where is None else f"{where}: "
+        raise ValueError(f"{prefix}a state has 19 + 7 N entries (N >= 1 cloned poses, {STATE_DIM} for N = 1), "
+                         f"got {dim}")
     return clones
 
 
@@ -162,12 +165,7 @@ class State(NamedTuple):
 def split(x: Tensor) -> State:
     """Split ``x`` of shape ``(..., 26)`` into a :class:`State` of views; a state with a window
     of ``N > 1`` clones ``(..., 19 + 7 N)`` gives its core and clone 0 (``p_prev``, ``q_prev``)."""
-    if x.shape[-1] != STATE_DIM:
-        try:
-            window_size(x.shape[-1])
-        except ValueError:
-            raise ValueError(f"state must have last dimension {STATE_DIM} (or 19 + 7 N), got shape "
-                             f"{tuple(x.shape)}") from None
+    window_size(x.shape[-1], where=f"split: a state of shape {tuple(x.shape)}")
     return State(*(x[..., STATE.slice(name)] for name in STATE.names))
 
 
@@ -215,10 +213,7 @@ def normalize_quaternions(x: Tensor) -> Tensor:
     Out of place and differentiable; a zero quaternion is left at zero instead of
     producing NaN (the norm is clamped away from zero).
     """
-    try:
-        clones = window_size(x.shape[-1])
-    except ValueError:
-        raise ValueError(f"state must have last dimension {STATE_DIM} (or 19 + 7 N), got shape {tuple(x.shape)}") from None
+    clones = window_size(x.shape[-1], where=f"normalize_quaternions: a state of shape {tuple(x.shape)}")
     index = _quaternion_index(x.device, clones)
     q = x[..., index].unflatten(-1, (1 + clones, 4))
     norm = torch.linalg.vector_norm(q, dim=-1, keepdim=True).clamp_min(torch.finfo(x.dtype).tiny ** 0.5)

@@ -134,11 +134,9 @@ class Gate:
         block, the thresholds then a tensor of its shape)."""
         if self.threshold is not None:
             return self.threshold
-        if isinstance(dof, Tensor):
-            values = sorted(set(dof.reshape(-1).tolist()))
-            table = torch.tensor([chi2_quantile(self.probability, max(int(d), 1)) for d in values], dtype=torch.float64)
-            where = torch.searchsorted(torch.tensor(values, dtype=dof.dtype), dof.cpu())
-            return table[where].to(device=dof.device)
+        if isinstance(dof, Tensor):  # chi2_quantile keeps each (probability, dof) it computed
+            thresholds = [chi2_quantile(self.probability, max(int(d), 1)) for d in dof.reshape(-1).tolist()]
+            return torch.tensor(thresholds, dtype=torch.float64, device=dof.device).reshape(dof.shape)
         return chi2_quantile(self.probability, dof)
 
     def weights(self, nis: Tensor, dof: int | Tensor) -> Tensor:

@@ -15,7 +15,7 @@ from flowins.cache import cache_root
 from flowins.config import instantiate
 from flowins.data.load import Recording
 from flowins.data.sequence import Tracks
-from flowins.flow.pairs import FlowPairs, cache_key, cached, dense_pairs, sparse_pairs, track_pairs
+from flowins.flow.pairs import FlowPairs, cache_key, cached, dense_pairs, ideal_pixels, sparse_pairs, track_pairs
 
 log = logging.getLogger("flowins")
 
@@ -62,6 +62,12 @@ def load_flow(kind: str, rec: Recording, cfg: Mapping[str, Any], *, progress: bo
 
 
 TRACKS_FORMAT = 1
+
+
+def uses_tracks(cfg: Mapping[str, Any]) -> bool:
+    """Whether a job's sparse rows take tracks over many frames (``filter.tracks.window >= 1``, the
+    multi-view update) instead of flow pairs."""
+    return int(((cfg.get("filter") or {}).get("tracks") or {}).get("window") or 0) >= 1
 
 
 def load_tracks(rec: Recording, cfg: Mapping[str, Any], *, progress: bool) -> Tracks | str:
@@ -116,11 +122,7 @@ def read_tracks(path: Path) -> Tracks:
 def undistort_tracks(tracks: Tracks, camera) -> Tracks:
     """``tracks`` with their pixels in the ideal pinhole image of ``camera`` (radial-tangential
     distortion removed; itself without distortion)."""
-    from flowins.geometry.camera import undistort
-
     if not any(camera.distortion):
         return tracks
-    f = torch.tensor([camera.fx, camera.fy], dtype=torch.float64)
-    c = torch.tensor([camera.cx, camera.cy], dtype=torch.float64)
-    uv = undistort((tracks.uv_px - c) / f, tuple(camera.distortion)) * f + c
-    return Tracks(tracks.t_s, tracks.track_id, uv, name=tracks.name, frame_times_s=tracks.frame_times_s)
+    return Tracks(tracks.t_s, tracks.track_id, ideal_pixels(tracks.uv_px, camera), name=tracks.name,
+                  frame_times_s=tracks.frame_times_s)

@@ -66,20 +66,12 @@ class FlowPairs:
         """The points in the ideal pinhole image of ``camera`` (a
         :class:`~flowins.data.sequence.PinholeCamera`): both ends of every flow vector
         are undistorted (radial-tangential); ``σ`` is kept. Without distortion, ``self``."""
-        from flowins.geometry.camera import undistort
-
         if not any(camera.distortion):
             return self
-        f = torch.tensor([camera.fx, camera.fy], dtype=torch.float64)
-        c = torch.tensor([camera.cx, camera.cy], dtype=torch.float64)
-
-        def ideal(uv: Tensor) -> Tensor:
-            return undistort((uv - c) / f, tuple(camera.distortion)) * f + c
-
         points = []
         for p in self.points:
-            uv1 = ideal(p.uv1_px)
-            points.append(FlowPoints(uv1, ideal(p.uv1_px + p.flow_px) - uv1, *p[2:]))
+            uv1 = ideal_pixels(p.uv1_px, camera)
+            points.append(FlowPoints(uv1, ideal_pixels(p.uv1_px + p.flow_px, camera) - uv1, *p[2:]))
         return FlowPairs(self.t1_s, self.t2_s, points, self.kind, self.description)
 
     def at_dropout_rate(self, p: float | Tensor) -> FlowPairs:
@@ -136,6 +128,16 @@ def pair_indices(n_frames: int, step: int) -> list[tuple[int, int]]:
 
 
 #: the code that turns frames into flow pairs: part of every cache key
+def ideal_pixels(uv_px: Tensor, camera) -> Tensor:
+    """Pixels ``(..., 2)`` of ``camera``'s raw image (a :class:`~flowins.data.sequence.PinholeCamera`)
+    in its ideal pinhole image: the radial-tangential distortion removed."""
+    from flowins.geometry.camera import undistort
+
+    f = torch.tensor([camera.fx, camera.fy], dtype=torch.float64)
+    c = torch.tensor([camera.cx, camera.cy], dtype=torch.float64)
+    return undistort((uv_px - c) / f, tuple(camera.distortion)) * f + c
+
+
 FLOW_CODE = ("flowins.flow", "flowins.data.sequence")
 
 

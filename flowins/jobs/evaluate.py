@@ -27,7 +27,7 @@ from flowins.evaluation.gnss_floor import describe_gnss_floor, gnss_floor_metric
 from flowins.evaluation.metrics import truth_extent_problem
 from flowins.evaluation.report import Row, format_table
 from flowins.data.sequence import Tracks
-from flowins.flow.load import load_flow, load_tracks
+from flowins.flow.load import load_flow, load_tracks, uses_tracks
 from flowins.flow.pairs import FlowPairs, read_frame, run_provider
 from flowins.ins.initialization import forward_axis
 from flowins.jobs.cli import console_logging
@@ -107,7 +107,7 @@ def _flows(cfg: Mapping[str, Any], rec: Recording) -> dict[str, FlowPairs | Trac
     for kind in ("sparse", "dense"):
         if any(cfg["methods"][name][kind] for name in cfg["combinations"]):
             t1 = time.perf_counter()
-            if kind == "sparse" and int(cfg["filter"]["tracks"]["window"]) >= 1:
+            if kind == "sparse" and uses_tracks(cfg):
                 flows[kind] = load_tracks(rec, cfg, progress=cfg["progress"])
                 if isinstance(flows[kind], Tracks):
                     log.info(f"sparse tracks: {int(torch.unique(flows[kind].track_id).numel())} tracks over "

@@ -475,11 +475,7 @@ def flow_linearisation(x: Tensor, flow_px: Tensor, uv1_px: Tensor, camera: FlowC
 def state_size(x: Tensor, where: str) -> int:
     """``D`` of the states ``x`` ``(..., D)``: 26, or ``19 + 7 N`` with a window of ``N`` cloned poses
     (a ValueError naming ``where`` otherwise)."""
-    try:
-        window_size(x.shape[-1])
-    except ValueError:
-        raise ValueError(f"{where}: x must be (..., {STATE_DIM}) or (..., 19 + 7 N) with a window of N cloned "
-                         f"poses, got {tuple(x.shape)}") from None
+    window_size(x.shape[-1], where=f"{where}: x of shape {tuple(x.shape)}")
     return x.shape[-1]
 
 

@@ -17,7 +17,7 @@ import pytorch_lightning as pl
 from torch.utils.data import DataLoader, Dataset, DistributedSampler
 
 from flowins.data.load import load_recording
-from flowins.flow.load import load_flow, load_tracks
+from flowins.flow.load import load_flow, load_tracks, uses_tracks
 from flowins.flow.pairs import FlowPairs
 from flowins.measurements.flow import FlowCamera
 from flowins.measurements.vehicle import platform_streams
@@ -62,7 +62,7 @@ def load_training_sequence(
     tracks = None
     for kind, index in (("sparse", 1), ("dense", 2)):
         if any(METHODS[m][index] for m in methods):
-            if kind == "sparse" and int(((cfg.get("filter") or {}).get("tracks") or {}).get("window") or 0) >= 1:
+            if kind == "sparse" and uses_tracks(cfg):
                 tracks = load_tracks(rec, cfg, progress=progress)  # the multi-view update (filter.tracks)
                 if isinstance(tracks, str):
                     raise ValueError(f"{rec.name}: sparse tracks unavailable: {tracks}")
