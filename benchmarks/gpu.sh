@@ -10,7 +10,10 @@
 # A check of the script itself on a CPU: GPU_SH_DEVICE=cpu GPU_SH_QUICK=1 bash benchmarks/gpu.sh
 # (every section on the CPU, the 60 s walk, a batch of 4, one training epoch; the device
 # tests are skipped there). Its figures mean nothing.
-set -euo pipefail
+# GPU_SH_SECTIONS="1 2 3 4" runs only those sections (default: all six, in order; 3 and 4
+# need 2's cache, 6 needs 5's). A section that fails is reported and the others still run;
+# the script then exits with 1, naming the failed sections.
+set -uo pipefail
 cd "$(dirname "$0")/.."
 # the checkout's package for every script and child process (a CUDA machine may run it uninstalled)
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1 MPLBACKEND=Agg
@@ -30,10 +33,13 @@ fi
 reference=${1:-benchmarks/table1_cpu.json}
 out=$(mktemp -d)
 started=$SECONDS
+sections=${GPU_SH_SECTIONS:-1 2 3 4 5 6}
+failed=()
 section() { echo; echo "== [$((SECONDS - started)) s] $*"; }
+wanted() { [[ " $sections " == *" $1 "* ]]; }
 
 section "the machine"
-GPU_SH_DEVICE=$device python - <<'PY'
+GPU_SH_DEVICE=$device python - <<'PY' || exit 1
 import os
 
 import torch
@@ -46,35 +52,57 @@ else:
           f"{torch.cuda.get_device_properties(0).total_memory / 2**30:.0f} GiB")
 PY
 
-section "1. the device tests (tests/test_cuda.py: both devices agree)"
-python -m pytest -q -p no:cacheprovider -m cuda tests/test_cuda.py
+s1() {
+  section "1. the device tests (tests/test_cuda.py: both devices agree)"
+  python -m pytest -q -p no:cacheprovider -m cuda tests/test_cuda.py
+}
 
-section "2. the 300 s walk simulated and its sparse flow computed, once (CPU; cached in $cache)"
-python evaluate.py "${quick[@]}" progress=false plots=false 'combinations=[ins,ins_sparse]' \
-  hydra.run.dir="$out/simulate" | grep -E "sequence:|flow:"
-rm -f "$cache"/flow/dense-*.npz
+s2() {
+  section "2. the 300 s walk simulated and its sparse flow computed, once (CPU; cached in $cache)"
+  python evaluate.py "${quick[@]}" progress=false plots=false 'combinations=[ins,ins_sparse]' \
+    hydra.run.dir="$out/simulate" | grep -E "sequence:|flow:"
+  rm -f "$cache"/flow/dense-*.npz
+}
 
-section "3. python evaluate.py flow.device=cuda filter.device=cuda (simulation and sparse flow cached; target <= 60 s)"
-t0=$SECONDS
-python evaluate.py "${quick[@]}" flow.device="$device" filter.device="$device" progress=false plots=false \
-  hydra.run.dir="$out/gpu"
-echo "evaluate.py on the GPU: $((SECONDS - t0)) s"
-python benchmarks/gpu_table.py "$out/gpu/metrics.json" "$reference"
+s3() {
+  section "3. python evaluate.py flow.device=cuda filter.device=cuda (simulation and sparse flow cached; target <= 60 s)"
+  local t0=$SECONDS
+  python evaluate.py "${quick[@]}" flow.device="$device" filter.device="$device" progress=false plots=false \
+    hydra.run.dir="$out/gpu" || return
+  echo "evaluate.py on the GPU: $((SECONDS - t0)) s"
+  python benchmarks/gpu_table.py "$out/gpu/metrics.json" "$reference"
+}
 
-section "4. bench_flow_filter.py --device cuda --batch 256 (cached flow; target >= 2000x in all)"
-python benchmarks/bench_flow_filter.py "${bench_quick[@]}" --device "$device" --batch "$batch" \
-  --repeats 1 --reference-s 0 --breakdown-s 0 --count-ops-s 0 2>&1 | grep -v "^filter:"
+s4() {
+  section "4. bench_flow_filter.py --device cuda --batch 256 (cached flow; target >= 2000x in all)"
+  python benchmarks/bench_flow_filter.py "${bench_quick[@]}" --device "$device" --batch "$batch" \
+    --repeats 1 --reference-s 0 --breakdown-s 0 --count-ops-s 0 2>&1 | grep -v "^filter:"
+}
 
 trainer=gpu
 [ "$device" = cpu ] && trainer=cpu
-section "5. the training walks simulated and their flow computed (train.py trainer.max_epochs=0)"
-python train.py experiment=mistuned trainer="$trainer" trainer.max_epochs=0 flow.device="$device" progress=false \
-  hydra.run.dir="$out/train-data" 2>&1 | tail -n 3
+s5() {
+  section "5. the training walks simulated and their flow computed (train.py trainer.max_epochs=0)"
+  python train.py experiment=mistuned trainer="$trainer" trainer.max_epochs=0 flow.device="$device" progress=false \
+    hydra.run.dir="$out/train-data" 2>&1 | tail -n 3
+}
 
-section "6. python train.py experiment=mistuned trainer=gpu (walks and flow cached; target: 4x the 2-core CPU's time, held out within 5 %)"
-t0=$SECONDS
-python train.py experiment=mistuned trainer="$trainer" "${epochs[@]}" flow.device="$device" progress=false \
-  hydra.run.dir="$out/train" 2>&1 | tail -n 25
-echo "train.py on the GPU: $((SECONDS - t0)) s"
+s6() {
+  section "6. python train.py experiment=mistuned trainer=gpu (walks and flow cached; target: 4x the 2-core CPU's time, held out within 5 %)"
+  local t0=$SECONDS
+  python train.py experiment=mistuned trainer="$trainer" "${epochs[@]}" flow.device="$device" progress=false \
+    hydra.run.dir="$out/train" 2>&1 | tail -n 25
+  echo "train.py on the GPU: $((SECONDS - t0)) s"
+}
+
+for n in 1 2 3 4 5 6; do
+  if wanted "$n"; then
+    "s$n" || { echo "error: section $n failed (exit $?)"; failed+=("$n"); }
+  fi
+done
 
 section "done in $((SECONDS - started)) s; outputs in $out"
+if [ ${#failed[@]} -gt 0 ]; then
+  echo "error: sections failed: ${failed[*]}"
+  exit 1
+fi

@@ -79,7 +79,8 @@ class FakeDevice(TorchFunctionMode):
     """A second device on a CPU: tensors made with ``device=meta`` (or moved there) are CPU
     tensors tagged as on it; every op on a tagged tensor tags its results; ``x.device`` of a
     tagged tensor is ``meta``. An op that meets a tagged tensor and an untagged one (of one
-    dimension or more) is recorded as a slip: on a GPU it is a CPU tensor meeting a CUDA one."""
+    dimension or more) is recorded as a slip: on a GPU it is a CPU tensor meeting a CUDA one.
+    Indexing is allowed one way only, as on a GPU: a tensor on the device by CPU indices."""
 
     ALLOWED: typing.ClassVar[set] = {torch.Tensor.copy_, torch.Tensor.__setitem__, torch.Tensor.__getitem__, torch.Tensor.to,
                torch.Tensor.cpu, torch.as_tensor, torch.Tensor.index_select, torch.Tensor.tolist}
@@ -141,6 +142,8 @@ class FakeDevice(TorchFunctionMode):
             target = False
         if func is torch.Tensor.numpy and on:
             self._slip("numpy() of a tensor on the device")
+        if func in (torch.Tensor.__getitem__, torch.Tensor.index_select) and on and not self._is(args[0]):
+            self._slip(f"{func.__name__}: a CPU tensor {tuple(args[0].shape)} indexed by indices on the device")
         if on and func not in self.ALLOWED and target is None:
             plain = [t for t in tensors if not self._is(t) and t.ndim > 0]
             if plain:

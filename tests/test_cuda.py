@@ -4,8 +4,12 @@
 
 Tolerances: the flow network in float32 on a GPU (cuDNN, TF32 allowed) differs from the CPU's
 by rounding, at most 0.05 px on these frames; the filter in float64 given the same flow agrees
-to 1e-6 m; a training step to 1e-6 in each raw parameter.
+within 4x what rounding alone moves it on the CPU (the flow times 1 + 1e-15 N(0, 1): 0.75 mm
+after these 20 s, most of it from the still start, where the flow has no parallax) and at
+least to 1e-6 m; the filter without flow to 1e-6 m; a training step to 1e-6 in each raw
+parameter.
 """
+import dataclasses
 import json
 from pathlib import Path
 
@@ -71,10 +75,20 @@ def test_the_job_on_the_gpu_agrees_with_the_job_on_the_cpu_cached_and_not(walk, 
     on_cpu = navigate(one, config=NavigationConfig())
     on_gpu = navigate(one, config=NavigationConfig(device=CUDA))
     assert on_gpu.filter.node_mean.device.type == "cuda"
+    # what rounding alone does on the CPU: the same flow times (1 + 1e-15 N(0, 1)), two draws
+    spread = {"filter": 1e-6, "smoother": 1e-6}
+    for seed in (1, 2):
+        g = torch.Generator().manual_seed(seed)
+        jittered = dataclasses.replace(a, points=[type(p)(p[0], p[1] * (1 + 1e-15 * torch.randn(p[1].shape, generator=g,
+                                                  dtype=p[1].dtype)), *p[2:]) for p in a.points])
+        again = navigate(dataclasses.replace(one, flow=jittered), config=NavigationConfig())
+        for kind, most in list(spread.items()):
+            d = (getattr(again, kind).node_mean[:, STATE.p] - getattr(on_cpu, kind).node_mean[:, STATE.p]).norm(dim=-1)
+            spread[kind] = max(most, float(d.max()))
     for kind in ("filter", "smoother"):
         p_cpu = getattr(on_cpu, kind).node_mean[:, STATE.p]
         p_gpu = getattr(on_gpu, kind).node_mean[:, STATE.p].cpu()
-        assert float((p_cpu - p_gpu).norm(dim=-1).max()) < 1e-6, kind
+        assert float((p_cpu - p_gpu).norm(dim=-1).max()) < 4 * spread[kind], (kind, spread)
 
 
 def test_the_batched_filter_on_the_gpu_equals_each_run_alone_on_the_cpu():

@@ -13,7 +13,9 @@ def test_the_fake_device_records_a_cpu_tensor_meeting_a_device_tensor_and_a_nump
         _ = x * torch.ones(3, dtype=torch.float64)  # a CPU constant: a GPU raises here
         _ = torch.stack((x, torch.zeros(3, dtype=torch.float64)))
         _ = np.asarray(x.numpy())
-    assert len(mode.slips) == 3, mode.slips
+        _ = torch.arange(3.0)[torch.tensor([0, 2], device=FAKE)]  # CPU values, device indices: a GPU raises
+    assert len(mode.slips) == 4, mode.slips
+    assert any(key.startswith("__getitem__: a CPU tensor (3,) indexed") for key in mode.slips)
     assert any(key.startswith("mul: 1 CPU tensor(s) [(3,)]") for key in mode.slips)
     assert any(key.startswith("numpy()") for key in mode.slips)
 

@@ -23,6 +23,7 @@ from torch import Tensor
 from torch.func import jacrev, vmap
 
 from flowins.constants import cached_constant
+from flowins.linalg import in_slices
 from flowins.state import symmetrize
 
 # --------------------------------------------------------------------------- prediction
@@ -311,7 +312,8 @@ def block_nll(cov: Tensor, innovation: Tensor, H: Tensor, noise_cov: Tensor) -> 
         S = _scalar_innovation_variance(cov, H, noise_cov)
         nis = innovation[..., 0] ** 2 / S
         return nis, 0.5 * (nis + torch.log(S))
-    L = torch.linalg.cholesky(_block_innovation_cov(cov, H, noise_cov))
+    S = _block_innovation_cov(cov, H, noise_cov)
+    L = in_slices(torch.linalg.cholesky, S, batch_dims=S.ndim - 2)
     white = torch.linalg.solve_triangular(L, innovation.unsqueeze(-1), upper=False).squeeze(-1)
     nis = (white * white).sum(-1)
     return nis, 0.5 * nis + torch.log(L.diagonal(dim1=-2, dim2=-1)).sum(-1)

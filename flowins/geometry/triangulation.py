@@ -37,6 +37,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from flowins.linalg import in_slices
+
 
 class Triangulation(NamedTuple):
     point: Tensor  # (..., 4) homogeneous world point, unit norm (in the shifted frame: see triangulate)
@@ -94,7 +96,8 @@ def solve_dlt(A: Tensor, P1: Tensor | None = None) -> DltSolution:
     tiny = torch.finfo(A.dtype).tiny
     norm = torch.linalg.vector_norm(A, dim=-1).clamp_min(tiny**0.5)
     rows = A / norm.unsqueeze(-1)  # equilibrate the rows (the solution is invariant)
-    lam, V = torch.linalg.eigh(rows.transpose(-1, -2) @ rows)  # ascending
+    gram = rows.transpose(-1, -2) @ rows
+    lam, V = in_slices(torch.linalg.eigh, gram, batch_dims=gram.ndim - 2)  # ascending
     # Newton step X ← X - Σᵢ vᵢ vᵢᵀ (AᵀA X) / (σᵢ² - σ₄²) over the other three eigenvectors,
     # with vᵢᵀ AᵀA X = (A vᵢ)·(A X) from A itself; the gap is at least rounding (the rows have
     # unit norm, so σ₁² >= 1): a degenerate point stays finite
