@@ -2,9 +2,10 @@
 
 cuSOLVER's batched ``eigh`` of 65,536 ``4 x 4`` matrices (the triangulations of 256
 recordings with 256 points each) stopped with ``CUSOLVER_STATUS_INTERNAL_ERROR`` on an
-H200 (torch 2.11, CUDA 13); the same call on fewer matrices ran. :func:`in_slices`
-computes such calls over at most :data:`CUDA_SLICE` matrices at a time on CUDA and in one
-call elsewhere, with the same values and gradients.
+H200 (torch 2.11, CUDA 13), and others report the same routine failing above about 32k
+matrices (mujocolab/mjlab pull request 732). :func:`in_slices` computes such calls over at
+most :data:`CUDA_SLICE` matrices at a time on CUDA and in one call elsewhere, with the same
+values and gradients.
 """
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ import torch
 from torch import Tensor
 
 #: most matrices handed to one batched solver call on CUDA
-CUDA_SLICE = 32768
+CUDA_SLICE = 16384
 
 
 def in_slices(fn: Callable[..., Tensor | tuple[Tensor, ...]], *matrices: Tensor, batch_dims: int,
