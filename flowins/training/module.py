@@ -31,6 +31,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -100,6 +101,7 @@ class FilterLearner(pl.LightningModule):
         #: with ``data.select`` also "select_rmse_m" {method: [RMSE of each select sequence]} and "select_score"
         self.history: list[dict] = []
         self._val: dict[str, list[float]] = {}
+        self._first_validation: float | None = None  # time.monotonic() of the first, for the log lines
         self._heldout: dict[str, dict[str, list[float]]] = {}
         self._heldout_select: dict[str, dict[str, list[float]]] = {}
         self.save_hyperparameters({"methods": self.methods, "window_s": self.window_s,
@@ -303,6 +305,14 @@ class FilterLearner(pl.LightningModule):
             entry["select_score"] = _mean_score(select)
             self.log("select/rmse_mean_m", entry["select_score"], batch_size=1, sync_dist=True)
         self.history.append(entry)
+        now = time.monotonic()
+        self._first_validation = self._first_validation or now
+        if self.trainer.is_global_zero:  # one line per validation, also where no progress bar is shown
+            rows = ", ".join(f"{m} {v:.3f}" for m, v in means.items())
+            of = f" of {self.trainer.max_epochs}" if fitting else ""
+            long = f"; long held-out walks {entry['select_score']:.3f} m" if select else ""
+            log.info(f"{entry['label']}{of}: held out {score:.3f} m ({rows}){long}; {self.optimizer_steps} steps, "
+                     f"{now - self._first_validation:.0f} s after the first validation")
 
     def select_best(self) -> dict:
         """Load the parameters of the best validation so far and return it: the lowest mean RMSE

@@ -66,6 +66,9 @@ def test_train_job_writes_a_checkpoint_that_evaluate_reads(workdir, recwarn, cap
     # the start was validated before the first step, and the checkpoint is the best of it and the epoch
     history = result["history"]
     assert [entry["label"] for entry in history] == ["start", "epoch 1"]
+    # each validation said so as it ended, with its score
+    assert f"start: held out {history[0]['score']:.3f} m (ins_dense {history[0]['rmse_m']['ins_dense']:.3f}" in caplog.text
+    assert f"epoch 1 of 1: held out {history[1]['score']:.3f} m" in caplog.text
     chosen = min(history, key=lambda entry: entry["score"])
     assert result["chosen"] == chosen["label"]
     assert json.loads((out / "selection.json").read_text())["chosen"] == chosen["label"]
