@@ -60,7 +60,7 @@ s1() {
 s2() {
   section "2. the 300 s walk simulated and its sparse flow computed, once (CPU; cached in $cache)"
   python evaluate.py "${quick[@]}" progress=false plots=false 'combinations=[ins,ins_sparse]' \
-    hydra.run.dir="$out/simulate" | grep -E "sequence:|flow:"
+    hydra.run.dir="$out/simulate" | grep -E "sequence:|flow:|error" || return
   rm -f "$cache"/flow/dense-*.npz
 }
 
@@ -91,7 +91,7 @@ s6() {
   section "6. python train.py experiment=mistuned trainer=gpu (walks and flow cached; target: 4x the 2-core CPU's time, held out within 5 %)"
   local t0=$SECONDS
   python train.py experiment=mistuned trainer="$trainer" "${epochs[@]}" flow.device="$device" progress=false \
-    hydra.run.dir="$out/train" 2>&1 | grep -v "read from the cache"  # a line per validation as it ends
+    hydra.run.dir="$out/train" 2>&1 | grep -v "read from the cache" || return  # a line per validation as it ends
   echo "train.py on the GPU: $((SECONDS - t0)) s"
 }
 
