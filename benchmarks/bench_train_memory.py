@@ -45,7 +45,7 @@ def measure(mode: str, window_s: float, points: int, method: str) -> dict:
     _, start, learn = setup.parameters
     params = FilterParameters(start, learn, bounds=setup.parameters.bounds)
     t = seq.imu.t_s
-    i_b = int(torch.searchsorted(t, t[0] + window_s))
+    i_b = min(int(torch.searchsorted(t, t[0] + window_s)), len(t) - 1)  # a window as long as the walk ends at its last sample
     baseline = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
     t0 = time.perf_counter()
     if mode == "reference":
