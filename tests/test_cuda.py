@@ -4,8 +4,8 @@
 
 Tolerances: the flow network in float32 on a GPU (cuDNN, TF32 allowed) differs from the CPU's
 by rounding, at most 0.05 px on these frames; the filter in float64 given the same flow agrees
-within 4x what rounding alone moves it on the CPU (the flow times 1 + 1e-15 N(0, 1): 0.75 mm
-after these 20 s, growing from the still start, where the flow has no parallax) and at
+within 4x what rounding alone moves it on the CPU (the flow times 1 + 1e-15 N(0, 1); the
+spread grows from the still start, where the flow has no parallax) and at
 least to 1e-6 m; the filter without flow to 1e-6 m; a training step to 1e-6 in each raw
 parameter.
 """
