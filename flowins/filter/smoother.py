@@ -77,12 +77,10 @@ def _factor_predicted(cov: Tensor, t_s: Tensor) -> tuple[Tensor, Tensor]:
     invalid pivots for some matrices of a batch of large ones (103 of 530 at 159 x 159, a
     window of 20 clones), and ``lu_solve`` would refuse them."""
     LU, pivots, info = torch.linalg.lu_factor_ex(cov)
-    D = cov.shape[-1]
-    invalid = torch.nonzero(((pivots < 1) | (pivots > D)).any(-1)).squeeze(-1).tolist()
-    for i in invalid:
-        LU_i, piv_i, info_i = torch.linalg.lu_factor_ex(cov[i])
-        LU, pivots, info = LU.index_copy(0, torch.tensor([i], device=cov.device), LU_i[None]), pivots.index_copy(
-            0, torch.tensor([i], device=cov.device), piv_i[None]), info.index_copy(0, torch.tensor([i], device=cov.device), info_i[None])
+    invalid = torch.nonzero(((pivots < 1) | (pivots > cov.shape[-1])).any(-1)).squeeze(-1)
+    if invalid.numel():
+        alone = zip(*(torch.linalg.lu_factor_ex(cov[i]) for i in invalid.tolist()))
+        LU, pivots, info = (t.index_copy(0, invalid, torch.stack(parts)) for t, parts in zip((LU, pivots, info), alone))
     bad = torch.nonzero(info != 0).squeeze(-1)
     if bad.numel() == 0:
         return LU, pivots

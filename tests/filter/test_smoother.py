@@ -350,3 +350,29 @@ def test_rts_through_an_exactly_singular_predicted_covariance_equals_batch_poste
     mean, cov, _, _ = chain.batch_posterior()
     assert_close_scaled(smoothed.mean, mean, 1e-9)
     assert_close_scaled(smoothed.cov, cov, 1e-9)
+
+
+def test_matrices_whose_batched_pivots_come_out_invalid_are_factorised_alone(monkeypatch):
+    """torch 2.13's MKL can return invalid pivots for some matrices of a batch (after
+    ``torch.set_num_threads``): those are factorised again one by one, and the result is each
+    matrix's own LU, the valid ones' untouched."""
+    from flowins.filter import smoother
+
+    g = torch.Generator().manual_seed(0)
+    a = torch.randn(5, 6, 6, generator=g, dtype=torch.float64)
+    cov = a @ a.transpose(-1, -2) + 6 * torch.eye(6, dtype=torch.float64)
+    real = torch.linalg.lu_factor_ex
+
+    def broken(x):
+        LU, pivots, info = real(x)
+        if x.ndim == 3:  # the batched call: matrices 1 and 3 get pivots outside 1..6
+            pivots = pivots.clone()
+            pivots[1, 2], pivots[3, 0] = 0, 7
+        return LU, pivots, info
+
+    monkeypatch.setattr(smoother.torch.linalg, "lu_factor_ex", broken)
+    LU, pivots = smoother._factor_predicted(cov, torch.arange(5.0))
+    monkeypatch.undo()
+    for i in range(5):
+        LU_i, piv_i, _ = torch.linalg.lu_factor_ex(cov[i])
+        assert torch.equal(LU[i], LU_i) and torch.equal(pivots[i], piv_i)
