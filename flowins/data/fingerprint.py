@@ -2,10 +2,12 @@
 computed over the recording is cached (:func:`flowins.cache.content_key`).
 
 The key follows the contents, not the names: the frame times and each frame's image
-(the SHA-256 of its file's bytes, or of the video file and the frame indices), the
-calibration (intrinsics, distortion, the image size, the IMU-to-camera transform) and
-the precomputed tracks. Reorder the frames, touch up one image, change the calibration
-or a track, and the key changes; copy or rename the recording and it stays the same.
+(the SHA-256 of its file's bytes, or of the video file and the frame indices) and the
+calibration (intrinsics, distortion, the image size, the IMU-to-camera transform).
+Reorder the frames, touch up one image or change the calibration, and the key changes;
+copy or rename the recording and it stays the same. A recording's own ``tracks.csv`` is
+not part of it: nothing cached is computed from those tracks (they are used as they are),
+so adding or editing them leaves the flow computed from the frames in the cache.
 Hashing reads every image file once: on the 300 s simulated walk a small fraction of
 decoding the frames once (``benchmarks/bench_cache_key.py``, ``docs/caching.md``).
 """
@@ -18,7 +20,7 @@ from flowins.data.sequence import CameraFrames, Sequence
 
 
 def camera_content_key(seq: Sequence) -> str:
-    """Content key of ``seq``'s frames, calibration and tracks (see the module docstring).
+    """Content key of ``seq``'s frames and calibration (see the module docstring).
 
     Raises:
         ValueError: an image (or the video) cannot be read; the message names the
@@ -34,8 +36,7 @@ def camera_content_key(seq: Sequence) -> str:
         },
         "imu_to_camera": None if transform is None else [array_digest(transform.rotation_wxyz),
                                                          array_digest(transform.translation_m)],
-        "tracks": None if seq.tracks is None else [array_digest(seq.tracks.t_s), array_digest(seq.tracks.track_id),
-                                                   array_digest(seq.tracks.uv_px)],
+        "tracks": None,  # not keyed (see the module docstring); the entry keeps the keys of recordings without tracks
     })
 
 

@@ -80,14 +80,17 @@ def test_gnss_errors_are_consistent_with_the_reported_accuracy():
 def small_simulation(tmp_path_factory):
     from flowins.data.simulate.scenario import CameraConfig, simulate
 
-    config = SimulationConfig(duration_s=10.0, seed=3, camera=CameraConfig(rate_hz=5.0, width=160, height=120))
+    from flowins.data.simulate.tracks import TrackConfig
+
+    config = SimulationConfig(duration_s=10.0, seed=3, camera=CameraConfig(rate_hz=5.0, width=160, height=120),
+                              tracks=TrackConfig(count=120, noise_px=0.0))
     out = tmp_path_factory.mktemp("sim")
     return config, out, simulate(out, config, progress=False)
 
 
 def test_simulated_sequence_has_every_source(small_simulation):
     config, out, seq = small_simulation
-    assert seq.sources == ("imu", "frames", "gnss", "groundtruth")
+    assert seq.sources == ("imu", "frames", "tracks", "gnss", "groundtruth")
     assert len(seq.frames) == 50 and seq.camera.size == (120, 160)
     assert tuple(seq.frames.read(0).shape) == (120, 160, 3)
     assert seq.metadata["simulation"]["key"] == config.key()
@@ -126,6 +129,120 @@ def test_projecting_a_world_point_through_the_written_files_gives_the_rendered_p
     expected = torch.stack((pixels[:, 1], pixels[:, 0]), -1).to(F64)
     assert float((uv - expected).abs().max()) < 1e-3
     torch.testing.assert_close(X_c[:, 2].float(), frame.depth[pixels[:, 0], pixels[:, 1]], rtol=1e-5, atol=1e-4)
+
+
+def _camera_from_world(seq, t: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(R_cw, t_cw)`` of the written ground truth and calibration at frame time ``t``: ``x_c = R_cw x_w + t_cw``."""
+    gt = seq.groundtruth
+    k = int(torch.argmin((gt.t_s - t).abs()))
+    assert abs(float(gt.t_s[k]) - t) < 1e-9
+    R_bw = quat.to_matrix(gt.quat_wxyz[k]).T
+    R_ci, t_ci = seq.imu_to_camera.rotation_matrix, seq.imu_to_camera.translation_m
+    return R_ci @ R_bw, t_ci - R_ci @ R_bw @ gt.pos_m[k]
+
+
+def test_written_tracks_are_static_points_seen_from_the_written_poses(small_simulation):
+    """Each track of ``tracks.csv`` (no pixel noise here) is one world point: triangulated by
+    DLT from all its views with the written poses and calibration, it reprojects onto every one
+    of them to 1e-3 px."""
+    _, _, seq = small_simulation
+    tr, cam = seq.tracks, seq.camera
+    K = torch.tensor([[cam.fx, 0.0, cam.cx], [0.0, cam.fy, cam.cy], [0.0, 0.0, 1.0]], dtype=F64)
+    poses = {float(t): _camera_from_world(seq, float(t)) for t in seq.frames.t_s}
+    ids, counts = tr.track_id.unique(return_counts=True)
+    long = ids[counts >= 3]
+    assert long.numel() > 100
+    worst = 0.0
+    for i in long[torch.linspace(0, long.numel() - 1, 60).long()].tolist():
+        rows = (tr.track_id == i).nonzero().squeeze(-1)
+        P = [K @ torch.cat((R, t.unsqueeze(-1)), -1) for R, t in (poses[float(tr.t_s[r])] for r in rows)]
+        A = torch.cat([torch.stack((uv[0] * Pj[2] - Pj[0], uv[1] * Pj[2] - Pj[1]))
+                       for uv, Pj in zip(tr.uv_px[rows], P)])
+        X = torch.linalg.svd(A).Vh[-1]
+        for uv, Pj in zip(tr.uv_px[rows], P):
+            x = Pj @ X
+            worst = max(worst, float((x[:2] / x[2] - uv).abs().max()))
+    assert worst < 1e-3
+
+
+def test_a_written_track_ends_where_its_point_is_hidden_or_out_of_view(small_simulation):
+    """Rendered again from the walk and seen through the written poses, each observation shows its
+    track's point, and every track that ends before the last frame ends
+    where the next frame does not show its point: beyond the range, outside the image, or hidden,
+    the depth rendered around its pixel not its own (behind a nearer surface or at its edge)."""
+    from flowins.data.simulate.render import render
+    from flowins.data.simulate.scenario import CameraTrajectory
+    from flowins.data.simulate.world import build_city
+    from flowins.data.synthetic import Walk, WalkConfig
+
+    config, _, seq = small_simulation
+    walk = Walk(WalkConfig(duration_s=config.duration_s))
+    city = build_city(walk, seed=config.seed)
+    trajectory = CameraTrajectory(walk, config.camera.imu_to_camera())
+    tr, cam, t_frames = seq.tracks, seq.camera, seq.frames.t_s
+    R_all, p_all = trajectory.pose(t_frames)
+    frame_of = torch.searchsorted(t_frames, tr.t_s - 1e-9)
+    renders: dict = {}
+
+    def shot(f: int):
+        if f not in renders:
+            renders[f] = render(city, cam, R_all[f], p_all[f], float(t_frames[f]))
+        return renders[f]
+
+    def point_of(row: int) -> torch.Tensor:
+        """The track's world point: the scene at its first (whole) pixel."""
+        first = int((tr.track_id == tr.track_id[row]).nonzero()[0])
+        u0, v0 = tr.uv_px[first].long().tolist()
+        return shot(int(frame_of[first])).point[v0, u0]
+
+    def seen(X: torch.Tensor, f: int, slack_px: float) -> tuple[bool, bool]:
+        """Whether ``X`` is inside frame ``f``'s image and range, and shown there: the inverse depth
+        interpolated between the four pixels around it (exact on a plane) is its own within 1 %.
+        ``slack_px``: how far past the 1 px border still counts as inside (the written poses hold
+        the pixels to 1e-3 px)."""
+        R, t = _camera_from_world(seq, float(t_frames[f]))
+        X_c = R @ X + t
+        u, v = cam.fx * X_c[0] / X_c[2] + cam.cx, cam.fy * X_c[1] / X_c[2] + cam.cy
+        lo = 1 - slack_px
+        inside = bool(0 < X_c[2] <= config.tracks.max_depth_m) and lo <= u <= cam.width - 1 - lo and lo <= v <= cam.height - 1 - lo
+        if not inside:
+            return False, False
+        i, j = min(int(v), cam.height - 2), min(int(u), cam.width - 2)
+        a, b = float(v) - i, float(u) - j
+        inv = 1.0 / shot(f).depth[i:i + 2, j:j + 2].double()
+        inv = (1 - a) * ((1 - b) * inv[0, 0] + b * inv[0, 1]) + a * ((1 - b) * inv[1, 0] + b * inv[1, 1])
+        return True, bool((inv - 1.0 / X_c[2]).abs() <= 0.01 / X_c[2])
+
+    ended_hidden = ended_outside = 0
+    for f in range(25, 48):  # walking
+        later = set(tr.track_id[frame_of == f + 1].tolist())
+        for row in (frame_of == f).nonzero().squeeze(-1).tolist():
+            X = point_of(row)
+            assert seen(X, f, 1e-3) == (True, True)
+            if int(tr.track_id[row]) in later:
+                continue
+            inside, shown = seen(X, f + 1, -1e-3)
+            if not inside:
+                ended_outside += 1
+            else:  # hidden: behind a nearer surface, or at its edge
+                assert not shown
+                ended_hidden += 1
+    assert ended_outside + ended_hidden > 10
+
+
+def test_fresh_track_pixels_take_one_static_pixel_per_free_cell():
+    from flowins.data.simulate.tracks import fresh_pixels
+
+    static = torch.zeros(40, 64, dtype=torch.bool)
+    static[:, 16:] = True  # the left quarter is not static (sky, a mover)
+    taken = torch.tensor([[20.0, 3.0], [45.5, 30.2]])  # cells (2, 0) and (5, 3) hold tracked points
+    uv = fresh_pixels(static, taken, need=1000, cell_px=8, generator=torch.Generator().manual_seed(0))
+    cells = (uv[:, 1] // 8) * 8 + uv[:, 0] // 8
+    assert bool(static[uv[:, 1], uv[:, 0]].all())
+    assert cells.unique().numel() == cells.numel() == 6 * 5 - 2  # every free static cell once
+    assert not bool(((cells == 2) | (cells == 3 * 8 + 5)).any())
+    few = fresh_pixels(static, taken, need=5, cell_px=8, generator=torch.Generator().manual_seed(1))
+    assert few.shape == (5, 2)
 
 
 def test_written_flow_warps_the_written_frames(small_simulation):

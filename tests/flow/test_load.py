@@ -107,6 +107,25 @@ def test_unchanged_contents_are_read_back_wherever_they_lie(recording, tmp_path,
     assert len(list((cache / "flow").glob("dense-*.npz"))) == 1
 
 
+def test_changed_tracks_leave_the_dense_flow_in_the_cache(recording, tmp_path, caplog):
+    """The dense flow is computed from the frames alone: a recording whose ``tracks.csv`` is
+    edited (a pixel moved) or removed reads it back, and it equals an empty cache's."""
+    cache = tmp_path / "cache"
+    rec = _copy(recording, tmp_path / "rec")
+    first, cached = _dense_flow(rec, cache, caplog)
+    assert not cached
+    lines = (rec / "tracks.csv").read_text().splitlines()
+    t, i, u, v = lines[5].split(",")
+    lines[5] = ",".join((t, i, str(float(u) + 0.5), v))
+    (rec / "tracks.csv").write_text("\n".join(lines) + "\n")
+    edited, cached = _dense_flow(rec, cache, caplog)
+    assert cached and _same(first, edited)
+    (rec / "tracks.csv").unlink()
+    without, cached = _dense_flow(rec, cache, caplog)
+    assert cached and _same(first, without)
+    assert _same(first, _dense_flow(rec, tmp_path / "empty-cache", caplog)[0])
+
+
 def test_a_corrupted_image_is_an_error_even_with_a_warm_cache(recording, tmp_path, caplog):
     cache = tmp_path / "cache"
     _dense_flow(_copy(recording, tmp_path / "rec"), cache, caplog)

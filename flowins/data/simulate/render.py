@@ -405,7 +405,7 @@ def render(
     return Render(image, depth, object_id, point)
 
 
-def _bilinear(image: Tensor, u: Tensor, v: Tensor) -> Tensor:
+def bilinear(image: Tensor, u: Tensor, v: Tensor) -> Tensor:
     """Bilinear sample of ``image`` ``(H, W)`` at pixels ``(u, v)`` (clamped into ``[0, W-1] x [0, H-1]``)."""
     h, w = image.shape
     u = u.clamp(0, w - 1)
@@ -475,7 +475,7 @@ def exact_flow(
     flow = torch.stack((u2 - u1, v2 - v1), -1)
     flow = torch.where(front.unsqueeze(-1), flow, torch.nan).reshape(h, w, 2)
     inside = (u2 >= 0) & (u2 <= w - 1) & (v2 >= 0) & (v2 <= h - 1)
-    sampled = _bilinear(1.0 / render2.depth.to(torch.float64), u2, v2)  # inverse depth: 0 for sky
+    sampled = bilinear(1.0 / render2.depth.to(torch.float64), u2, v2)  # inverse depth: 0 for sky
     visible = (sampled - inv_z2).abs() <= depth_tolerance * inv_z2
     sky = (oid < 0).reshape(h, w)
     valid = (front & inside & visible).reshape(h, w) & ~sky

@@ -32,6 +32,7 @@ from flowins.progress import progress as track_progress
 from flowins.cache import cache_root, content_key, library_versions, source_digest
 from flowins.data.sequence import CameraFrames, PinholeCamera, Sequence
 from flowins.data.simulate.gnss import GnssErrors, simulate_fixes
+from flowins.data.simulate.tracks import RenderedTracker, TrackConfig
 from flowins.data.streams import GnssStream, ImuStream, PoseStream
 from flowins.data.synthetic import (
     ImuErrors,
@@ -50,6 +51,8 @@ from flowins.constants import STANDARD_GRAVITY_MPS2
 
 #: the code that generates a simulation: part of its key
 SIMULATOR_CODE = ("flowins.data", "flowins.geometry", "flowins.ins.mechanization", "flowins.constants")
+#: added to the seed for the tracks' generator
+_TRACKS_SEED = 7_919_000
 #: the completion marker: the key and every file written, with its size and modification time
 MARKER = ".simulation-complete"
 
@@ -100,6 +103,8 @@ class SimulationConfig:
     origin: tuple[float, float, float] = (60.1699, 24.9384, 20.0)  # Helsinki centre, ellipsoidal height
     #: write the exact flow of every n-th consecutive frame pair (0: none)
     flow_every: int = 1
+    #: ``tracks.csv``: static scene points followed through the frames (``count=0``: none)
+    tracks: TrackConfig = field(default_factory=TrackConfig)
     gravity_mps2: float = STANDARD_GRAVITY_MPS2
 
     def __post_init__(self) -> None:
@@ -243,7 +248,9 @@ def simulate(
 
     # frames and exact flow
     t_frames = torch.arange(0.0, t_end, 1.0 / config.camera.rate_hz, dtype=torch.float64)
-    files = _render_frames(city, camera, trajectory, t_frames, t_end, config, out, progress=progress)
+    # the tracks draw from their own generator: the IMU, GNSS and images do not depend on them
+    tracker = RenderedTracker(camera, config.tracks, torch.Generator().manual_seed(_TRACKS_SEED + config.seed))
+    files = _render_frames(city, camera, trajectory, t_frames, t_end, config, out, tracker, progress=progress)
 
     metadata = _metadata(config, key, imu_truth, multipath)
     sequence = Sequence(
@@ -252,6 +259,7 @@ def simulate(
         camera=camera,
         imu_to_camera=imu_to_camera,
         frames=CameraFrames(t_frames, files=tuple(files), name="simulated frames"),
+        tracks=tracker.tracks() if config.tracks.count else None,
         gnss=GnssStream(t_gnss, lat, lon, alt, h_acc, v_acc, name="simulated GNSS"),
         groundtruth=PoseStream(t_gt, walk.position(t_gt), walk.quaternion(t_gt), name="simulated ground truth"),
         metadata=metadata,
@@ -262,10 +270,10 @@ def simulate(
 
 
 def _render_frames(city: Any, camera: Any, trajectory: CameraTrajectory, t_frames: Tensor, t_end: float,
-                   config: SimulationConfig, out: Path, *, progress: bool) -> list[Path]:
+                   config: SimulationConfig, out: Path, tracker: RenderedTracker, *, progress: bool) -> list[Path]:
     """Render every frame into ``out/frames`` (and, every ``config.flow_every`` frames, the
-    exact flow to the next into ``out/flow``); the image files, in order. ``t_end``: the
-    last IMU time, where a motion-blurred exposure's sub-frame poses are clamped."""
+    exact flow to the next into ``out/flow``), and give each to ``tracker``; the image files, in
+    order. ``t_end``: the last IMU time, where a motion-blurred exposure's sub-frame poses are clamped."""
     from flowins.data.simulate.render import exact_flow, render
 
     frame_dir = out / "frames"
@@ -287,6 +295,8 @@ def _render_frames(city: Any, camera: Any, trajectory: CameraTrajectory, t_frame
             R_sub, p_sub = trajectory.pose(t_sub)
             blur = tuple((R_sub[j], p_sub[j], float(t_sub[j])) for j in range(4))
         frame = render(city, camera, R_all[i], p_all[i], t, exposure=exposure_gain(config.camera, t), motion_blur=blur)
+        if config.tracks.count:
+            tracker.add(t, frame.depth, frame.object_id, frame.point, R_all[i], p_all[i])
         image = frame.image.numpy()
         path = frame_dir / f"{i:06d}.png"
         cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
@@ -330,6 +340,8 @@ def _metadata(config: SimulationConfig, key: str, imu_truth: dict[str, Tensor], 
             if config.flow_every
             else "not written"
         ),
+        "tracks": (f"tracks.csv: static scene points followed while seen ({config.tracks.count} per frame, "
+                   f"{config.tracks.noise_px} px noise)" if config.tracks.count else "not written"),
         "name": f"simulated city walk (seed {config.seed})",  # the folder's name is the cache key
     }
 
