@@ -113,6 +113,10 @@ class Gate:
         threshold: explicit NIS threshold (float or a learnable tensor); overrides
             ``probability``.
         softness: width of the soft gate in NIS units (float or tensor).
+        scale: multiplies the threshold ``χ²_dof(probability)`` (float or a learnable tensor):
+            one learnable factor for blocks of differing degrees of freedom (the sparse
+            tracks' ``2m - 3``), where one threshold would not fit them all. Not used with
+            an explicit ``threshold``.
 
     A weight ``w`` multiplies the measurement's innovation rows and Jacobian rows,
     which is exactly an update with noise ``R / w²``: ``w = 0`` adds no information
@@ -123,6 +127,7 @@ class Gate:
     probability: float = 0.999
     threshold: float | Tensor | None = None
     softness: float | Tensor = 1.0
+    scale: float | Tensor = 1.0
 
     def __post_init__(self) -> None:
         if self.mode not in ("hard", "soft", "off"):
@@ -137,8 +142,12 @@ class Gate:
             return self.threshold
         if isinstance(dof, Tensor):  # chi2_quantile keeps each (probability, dof) it computed
             thresholds = [chi2_quantile(self.probability, max(int(d), 1)) for d in dof.reshape(-1).tolist()]
-            return torch.tensor(thresholds, dtype=torch.float64, device=dof.device).reshape(dof.shape)
-        return chi2_quantile(self.probability, dof)
+            quantile = torch.tensor(thresholds, dtype=torch.float64, device=dof.device).reshape(dof.shape)
+        else:
+            quantile = chi2_quantile(self.probability, dof)
+        if isinstance(self.scale, Tensor) or self.scale != 1.0:
+            return quantile * self.scale
+        return quantile
 
     def weights(self, nis: Tensor, dof: int | Tensor) -> Tensor:
         """Weights in ``[0, 1]`` with the shape of ``nis`` (``dof`` an int, or one per block)."""

@@ -47,6 +47,9 @@ The parameters (units of the filter config, ``configs/filter/default.yaml``):
 ``*_gate_threshold``,       the χ² gates of the flow points and the GNSS fixes: soft
 ``*_gate_softness``         (``sigmoid((threshold - NIS) / softness)``) while training,
                             hard (``NIS <= threshold``) at inference
+``tracks_gate_scale``,      the χ² gate of the multi-view tracks, whose degrees of freedom
+``tracks_gate_softness``    differ by track: ``threshold = scale · χ²_dof(probability)``,
+                            soft while training and hard at inference as above
 ==========================  ==========================================================
 """
 from __future__ import annotations
@@ -93,10 +96,13 @@ _FIELDS: dict[str, tuple[str, str]] = {
     "vehicle_lateral_sigma_mps": ("vehicle", "lateral_sigma_mps"),
     "vehicle_vertical_sigma_mps": ("vehicle", "vertical_sigma_mps"),
     "tracks_sigma_px": ("tracks", "sigma_px"),
+    "tracks_gate_scale": ("gate", "tracks"),
+    "tracks_gate_softness": ("gate", "tracks"),
     "dropout_p": ("dropout", "p"),
 }
 #: names a checkpoint written before they existed lacks: it loads with their defaults
-ADDED_NAMES: frozenset[str] = frozenset({"vehicle_lateral_sigma_mps", "vehicle_vertical_sigma_mps", "tracks_sigma_px"})
+ADDED_NAMES: frozenset[str] = frozenset({"vehicle_lateral_sigma_mps", "vehicle_vertical_sigma_mps", "tracks_sigma_px",
+                                         "tracks_gate_scale", "tracks_gate_softness"})
 NAMES: tuple[str, ...] = tuple(_FIELDS)
 #: the noise parameters (what a "mis-tuned" start multiplies)
 NOISE_NAMES: tuple[str, ...] = (
@@ -250,9 +256,10 @@ def starting_values(config: NavigationConfig, *, dropout_p: float = 0.2) -> dict
         elif where == "tracks":
             value = getattr(config.tracks, field)
         elif where == "gate":
-            gate = config.flow_update.gate if field == "flow" else config.gnss_gate
+            gate = {"flow": config.flow_update.gate, "gnss": config.gnss_gate, "tracks": config.tracks.gate}[field]
             dof = 1 if field == "flow" else 3  # one epipolar scalar per point; a 3-D fix
-            value = gate.threshold_for(dof) if name.endswith("threshold") else gate.softness
+            value = (gate.threshold_for(dof) if name.endswith("threshold")
+                     else gate.scale if name.endswith("scale") else gate.softness)
         else:
             value = dropout_p
         out[name] = float(torch.as_tensor(value, dtype=torch.float64).detach())
@@ -353,6 +360,9 @@ class FilterParameters(nn.Module):
         def gate(kind: str, base: Gate) -> Gate:
             if base.mode == "off":
                 return base
+            if kind == "tracks":  # a factor on χ²_dof(probability): the tracks' dof differ
+                return Gate(mode="soft" if training else "hard", probability=base.probability,
+                            scale=v["tracks_gate_scale"], softness=v["tracks_gate_softness"])
             return Gate(mode="soft" if training else "hard", probability=base.probability,
                         threshold=v[f"{kind}_gate_threshold"], softness=v[f"{kind}_gate_softness"])
 
@@ -363,7 +373,8 @@ class FilterParameters(nn.Module):
         return replace(config, noise=noise, initial=initial, gnss_noise_scale=v["gnss_noise_scale"],
                        device=config.device if device is None else device,
                        gnss_gate=gate("gnss", config.gnss_gate), flow_update=flow,
-                       tracks=replace(config.tracks, sigma_px=v["tracks_sigma_px"]),
+                       tracks=replace(config.tracks, sigma_px=v["tracks_sigma_px"],
+                                      gate=gate("tracks", config.tracks.gate)),
                        measurements={**config.measurements, "vehicle": vehicle})
 
     @classmethod

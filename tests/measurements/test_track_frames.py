@@ -143,6 +143,33 @@ def test_gradient_of_the_track_noise_matches_finite_differences():
     torch.testing.assert_close(grad, numeric, rtol=1e-4, atol=0)
 
 
+def test_gradient_of_the_soft_track_gate_matches_finite_differences():
+    """The track gate is learnable (``train.py``'s ``tracks_gate_scale``, ``tracks_gate_softness``):
+    with the soft gate ``sigmoid((scale χ²_dof(p) - NIS) / softness)`` and a scale that puts the
+    threshold among the tracks' NIS (so that the weights are neither 0 nor 1), d(position error²)
+    with respect to the scale and the softness through the filter against central differences."""
+    walk, t_imu, acc, gyro, tracks = _scene(seed=3, noise_px=0.3)
+    keep = t_imu <= T0 + 4.0
+    t_imu, acc, gyro = t_imu[keep], acc[keep], gyro[keep]
+
+    def loss(scale, softness):
+        gate = Gate(mode="soft", probability=0.5, scale=scale, softness=softness)
+        update = TrackUpdate(window=3, sigma_px=0.3, gate=gate)
+        events = track_frames(tracks, CAMERA, update, t_min_s=T0, t_max_s=float(t_imu[-1]))
+        track = _run(walk, t_imu, acc, gyro, events, window=3, velocity_error=(0.2, 0.0, 0.0))
+        truth = _truth(walk, track.t)
+        return ((track.mean[:, STATE.p] - truth[:, STATE.p]) ** 2).sum()
+
+    point = torch.tensor([0.8, 2.0], dtype=torch.float64, requires_grad=True)
+    grad = torch.autograd.grad(loss(point[0], point[1]), point)[0]
+    h = 1e-5
+    with torch.no_grad():
+        numeric = torch.stack([(loss(*(point + h * e)) - loss(*(point - h * e))) / (2 * h)
+                               for e in torch.eye(2, dtype=torch.float64)])
+    assert bool((grad.abs() > 1e-7).all()), grad
+    torch.testing.assert_close(grad, numeric, rtol=1e-4, atol=0)
+
+
 def test_the_track_update_on_another_device_is_the_cpu_run(fake_device):
     """Track frames (window 3), their window shifts and the smoother on the fake device of
     ``conftest.FakeDevice``: no op meets a CPU tensor there, and the numbers are the CPU run's."""

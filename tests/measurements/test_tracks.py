@@ -243,6 +243,9 @@ def test_gate_tests_each_track_on_its_own_degrees_of_freedom():
     nis = threshold - 1e-6
     assert gate.weights(nis, dof).tolist() == [1.0, 1.0, 1.0]
     assert gate.weights(nis + 2e-6, dof).tolist() == [0.0, 0.0, 0.0]
+    # a scale (the learnable factor of train.py's tracks_gate_scale) multiplies every dof's threshold
+    scaled = Gate(probability=0.99, scale=torch.tensor(1.5, dtype=torch.float64)).threshold_for(dof)
+    assert scaled.tolist() == pytest.approx([1.5 * chi2_quantile(0.99, d) for d in (1, 3, 7)])
 
 
 def test_degenerate_tracks_are_left_out_without_nan():

@@ -354,7 +354,8 @@ def test_gradients_are_finite_through_a_300_step_unroll(walk_segment):
     # the default pose step is the σ -> ∞ limit ("limit"): the forgetting variances take no part,
     # a walk is no vehicle: the vehicle constraint's σs neither; dense flow, no tracks: nor the tracks' σ
     assert {n for n, g in grads.items() if g is None} == {"sigma_p0", "sigma_q0", "vehicle_lateral_sigma_mps",
-                                                          "vehicle_vertical_sigma_mps", "tracks_sigma_px"}
+                                                          "vehicle_vertical_sigma_mps", "tracks_sigma_px",
+                                                          "tracks_gate_scale", "tracks_gate_softness"}
     grads = {n: g for n, g in grads.items() if g is not None}
     assert all(bool(torch.isfinite(g)) for g in grads.values()), grads
     assert sum(float(g.abs()) > 1e-12 for g in grads.values()) >= 10, grads
@@ -471,7 +472,7 @@ def test_gradients_stay_finite_through_degenerate_flow_geometry(case):
     # no path: the limit pose step (σ_p0, σ_q0), no dropout moments, no vehicle constraint; with no valid
     # point, the flow noise and gate
     unused = {"sigma_p0", "sigma_q0", "dropout_p", "vehicle_lateral_sigma_mps", "vehicle_vertical_sigma_mps",
-              "tracks_sigma_px"}
+              "tracks_sigma_px", "tracks_gate_scale", "tracks_gate_softness"}
     if n_valid == 0:
         unused |= {"flow_sigma_scale", "flow_sigma_floor_px", "flow_gate_threshold", "flow_gate_softness"}
     assert {n for n, g in grads.items() if g is None} == unused

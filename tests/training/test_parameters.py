@@ -589,7 +589,9 @@ def test_a_checkpoint_from_before_the_vehicle_constraint_loads_it_at_its_default
     loaded = FilterParameters.from_checkpoint(tmp_path / "old.ckpt").values()
     for name in NAMES:
         if name in ADDED_NAMES:  # the settings' own defaults
-            default = TrackUpdate().sigma_px if name == "tracks_sigma_px" else getattr(VehicleSettings(), name.removeprefix("vehicle_"))
+            default = (TrackUpdate().sigma_px if name == "tracks_sigma_px"
+                       else getattr(TrackUpdate().gate, name.removeprefix("tracks_gate_")) if name.startswith("tracks_gate")
+                       else getattr(VehicleSettings(), name.removeprefix("vehicle_")))
             assert loaded[name] == pytest.approx(default, rel=1e-12)
         else:
             assert loaded[name] == pytest.approx(params.values()[name], rel=1e-12), name
