@@ -42,7 +42,7 @@ from pytorch_lightning.trainer.states import TrainerFn
 from flowins.navigation import NavigationConfig
 from flowins.training.parameters import FilterParameters, ModelSettings
 from flowins.training.schedule import learning_rate, window_length
-from flowins.training.unroll import TrainingSequence, run_windows, sequences_rmse, window_bounds, window_loss
+from flowins.training.unroll import TrainingSequence, run_windows, sequences_errors, window_bounds, window_loss
 
 log = logging.getLogger("flowins")
 
@@ -104,6 +104,7 @@ class FilterLearner(pl.LightningModule):
         self._first_validation: float | None = None  # time.monotonic() of the first, for the log lines
         self._heldout: dict[str, dict[str, list[float]]] = {}
         self._heldout_select: dict[str, dict[str, list[float]]] = {}
+        self._heldout_select_smoother: dict[str, dict[str, list[float]]] = {}
         self.save_hyperparameters({"methods": self.methods, "window_s": self.window_s,
                                    "curriculum_window_s": self.curriculum, "nll_weight": self.nll_weight,
                                    "orientation_weight_m_per_rad": self.orientation_weight,
@@ -252,20 +253,27 @@ class FilterLearner(pl.LightningModule):
 
     def _batch_rmse(self, seqs: Sequence[TrainingSequence], method: str, params: FilterParameters) -> list[float]:
         """The filter RMSE (m) of ``method`` over each whole sequence of ``seqs`` with ``params``
-        (hard gates, no gradient) after the SE(3) alignment of Table I, as
-        :func:`~flowins.training.unroll.sequence_rmse` computes it for one; the sequences of
-        one kind of flow (with or without dropout moments) run in one batched filter pass
-        (:func:`~flowins.training.unroll.run_windows`)."""
+        (:meth:`_batch_errors` without the smoother)."""
+        return [filtered for filtered, _ in self._batch_errors(seqs, method, params, smoother=False)]
+
+    def _batch_errors(self, seqs: Sequence[TrainingSequence], method: str, params: FilterParameters, *,
+                      smoother: bool) -> list[tuple[float, float]]:
+        """The filter and smoother RMSE (m) of ``method`` over each whole sequence of ``seqs`` with
+        ``params`` (hard gates, no gradient) after the SE(3) alignment of Table I, as
+        :func:`~flowins.training.unroll.sequences_errors` computes them (the smoother's NaN
+        without ``smoother``); the sequences of one kind of flow (with or without dropout
+        moments) run in one batched filter pass."""
         config = params.apply(self.base, training=False, device=self.device)
-        rmse = [math.nan] * len(seqs)
+        errors = [(math.nan, math.nan)] * len(seqs)
         for moments in (False, True):
             rows = [k for k, seq in enumerate(seqs) if _has_moments(seq, method) == moments]
             if not rows:
                 continue
             p = float(params.value("dropout_p").detach()) if moments else None
-            for k, value in zip(rows, sequences_rmse([seqs[k] for k in rows], method, config, dropout_p=p)):
-                rmse[k] = value
-        return rmse
+            for k, value in zip(rows, sequences_errors([seqs[k] for k in rows], method, config, dropout_p=p,
+                                                       smoother=smoother)):
+                errors[k] = value
+        return errors
 
     def _select_sequences(self) -> list[TrainingSequence]:
         return list(getattr(self.trainer.datamodule, "select_sequences", []))
@@ -342,15 +350,21 @@ class FilterLearner(pl.LightningModule):
                 self.log(f"test/{label}/{method}/filter_rmse_m", rmse, on_epoch=True, batch_size=1, sync_dist=True)
 
     def on_test_epoch_end(self) -> None:
-        if self._select_sequences():
+        seqs = self._select_sequences()
+        if seqs:  # the long held-out walks, filter and smoother
             for label, params in self._candidates().items():
-                self._heldout_select[label] = self._select_rmse(params)
-                for method, values in self._heldout_select[label].items():
-                    self.log(f"test/{label}/select/{method}/filter_rmse_m", sum(values) / len(values), batch_size=1,
-                             sync_dist=True)
-        table = heldout_table(self._heldout, self.methods, self._heldout_select)
+                for method in self.methods:
+                    errors = self._batch_errors(seqs, method, params, smoother=True)
+                    filtered, smoothed = [e[0] for e in errors], [e[1] for e in errors]
+                    self._heldout_select.setdefault(label, {})[method] = filtered
+                    self._heldout_select_smoother.setdefault(label, {})[method] = smoothed
+                    for kind, values in (("filter", filtered), ("smoother", smoothed)):
+                        self.log(f"test/{label}/select/{method}/{kind}_rmse_m", sum(values) / len(values),
+                                 batch_size=1, sync_dist=True)
+        table = heldout_table(self._heldout, self.methods, self._heldout_select, self._heldout_select_smoother)
         log.info("\nheld-out filter RMSE (m, Table I alignment), mean over the held-out sequences"
-                 + ("; select: mean ± std over the data.select sequences" if self._heldout_select else "") + "\n")
+                 + ("; select: filter / smoother, mean ± std over the data.select sequences"
+                    if self._heldout_select else "") + "\n")
         log.info(table)
         if self.output_dir and self.trainer.is_global_zero:
             out = Path(self.output_dir)
@@ -358,6 +372,7 @@ class FilterLearner(pl.LightningModule):
             report = {"rmse_m": self._heldout, "learned_values": self.params.values(), "reference": self.reference}
             if self._heldout_select:
                 report["select_rmse_m"] = self._heldout_select
+                report["select_smoother_rmse_m"] = self._heldout_select_smoother
             (out / "heldout.json").write_text(json.dumps(report, indent=2))
             (out / "heldout.txt").write_text(table + "\n")
 
@@ -388,28 +403,41 @@ def _mean_std(values: Sequence[float]) -> str:
 
 
 def heldout_table(results: Mapping[str, Mapping[str, list[float]]], methods: Sequence[str],
-                  select: Mapping[str, Mapping[str, list[float]]] | None = None) -> str:
+                  select: Mapping[str, Mapping[str, list[float]]] | None = None,
+                  select_smoother: Mapping[str, Mapping[str, list[float]]] | None = None) -> str:
     """Fixed-width table: one row per parameter set, one column per method (mean RMSE over
     the held-out sequences) and, with ``select`` (``{label: {method: [RMSE]}}``), one more
-    column per method: mean ± std over the ``select`` sequences."""
-    select = select or {}
+    column per method: mean ± std over the ``select`` sequences, followed by the smoother's
+    where ``select_smoother`` (the same shape) has them."""
+    select, smoother = select or {}, select_smoother or {}
     extra = [m for m in methods if any(m in per_method for per_method in select.values())]
+    both = bool(smoother)
+    width = 40 if both else 26
     lines = [f"{'parameters':<14}" + "".join(f"{m:>18}" for m in methods)
-             + "".join(f"{'select ' + m:>26}" for m in extra)]
+             + "".join(f"{'select ' + m + (' filter / smoother' if both else ''):>{width}}" for m in extra)]
     for label in list(dict.fromkeys([*results, *select])):
-        per_method, long = results.get(label, {}), select.get(label, {})
+        per_method, long, long_s = results.get(label, {}), select.get(label, {}), smoother.get(label, {})
         cells = []
         for m in methods:
             v = per_method.get(m, [])
             cells.append(f"{sum(v) / len(v):>16.2f} m" if v else f"{'n/a':>18}")
-        cells += [f"{_mean_std(long[m]):>26}" if long.get(m) else f"{'n/a':>26}" for m in extra]
+        for m in extra:
+            cell = _mean_std(long[m]) if long.get(m) else "n/a"
+            if both:
+                cell = cell.removesuffix(" m") + " / " + (_mean_std(long_s[m]) if long_s.get(m) else "n/a")
+            cells.append(f"{cell:>{width}}")
         lines.append(f"{label:<14}" + "".join(cells))
-    change = []
-    for columns, width in ((results, 18), (select, 26)):
-        for m in (methods if columns is results else extra):
-            a, b = columns.get("start", {}).get(m), columns.get("learned", {}).get(m)
-            change.append(f"{100 * (1 - (sum(b) / len(b)) / (sum(a) / len(a))):>{width - 2}.1f} %" if a and b
-                          else f"{'':>{width}}")
+
+    def reduction(columns: Mapping[str, Mapping[str, list[float]]], m: str) -> str:
+        a, b = columns.get("start", {}).get(m), columns.get("learned", {}).get(m)
+        return f"{100 * (1 - (sum(b) / len(b)) / (sum(a) / len(a))):.1f} %" if a and b else ""
+
+    change = [f"{reduction(results, m):>18}" for m in methods]
+    for m in extra:
+        cell = reduction(select, m)
+        if both and cell:
+            cell = cell.removesuffix(" %") + " / " + (reduction(smoother, m) or "n/a")
+        change.append(f"{cell:>{width}}")
     if ("start" in results and "learned" in results) or ("start" in select and "learned" in select):
         lines.append(f"{'reduction':<14}" + "".join(change))
     return "\n".join(lines)

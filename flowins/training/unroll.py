@@ -34,6 +34,7 @@ from flowins.evaluation.metrics import (
 )
 from flowins.filter.chain import NodeTrack
 from flowins.filter.runner import FilterInput, run_filters
+from flowins.filter.smoother import rts_smooth
 from flowins.flow.pairs import FlowPairs
 from flowins.measurements.flow import FlowCamera
 from flowins.navigation import NavigationConfig, NavigationRun, prepare_navigation
@@ -110,6 +111,8 @@ class WindowResult(NamedTuple):
     #: measurements (:attr:`~flowins.filter.chain.FilterTrack.nll`); None unless asked for
     nll: Tensor | None = None
     nll_count: float = 0.0
+    #: the RTS smoother's nodes over the window (in its final frame); None unless asked for
+    smoothed: NodeTrack | None = None
 
 
 def run_window(
@@ -142,10 +145,12 @@ def run_windows(
     dropout_p: Tensor | float | None = None,
     starts: Sequence[tuple[Tensor, Tensor] | None] | None = None,
     likelihood: bool = False,
+    smooth: bool = False,
 ) -> list[WindowResult]:
     """:func:`run_window` of one window of each sequence, ``seqs[i]`` from ``bounds[i][0]`` to
     ``bounds[i][1]`` starting at ``starts[i]``, all in one batched filter pass
-    (:func:`~flowins.filter.runner.run_filters`)."""
+    (:func:`~flowins.filter.runner.run_filters`); ``smooth``: each with its RTS smoother
+    (:attr:`WindowResult.smoothed`)."""
     starts = [None] * len(seqs) if starts is None else starts
     inputs = []
     for seq, (i_a, i_b), start in zip(seqs, bounds, starts):
@@ -175,7 +180,8 @@ def run_windows(
         inputs.append(FilterInput(imu.t_s[i_a : i_b + 1], imu.acc_mps2[i_a : i_b + 1], imu.gyro_rps[i_a : i_b + 1],
                                   mean0, cov0, events))
     tracks = run_filters(inputs, **config.filter_settings(), likelihood=likelihood)
-    return [WindowResult(track.in_final_frame(), track.node_mean[-1], track.node_cov[-1], track.nll, track.nll_count)
+    return [WindowResult(track.in_final_frame(), track.node_mean[-1], track.node_cov[-1], track.nll, track.nll_count,
+                         rts_smooth(track) if smooth else None)
             for track in tracks]
 
 
@@ -325,10 +331,22 @@ def sequence_rmse(seq: TrainingSequence, method: str, config: NavigationConfig, 
 def sequences_rmse(seqs: Sequence[TrainingSequence], method: str, config: NavigationConfig, *,
                    dropout_p: float | None = None) -> list[float]:
     """:func:`sequence_rmse` of each of ``seqs``, their filters run as one batch (:func:`run_windows`)."""
+    return [filtered for filtered, _ in sequences_errors(seqs, method, config, dropout_p=dropout_p, smoother=False)]
+
+
+def sequences_errors(seqs: Sequence[TrainingSequence], method: str, config: NavigationConfig, *,
+                     dropout_p: float | None = None, smoother: bool = True) -> list[tuple[float, float]]:
+    """The filter and the RTS smoother RMSE (m) of ``method`` over each whole sequence of ``seqs``
+    after the SE(3) alignment of Table I, their filters run as one batch (:func:`run_windows`), no
+    gradient; ``smoother=False``: the filter alone (the smoother's RMSE is NaN)."""
     from flowins.evaluation.metrics import trajectory_errors
+
+    def rmse(track: NodeTrack, seq: TrainingSequence) -> float:
+        return float(trajectory_errors(track.t, track.mean[:, STATE.p], seq.truth.t_s, seq.truth.pos_m,
+                                       align="se3").rmse_m)
 
     with torch.no_grad():
         results = run_windows(list(seqs), method, config, [(0, seq.imu.t_s.shape[0] - 1) for seq in seqs],
-                              dropout_p=dropout_p)
-        return [float(trajectory_errors(result.track.t, result.track.mean[:, STATE.p], seq.truth.t_s, seq.truth.pos_m,
-                                        align="se3").rmse_m) for seq, result in zip(seqs, results)]
+                              dropout_p=dropout_p, smooth=smoother)
+        return [(rmse(result.track, seq), rmse(result.smoothed, seq) if smoother else float("nan"))
+                for seq, result in zip(seqs, results)]

@@ -74,6 +74,13 @@ def test_the_heldout_table_puts_the_select_mean_and_std_beside_the_val_mean():
     # without select sequences the table has the val columns only
     assert heldout_table(val, ["ins_gnss"], {}) == heldout_table(val, ["ins_gnss"])
     assert "select" not in heldout_table(val, ["ins_gnss"])
+    # with the smoother's RMSE the select cell is filter / smoother, and so is its reduction
+    smoother = {"learned": {"ins_gnss": [2.0, 2.0, 2.0]}, "start": {"ins_gnss": [4.0, 5.0, 6.0]}}
+    lines = heldout_table(val, ["ins_gnss"], select, smoother).splitlines()
+    assert lines[0].split() == ["parameters", "ins_gnss", "select", "ins_gnss", "filter", "/", "smoother"]
+    assert lines[1].split() == ["learned", "1.50", "m", "5.00", "±", "1.63", "/", "2.00", "±", "0.00", "m"]
+    assert lines[2].split() == ["start", "3.00", "m", "5.00", "±", "0.00", "/", "5.00", "±", "0.82", "m"]
+    assert lines[3].split() == ["reduction", "50.0", "%", "0.0", "/", "60.0", "%"]
 
 
 def test_accumulated_windows_take_one_adam_step_on_their_mean_gradient(tmp_path):

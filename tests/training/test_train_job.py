@@ -183,11 +183,18 @@ def test_select_sequences_choose_the_checkpoint_on_their_rmse_each_computed_as_a
     assert held["select_rmse_m"]["start"]["ins_gnss"] == pytest.approx(history[0]["select_rmse_m"]["ins_gnss"],
                                                                        rel=1e-9)
     learned = np.array(chosen["select_rmse_m"]["ins_gnss"])
+    # the smoother over the select sequences, with the chosen parameters, beside the filter
+    from flowins.training.unroll import sequences_errors
+
+    config = FilterParameters.from_checkpoint(out / "checkpoints" / "best.ckpt").apply(base, training=False)
+    smoothed = np.array([e[1] for e in sequences_errors(seqs, "ins_gnss", config)])
+    assert held["select_smoother_rmse_m"]["learned"]["ins_gnss"] == pytest.approx(smoothed.tolist(), rel=1e-9)
     row = next(line for line in (out / "heldout.txt").read_text().splitlines() if line.startswith("learned"))
-    assert row.split()[-4:] == [f"{learned.mean():.2f}", "±", f"{learned.std():.2f}", "m"]
+    assert row.split()[-8:] == [f"{learned.mean():.2f}", "±", f"{learned.std():.2f}", "/",
+                                f"{smoothed.mean():.2f}", "±", f"{smoothed.std():.2f}", "m"]
     metrics = (out / "csv" / "version_0" / "metrics.csv").read_text().splitlines()[0].split(",")
-    assert {"select/ins_gnss/filter_rmse_m", "select/rmse_mean_m", "test/learned/select/ins_gnss/filter_rmse_m"} \
-        <= set(metrics)
+    assert {"select/ins_gnss/filter_rmse_m", "select/rmse_mean_m", "test/learned/select/ins_gnss/filter_rmse_m",
+            "test/learned/select/ins_gnss/smoother_rmse_m"} <= set(metrics)
 
     # the training itself does not see the select sequences: its validations are those of a run without them
     plain = run(_cfg(workdir / "plain", *GNSS, "data.select=[]"))

@@ -1,5 +1,6 @@
 """The training unroll on another device: windows, their losses and gradients, and the
 held-out RMSE, on the fake device of ``conftest.FakeDevice`` (a GPU's stand-in)."""
+import pytest
 import torch
 
 from flowins.data.synthetic import synthetic_walk_recording
@@ -39,3 +40,27 @@ def test_the_unroll_on_another_device_gives_the_cpu_losses_gradients_and_rmse(fa
         outputs[device] = (torch.stack(values).cpu(), rmse)
     assert torch.equal(outputs["meta"][0], outputs["cpu"][0]) and outputs["meta"][1] == outputs["cpu"][1]
     assert int((outputs["cpu"][0][:, 1:] != 0).sum()) >= 3 * 5  # the gradients reach the parameters
+
+
+def test_the_heldout_filter_and_smoother_rmse_are_those_of_navigate():
+    """:func:`sequences_errors` (the long held-out walks' filter and smoother RMSE) on two walks
+    in one batch: each pair equals :func:`flowins.navigation.navigate` on its walk alone, scored
+    with Table I's SE(3) alignment, and the smoother differs from the filter."""
+    from flowins.evaluation.metrics import trajectory_errors
+    from flowins.navigation import NavigationRun, navigate
+    from flowins.state import STATE
+    from flowins.training.unroll import sequences_errors
+
+    recs = [synthetic_walk_recording(duration_s=d, seed=s) for d, s in ((12.0, 1), (10.0, 2))]
+    seqs = [TrainingSequence(f"walk {k}", r.imu, r.gnss, r.truth) for k, r in enumerate(recs)]
+    config = FilterParameters(starting_values(base := NavigationConfig(gnss_heading=HeadingAlignment(enabled=False))),
+                              learn=()).apply(base, training=False)
+    errors = sequences_errors(seqs, "ins_gnss", config)
+    for seq, (filtered, smoothed) in zip(seqs, errors):
+        result = navigate(NavigationRun(seq.imu, seq.gnss), config=config)
+        expected = [float(trajectory_errors(track.t, track.mean[:, STATE.p], seq.truth.t_s, seq.truth.pos_m,
+                                            align="se3").rmse_m)
+                    for track in (result.filter.in_final_frame(), result.smoother)]
+        assert (filtered, smoothed) == pytest.approx(expected, rel=1e-9)
+        assert abs(smoothed - filtered) > 1e-3 * filtered
+    assert [f for f, _ in errors] == sequences_rmse(seqs, "ins_gnss", config)
