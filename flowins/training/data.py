@@ -14,6 +14,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import pytorch_lightning as pl
+import torch
 from torch.utils.data import DataLoader, Dataset, DistributedSampler
 
 from flowins.data.load import load_recording
@@ -149,7 +150,7 @@ class SequenceDataModule(pl.LightningDataModule):
         return DataLoader(_Sequences(self.sequences[split]), batch_size=None, shuffle=shuffle, collate_fn=_identity)
 
     def train_dataloader(self) -> DataLoader:
-        """Shuffled batches of ``batch_size`` sequences; with several processes (DDP) each
+        """Shuffled batches of ``batch_size`` sequences, in an order that depends on ``seed`` alone; with several processes (DDP) each
         process takes its own share of the sequences (``trainer.use_distributed_sampler`` is
         off, so that every process validates every held-out sequence and the processes agree
         on the best validation)."""
@@ -159,7 +160,10 @@ class SequenceDataModule(pl.LightningDataModule):
             sampler = DistributedSampler(sequences, num_replicas=trainer.world_size, rank=trainer.global_rank,
                                          shuffle=True, seed=self.seed)
             return DataLoader(sequences, batch_size=self.batch_size, sampler=sampler, collate_fn=_as_list)
-        return DataLoader(sequences, batch_size=self.batch_size, shuffle=True, collate_fn=_as_list)
+        # the order comes from its own generator, seeded once: what else draws from torch's global
+        # one (validations, long held-out walks, loading) does not change the training
+        order = torch.Generator().manual_seed(self.seed)
+        return DataLoader(sequences, batch_size=self.batch_size, shuffle=True, collate_fn=_as_list, generator=order)
 
     def val_dataloader(self) -> DataLoader:
         return self._loader("val", False)
