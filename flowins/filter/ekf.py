@@ -145,9 +145,7 @@ class Gate:
             quantile = torch.tensor(thresholds, dtype=torch.float64, device=dof.device).reshape(dof.shape)
         else:
             quantile = chi2_quantile(self.probability, dof)
-        if isinstance(self.scale, Tensor) or self.scale != 1.0:
-            return quantile * self.scale
-        return quantile
+        return quantile * self.scale
 
     def weights(self, nis: Tensor, dof: int | Tensor) -> Tensor:
         """Weights in ``[0, 1]`` with the shape of ``nis`` (``dof`` an int, or one per block)."""

@@ -161,7 +161,7 @@ class SequenceDataModule(pl.LightningDataModule):
                                          shuffle=True, seed=self.seed)
             return DataLoader(sequences, batch_size=self.batch_size, sampler=sampler, collate_fn=_as_list)
         # the order comes from its own generator, seeded once: what else draws from torch's global
-        # one (validations, long held-out walks, loading) does not change the training
+        # one (building each sequence's flow network does) does not change the training
         order = torch.Generator().manual_seed(self.seed)
         return DataLoader(sequences, batch_size=self.batch_size, shuffle=True, collate_fn=_as_list, generator=order)
 
