@@ -1,18 +1,19 @@
 """The ``LightningModule`` that learns the filter's parameters against ground truth.
 
-A training batch is a few sequences (``data.batch_size``). For each method (a row of
-Table I) the filter runs through them window by window, the ``i``-th windows of all the
-batch's sequences in one batched filter pass (:func:`flowins.training.unroll.run_windows`),
-and each state goes on, detached, into its sequence's next window (truncated
-backpropagation through time, with Lightning's manual optimisation). The gradients of
+A training batch is a few sequences (``data.batch_size``), each run under every method (a
+row of Table I): the filter runs through them window by window, the ``i``-th windows of all
+the batch's sequences under all methods in one batched filter pass
+(:func:`flowins.training.unroll.run_windows`), and each state goes on, detached, into its
+row's next window (truncated backpropagation through time, with Lightning's manual
+optimisation). The gradients of
 ``model.accumulate_windows`` such window groups are summed, and one Adam step is taken on
 their mean: the mean over every window of every process, so that two processes (DDP)
 step exactly as one process with both processes' sequences would. The learning rate
 follows :func:`flowins.training.schedule.learning_rate` (warm-up, then a cosine decay over
 the epochs) and the window length :func:`~flowins.training.schedule.window_length` (a
 curriculum of short windows first). Windows whose loss or gradient is not finite are
-skipped and counted (``train/skipped_windows``); the sequence's remaining windows of
-that method are skipped with them when the state itself is no longer finite.
+skipped and counted (``train/skipped_windows``); the row's remaining windows are skipped
+with them when the state itself is no longer finite.
 
 Validation runs every method over each held-out sequence in inference mode (hard
 gates) and logs the filter RMSE after the Table I alignment. Each validation is kept in
@@ -20,7 +21,7 @@ gates) and logs the filter RMSE after the Table I alignment. Each validation is 
 the start before the first step, and :meth:`FilterLearner.select_best` takes the best of
 the start and every epoch. With long held-out sequences ``data.select``
 (:attr:`~flowins.training.data.SequenceDataModule.select_sequences`), each validation also
-runs every method over all of them (one batched filter pass per method), and the best
+runs every method over all of them (one batched filter pass), and the best
 validation is the one with the lowest mean RMSE over those sequences and methods, not the
 ``data.val`` score: parameters that fit short windows best may drift most over long walks.
 ``trainer.test`` prints the held-out table of the starting, the learned (selected) and the
@@ -42,7 +43,14 @@ from pytorch_lightning.trainer.states import TrainerFn
 from flowins.navigation import NavigationConfig
 from flowins.training.parameters import FilterParameters, ModelSettings
 from flowins.training.schedule import learning_rate, window_length
-from flowins.training.unroll import TrainingSequence, run_windows, sequences_errors, window_bounds, window_loss
+from flowins.training.unroll import (
+    TrainingSequence,
+    has_moments,
+    run_windows,
+    sequences_errors,
+    window_bounds,
+    window_loss,
+)
 
 log = logging.getLogger("flowins")
 
@@ -127,64 +135,67 @@ class FilterLearner(pl.LightningModule):
         window = window_length(self.current_epoch, window_s=self.window_s, curriculum=self.curriculum)
         bounds = [window_bounds(seq.imu.t_s, window) for seq in seqs]
         learned = [q for q in self.params.parameters() if q.requires_grad]
-        for method in self.methods:
-            starts: list = [None] * len(seqs)
-            aligned: list = [None] * len(seqs)  # model.loss=start: each sequence's one alignment
-            going = [True] * len(seqs)  # a sequence whose state stopped being finite leaves the batch
-            # every process takes the same number of steps (their batches may differ in windows)
-            f64 = {"dtype": torch.float64, "device": self.device}  # NCCL reduces tensors on the GPU
-            count = int(self._sum_over_processes(torch.tensor([max(len(b) for b in bounds)], **f64),
-                                                 reduce="max")[0])
-            gradient, present, pending = self._no_gradient(learned), torch.zeros(len(learned), **f64), 0
-            for i in range(count):
-                rows = [k for k in range(len(seqs)) if going[k] and i < len(bounds[k])]
-                losses = self._window_losses(seqs, rows, method, [bounds[k][i] for k in rows], starts, going, bounds, i,
-                                             aligned)
-                if losses:
-                    total = torch.stack([w.loss for w in losses]).sum()
-                    grads = (torch.autograd.grad(total, learned, allow_unused=True) if total.requires_grad
-                             else [None] * len(learned))
-                    flat = torch.cat([q.new_zeros(q.numel()) if g is None else g.reshape(-1)
-                                      for q, g in zip(learned, grads)])
-                    if bool(torch.isfinite(flat).all()):
-                        gradient += flat
-                        present += torch.tensor([float(g is not None) for g in grads], **f64)
-                        pending += len(losses)
-                    else:
-                        self._skip(len(losses))
-                    self._log_windows(method, total.detach() / len(losses), losses)
-                if (i + 1) % self.accumulate == 0 or i == count - 1:
-                    self._step(opt, learned, gradient, present, pending)
-                    gradient, present, pending = self._no_gradient(learned), torch.zeros_like(present), 0
+        # one row per sequence and method: the i-th windows of all of them run as one batched filter
+        pairs = [(k, method) for method in self.methods for k in range(len(seqs))]
+        starts: list = [None] * len(pairs)
+        aligned: list = [None] * len(pairs)  # model.loss=start: each row's one alignment
+        going = [True] * len(pairs)  # a row whose state stopped being finite leaves the batch
+        # every process takes the same number of steps (their batches may differ in windows)
+        f64 = {"dtype": torch.float64, "device": self.device}  # NCCL reduces tensors on the GPU
+        count = int(self._sum_over_processes(torch.tensor([max(len(b) for b in bounds)], **f64), reduce="max")[0])
+        gradient, present, pending = self._no_gradient(learned), torch.zeros(len(learned), **f64), 0
+        for i in range(count):
+            rows = [r for r, (k, _) in enumerate(pairs) if going[r] and i < len(bounds[k])]
+            losses = self._window_losses(seqs, pairs, rows, starts, going, bounds, i, aligned)
+            if losses:
+                total = torch.stack([w.loss for _, w in losses]).sum()
+                grads = (torch.autograd.grad(total, learned, allow_unused=True) if total.requires_grad
+                         else [None] * len(learned))
+                flat = torch.cat([q.new_zeros(q.numel()) if g is None else g.reshape(-1)
+                                  for q, g in zip(learned, grads)])
+                if bool(torch.isfinite(flat).all()):
+                    gradient += flat
+                    present += torch.tensor([float(g is not None) for g in grads], **f64)
+                    pending += len(losses)
+                else:
+                    self._skip(len(losses))
+                self._log_windows(total.detach() / len(losses), losses)
+            if (i + 1) % self.accumulate == 0 or i == count - 1:
+                self._step(opt, learned, gradient, present, pending)
+                gradient, present, pending = self._no_gradient(learned), torch.zeros_like(present), 0
         self.log("train/skipped_windows", float(self.skipped_windows), on_step=True, batch_size=1)
 
-    def _window_losses(self, seqs, rows, method, windows, starts, going, bounds, i, aligned) -> list:
-        """The losses of the rows' ``i``-th windows (one batched filter pass); the rows'
+    def _window_losses(self, seqs, pairs, rows, starts, going, bounds, i, aligned) -> list:
+        """``[(method, loss)]`` of the rows' ``i``-th windows (row ``r`` is sequence
+        ``pairs[r][0]`` under method ``pairs[r][1]``; one batched filter pass); the rows'
         states go on, detached, to their next windows (with ``model.loss=start``, their first
         window's alignment too, in ``aligned``), and a row whose state is not finite leaves
         the batch (its remaining windows counted as skipped)."""
         if not rows:
             return []
         config = self.params.apply(self.base, training=True, device=self.device)
-        p = self.params.value("dropout_p") if _has_moments(seqs[rows[0]], method) else None
-        results = run_windows([seqs[k] for k in rows], method, config, windows, dropout_p=p,
-                              starts=[starts[k] for k in rows], likelihood=self.innovation_weight > 0)
+        moments = any(_has_moments(seqs[pairs[r][0]], pairs[r][1]) for r in rows)
+        p = self.params.value("dropout_p") if moments else None
+        results = run_windows([seqs[pairs[r][0]] for r in rows], [pairs[r][1] for r in rows], config,
+                              [bounds[pairs[r][0]][i] for r in rows], dropout_p=p, starts=[starts[r] for r in rows],
+                              likelihood=self.innovation_weight > 0)
         losses = []
-        for k, result in zip(rows, results):
+        for r, result in zip(rows, results):
+            k, method = pairs[r]
             loss = window_loss(result.track, seqs[k].truth, nll_weight=self.nll_weight,
                                orientation_weight_m_per_rad=self.orientation_weight,
                                innovation_weight=self.innovation_weight, innovation=(result.nll, result.nll_count),
-                               loss=self.loss, segment_s=self.segment_s, alignment=aligned[k])
-            if self.loss == "start" and aligned[k] is None:
-                aligned[k] = loss.alignment
+                               loss=self.loss, segment_s=self.segment_s, alignment=aligned[r])
+            if self.loss == "start" and aligned[r] is None:
+                aligned[r] = loss.alignment
             state_ok = bool(torch.isfinite(result.mean).all() and torch.isfinite(result.cov).all())
             finite = bool(torch.isfinite(loss.loss))
             if finite:
-                losses.append(loss)
+                losses.append((method, loss))
             if state_ok:
-                starts[k] = (result.mean.detach(), result.cov.detach())
+                starts[r] = (result.mean.detach(), result.cov.detach())
             else:
-                going[k] = False
+                going[r] = False
             self._skip((0 if finite else 1) + (0 if state_ok else len(bounds[k]) - i - 1))
         return losses
 
@@ -228,52 +239,54 @@ class FilterLearner(pl.LightningModule):
         torch.distributed.all_reduce(out, op=op)
         return out
 
-    def _log_windows(self, method: str, mean_loss: torch.Tensor, losses: list) -> None:
-        n = len(losses)
-        self.log(f"train/{method}/rmse_m", torch.stack([w.rmse_m for w in losses]).mean(), on_step=True, batch_size=n)
-        self.log("train/loss", mean_loss, on_step=True, prog_bar=True, batch_size=n)
-        if self.nll_weight > 0:
-            self.log("train/nll", torch.stack([w.nll for w in losses]).mean(), on_step=True, batch_size=n)
-        if self.loss == "segments":
-            self.log(f"train/{method}/segment_rmse_m", torch.stack([w.segment_rmse_m for w in losses]).mean(),
-                     on_step=True, batch_size=n)
-        if self.innovation_weight > 0:
-            self.log(f"train/{method}/innovation_nll", torch.stack([w.innovation_nll for w in losses]).mean(),
-                     on_step=True, batch_size=n)
-        if self.orientation_weight > 0:
-            self.log(f"train/{method}/orientation_rmse_rad",
-                     torch.stack([w.orientation_rmse_rad for w in losses]).mean(), on_step=True, batch_size=n)
+    def _log_windows(self, mean_loss: torch.Tensor, losses: list) -> None:
+        """Log the window group's mean loss and, per method, its windows' figures (``losses``:
+        ``[(method, WindowLoss)]``)."""
+        self.log("train/loss", mean_loss, on_step=True, prog_bar=True, batch_size=len(losses))
+        for method in dict.fromkeys(m for m, _ in losses):
+            mine = [w for m, w in losses if m == method]
+            n = len(mine)
+            self.log(f"train/{method}/rmse_m", torch.stack([w.rmse_m for w in mine]).mean(), on_step=True, batch_size=n)
+            if self.nll_weight > 0:
+                self.log(f"train/{method}/nll", torch.stack([w.nll for w in mine]).mean(), on_step=True, batch_size=n)
+            if self.loss == "segments":
+                self.log(f"train/{method}/segment_rmse_m", torch.stack([w.segment_rmse_m for w in mine]).mean(),
+                         on_step=True, batch_size=n)
+            if self.innovation_weight > 0:
+                self.log(f"train/{method}/innovation_nll", torch.stack([w.innovation_nll for w in mine]).mean(),
+                         on_step=True, batch_size=n)
+            if self.orientation_weight > 0:
+                self.log(f"train/{method}/orientation_rmse_rad",
+                         torch.stack([w.orientation_rmse_rad for w in mine]).mean(), on_step=True, batch_size=n)
 
     def _skip(self, n: int) -> None:
         self.skipped_windows += n
 
     # ------------------------------------------------------------------ held-out
-    def _rmse(self, seq: TrainingSequence, method: str, params: FilterParameters) -> float:
-        return self._batch_rmse([seq], method, params)[0]
-
-    def _batch_rmse(self, seqs: Sequence[TrainingSequence], method: str, params: FilterParameters) -> list[float]:
-        """The filter RMSE (m) of ``method`` over each whole sequence of ``seqs`` with ``params``
-        (:meth:`_batch_errors` without the smoother)."""
-        return [filtered for filtered, _ in self._batch_errors(seqs, method, params, smoother=False)]
-
-    def _batch_errors(self, seqs: Sequence[TrainingSequence], method: str, params: FilterParameters, *,
-                      smoother: bool) -> list[tuple[float, float]]:
-        """The filter and smoother RMSE (m) of ``method`` over each whole sequence of ``seqs`` with
-        ``params`` (hard gates, no gradient) after the SE(3) alignment of Table I, as
+    def _errors(self, seqs: Sequence[TrainingSequence], params: FilterParameters, *,
+                smoother: bool) -> dict[str, list[tuple[float, float]]]:
+        """``{method: [(filter, smoother) RMSE (m) of each sequence of seqs]}`` for every method
+        with ``params`` (hard gates, no gradient) after the SE(3) alignment of Table I, as
         :func:`~flowins.training.unroll.sequences_errors` computes them (the smoother's NaN
-        without ``smoother``); the sequences of one kind of flow (with or without dropout
-        moments) run in one batched filter pass."""
+        without ``smoother``); every sequence under every method runs in one batched filter
+        pass, one per kind of flow (with or without dropout moments)."""
         config = params.apply(self.base, training=False, device=self.device)
-        errors = [(math.nan, math.nan)] * len(seqs)
+        pairs = [(k, method) for method in self.methods for k in range(len(seqs))]
+        errors = {method: [(math.nan, math.nan)] * len(seqs) for method in self.methods}
         for moments in (False, True):
-            rows = [k for k, seq in enumerate(seqs) if _has_moments(seq, method) == moments]
+            rows = [(k, m) for k, m in pairs if _has_moments(seqs[k], m) == moments]
             if not rows:
                 continue
             p = float(params.value("dropout_p").detach()) if moments else None
-            for k, value in zip(rows, sequences_errors([seqs[k] for k in rows], method, config, dropout_p=p,
-                                                       smoother=smoother)):
-                errors[k] = value
+            values = sequences_errors([seqs[k] for k, _ in rows], [m for _, m in rows], config, dropout_p=p,
+                                      smoother=smoother)
+            for (k, m), value in zip(rows, values):
+                errors[m][k] = value
         return errors
+
+    def _filter_rmse(self, seqs: Sequence[TrainingSequence], params: FilterParameters) -> dict[str, list[float]]:
+        """``{method: [filter RMSE (m) of each sequence]}`` (:meth:`_errors` without the smoother)."""
+        return {m: [f for f, _ in v] for m, v in self._errors(seqs, params, smoother=False).items()}
 
     def _select_sequences(self) -> list[TrainingSequence]:
         return list(getattr(self.trainer.datamodule, "select_sequences", []))
@@ -281,11 +294,10 @@ class FilterLearner(pl.LightningModule):
     def _select_rmse(self, params: FilterParameters) -> dict[str, list[float]]:
         """``{method: [RMSE of each select sequence]}`` with ``params``; empty without select sequences."""
         seqs = self._select_sequences()
-        return {method: self._batch_rmse(seqs, method, params) for method in self.methods} if seqs else {}
+        return self._filter_rmse(seqs, params) if seqs else {}
 
     def validation_step(self, batch: TrainingSequence, batch_idx: int) -> None:
-        for method in self.methods:
-            rmse = self._rmse(batch, method, self.params)
+        for method, (rmse,) in self._filter_rmse([batch], self.params).items():
             self._val.setdefault(method, []).append(rmse)
             self.log(f"val/{method}/filter_rmse_m", rmse, on_epoch=True, batch_size=1, sync_dist=True)
 
@@ -344,8 +356,7 @@ class FilterLearner(pl.LightningModule):
 
     def test_step(self, batch: TrainingSequence, batch_idx: int) -> None:
         for label, params in self._candidates().items():
-            for method in self.methods:
-                rmse = self._rmse(batch, method, params)
+            for method, (rmse,) in self._filter_rmse([batch], params).items():
                 self._heldout.setdefault(label, {}).setdefault(method, []).append(rmse)
                 self.log(f"test/{label}/{method}/filter_rmse_m", rmse, on_epoch=True, batch_size=1, sync_dist=True)
 
@@ -353,8 +364,7 @@ class FilterLearner(pl.LightningModule):
         seqs = self._select_sequences()
         if seqs:  # the long held-out walks, filter and smoother
             for label, params in self._candidates().items():
-                for method in self.methods:
-                    errors = self._batch_errors(seqs, method, params, smoother=True)
+                for method, errors in self._errors(seqs, params, smoother=True).items():
                     filtered, smoothed = [e[0] for e in errors], [e[1] for e in errors]
                     self._heldout_select.setdefault(label, {})[method] = filtered
                     self._heldout_select_smoother.setdefault(label, {})[method] = smoothed
@@ -378,8 +388,7 @@ class FilterLearner(pl.LightningModule):
 
 
 def _has_moments(seq: TrainingSequence, method: str) -> bool:
-    _, flow = seq.sources(method)
-    return flow is not None and bool(flow.points) and flow.points[0].dropout_unit_px is not None
+    return has_moments(seq.sources(method)[1])
 
 
 def _mean_score(per_method: Mapping[str, Sequence[float]]) -> float:

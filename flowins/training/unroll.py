@@ -85,6 +85,11 @@ class TrainingSequence:
         return (self.gnss if gnss else None), flow
 
 
+def has_moments(flow: FlowPairs | None) -> bool:
+    """Whether the flow pairs carry dropout moments (their σ can be recomputed at another rate)."""
+    return isinstance(flow, FlowPairs) and bool(flow.points) and flow.points[0].dropout_unit_px is not None
+
+
 def window_bounds(t_s: Tensor, window_s: float) -> list[tuple[int, int]]:
     """``[(i_a, i_b)]`` IMU sample index ranges of consecutive windows of about ``window_s``;
     consecutive windows share their boundary sample, the last one takes the remainder."""
@@ -138,7 +143,7 @@ def run_window(
 
 def run_windows(
     seqs: Sequence[TrainingSequence],
-    method: str,
+    method: str | Sequence[str],
     config: NavigationConfig,
     bounds: Sequence[tuple[int, int]],
     *,
@@ -150,13 +155,18 @@ def run_windows(
     """:func:`run_window` of one window of each sequence, ``seqs[i]`` from ``bounds[i][0]`` to
     ``bounds[i][1]`` starting at ``starts[i]``, all in one batched filter pass
     (:func:`~flowins.filter.runner.run_filters`); ``smooth``: each with its RTS smoother
-    (:attr:`WindowResult.smoothed`)."""
+    (:attr:`WindowResult.smoothed`). ``method``: one for every row, or one per row (a
+    sequence may appear once per method). ``dropout_p`` applies to the rows whose flow
+    pairs carry dropout moments."""
     starts = [None] * len(seqs) if starts is None else starts
+    methods = [method] * len(seqs) if isinstance(method, str) else list(method)
+    if len(methods) != len(seqs):
+        raise ValueError(f"run_windows: {len(methods)} methods for {len(seqs)} sequences; expected one per sequence")
     inputs = []
-    for seq, (i_a, i_b), start in zip(seqs, bounds, starts):
+    for seq, row_method, (i_a, i_b), start in zip(seqs, methods, bounds, starts):
         if start is None and i_a != 0:
             raise ValueError(f"run_window: a window starting at IMU sample {i_a} needs the state there (start=...)")
-        gnss, flow = seq.sources(method)
+        gnss, flow = seq.sources(row_method)
         imu = seq.imu
         t_a, t_b = float(imu.t_s[i_a]), float(imu.t_s[i_b])
         tracks = flow if isinstance(flow, Tracks) else None
@@ -165,7 +175,7 @@ def run_windows(
         if flow is not None:
             # only the pairs this window uses (and the one before, whose end frame augments)
             flow = flow.select((flow.t2_s > t_a - 1.0) & (flow.t2_s <= t_b))
-            if dropout_p is not None:
+            if dropout_p is not None and has_moments(flow):
                 flow = flow.at_dropout_rate(dropout_p)
         has_camera = flow is not None or tracks is not None
         setup = prepare_navigation(NavigationRun(imu, gnss, flow=flow, tracks=tracks,
@@ -334,11 +344,11 @@ def sequences_rmse(seqs: Sequence[TrainingSequence], method: str, config: Naviga
     return [filtered for filtered, _ in sequences_errors(seqs, method, config, dropout_p=dropout_p, smoother=False)]
 
 
-def sequences_errors(seqs: Sequence[TrainingSequence], method: str, config: NavigationConfig, *,
+def sequences_errors(seqs: Sequence[TrainingSequence], method: str | Sequence[str], config: NavigationConfig, *,
                      dropout_p: float | None = None, smoother: bool = True) -> list[tuple[float, float]]:
-    """The filter and the RTS smoother RMSE (m) of ``method`` over each whole sequence of ``seqs``
-    after the SE(3) alignment of Table I, their filters run as one batch (:func:`run_windows`), no
-    gradient; ``smoother=False``: the filter alone (the smoother's RMSE is NaN)."""
+    """The filter and the RTS smoother RMSE (m) of ``method`` (one, or one per sequence) over each
+    whole sequence of ``seqs`` after the SE(3) alignment of Table I, their filters run as one batch
+    (:func:`run_windows`), no gradient; ``smoother=False``: the filter alone (the smoother's RMSE is NaN)."""
     from flowins.evaluation.metrics import trajectory_errors
 
     def rmse(track: NodeTrack, seq: TrainingSequence) -> float:

@@ -64,3 +64,36 @@ def test_the_heldout_filter_and_smoother_rmse_are_those_of_navigate():
         assert (filtered, smoothed) == pytest.approx(expected, rel=1e-9)
         assert abs(smoothed - filtered) > 1e-3 * filtered
     assert [f for f, _ in errors] == sequences_rmse(seqs, "ins_gnss", config)
+
+
+def test_one_sequence_under_two_methods_in_one_batch_equals_each_method_alone():
+    """run_windows with one method per row (the training step's rows: each sequence under each
+    method): the batched windows' end states, losses and the gradient of their summed loss equal
+    those of each method run alone (1e-9), and the two methods' tracks differ."""
+    rec = synthetic_walk_recording(duration_s=12.0, seed=1)
+    seq = TrainingSequence("walk", rec.imu, rec.gnss, rec.truth)
+    base = NavigationConfig(gnss_heading=HeadingAlignment(enabled=False))
+    start = starting_values(base)
+    learn = ["acc_noise", "gyro_noise", "gnss_noise_scale", "initial_velocity_mps"]
+    params = FilterParameters(start, learn=learn)
+    config = params.apply(base, training=True)
+    window = window_bounds(seq.imu.t_s, 6.0)[0]
+    learned = [params.raw[n] for n in learn]
+
+    def grads(results):
+        total = sum(window_loss(r.track, seq.truth).loss for r in results)
+        return total.detach(), torch.stack(torch.autograd.grad(total, learned))
+
+    batched = run_windows([seq, seq], ["ins", "ins_gnss"], config, [window, window])
+    alone = [run_windows([seq], method, params.apply(base, training=True), [window])[0] for method in ("ins", "ins_gnss")]
+    for b, a in zip(batched, alone):
+        torch.testing.assert_close(b.mean, a.mean, rtol=1e-9, atol=1e-9)
+        torch.testing.assert_close(b.cov, a.cov, rtol=1e-9, atol=1e-12)
+    assert float((batched[0].mean - batched[1].mean).abs().max()) > 1e-3
+    loss_b, grad_b = grads(batched)
+    loss_a, grad_a = grads(alone)
+    torch.testing.assert_close(loss_b, loss_a, rtol=1e-9, atol=0.0)
+    torch.testing.assert_close(grad_b, grad_a, rtol=1e-7, atol=1e-12)
+    assert bool((grad_a != 0).all())
+    with pytest.raises(ValueError, match="one per sequence"):
+        run_windows([seq], ["ins", "ins_gnss"], config, [window])
