@@ -9,11 +9,14 @@ overfits (better on the training sequences, worse held out).
     python benchmarks/bench_train_fit.py outputs/DATE/TIME [--method ins_dense] [--all]
     python benchmarks/bench_train_fit.py RUN --all --sequence '{seed: 0, duration_s: 300}' --points 256
     python benchmarks/bench_train_fit.py RUN --all --hand acc_bias_walk,gyro_bias_walk,acc_scale_walk
+    python benchmarks/bench_train_fit.py RUN --all --sequence '{seed: 0, duration_s: 300}' --chunks 60
 
 ``--sequence`` adds a sequence to score (a ``data.train`` entry: ``{seed: N, duration_s: S}``
 or ``{path: DIR}``), such as the 300 s walk of ``evaluate.py``, which ``--points 256`` scores
 with as many points per frame as ``evaluate.py`` uses: how far the parameters learned on
-short walks carry. ``--hand`` sets the named parameters to their hand-tuned values in every
+short walks carry. ``--chunks S`` also prints, per sequence, the RMSE of each ``S``-second piece
+of the run aligned on its own (``flowins.evaluation.metrics.chunk_rmse``, the alignment of the
+training loss's windows): where along a long walk the error grows. ``--hand`` sets the named parameters to their hand-tuned values in every
 row but the hand-tuned one: which learned parameters a result hinges on.
 
 It reads the run's ``.hydra/config.yaml`` (its sequences, settings and flow, from the cache)
@@ -28,12 +31,15 @@ import json
 import math
 from pathlib import Path
 
+import torch
 from omegaconf import OmegaConf
 
+from flowins.evaluation.metrics import chunk_rmse, trajectory_errors
 from flowins.settings import flow_config, training_setup
+from flowins.state import STATE
 from flowins.training.data import load_training_sequence
 from flowins.training.parameters import NAMES, FilterParameters
-from flowins.training.unroll import sequence_rmse
+from flowins.training.unroll import run_windows
 
 
 def main() -> None:
@@ -46,7 +52,11 @@ def main() -> None:
     parser.add_argument("--points", type=int, default=None, help="flow points per frame (default: the run's)")
     parser.add_argument("--hand", default="", metavar="NAMES",
                         help="comma-separated parameters set to their hand-tuned values in the learned rows")
+    parser.add_argument("--chunks", type=float, default=None, metavar="S",
+                        help="also the RMSE of each S-second piece of every run, each aligned on its own")
     args = parser.parse_args()
+    if args.chunks is not None and not args.chunks > 0:
+        raise SystemExit(f"error: --chunks {args.chunks}: expected a piece length in seconds > 0")
     config_file, selection_file = args.run / ".hydra" / "config.yaml", args.run / "selection.json"
     for f in (config_file, selection_file):
         if not f.is_file():
@@ -76,17 +86,30 @@ def main() -> None:
     base, tuned = setup.filter.navigation, setup.parameters.tuned
     history = json.loads(selection_file.read_text())["history"]
 
-    def scored(params: FilterParameters) -> list[float]:
+    pieces: dict[str, list[list[tuple[float, float, float]]]] = {}
+
+    def scored(params: FilterParameters, label: str) -> list[float]:
         p = float(params.value("dropout_p").detach())
-        return [sequence_rmse(seq, args.method, params.apply(base, training=False), dropout_p=p) for _, seq in seqs]
+        config = params.apply(base, training=False)
+        rmse = []
+        with torch.no_grad():
+            for _, seq in seqs:
+                (result,) = run_windows([seq], args.method, config, [(0, seq.imu.t_s.shape[0] - 1)], dropout_p=p)
+                track = result.track
+                rmse.append(float(trajectory_errors(track.t, track.mean[:, STATE.p], seq.truth.t_s, seq.truth.pos_m,
+                                                    align="se3").rmse_m))
+                if args.chunks is not None:
+                    pieces.setdefault(label, []).append(chunk_rmse(track.t, track.mean[:, STATE.p], seq.truth.t_s,
+                                                                   seq.truth.pos_m, args.chunks))
+        return rmse
 
     chosen = json.loads(selection_file.read_text())["chosen"]
     hand_values = {n: tuned[n] for n in hand}
-    rows = {"hand-tuned": scored(FilterParameters(tuned, learn=()))}
+    rows = {"hand-tuned": scored(FilterParameters(tuned, learn=()), "hand-tuned")}
     for entry in history if args.all else [e for e in history if e["label"] in ("start", chosen)] + history[-1:]:
         # each validation's values (a selection.json without them: log/logit coordinates)
         learned = entry["values"] if "values" in entry else FilterParameters.from_raw(entry["raw"]).values()
-        rows[entry["label"]] = scored(FilterParameters({**learned, **hand_values}, learn=()))
+        rows[entry["label"]] = scored(FilterParameters({**learned, **hand_values}, learn=()), entry["label"])
     print(f"{args.method} filter RMSE (m, Table I alignment) per sequence of {args.run}")
     if hand:
         print(f"  learned rows with {', '.join(hand)} hand-tuned")
@@ -96,6 +119,15 @@ def main() -> None:
     print(f"{'':12s}" + "".join(f"{c:>14s}" for c in columns))
     for label, values in rows.items():
         print(f"{label:12s}" + "".join(f"{v:>14.2f}" if math.isfinite(v) else f"{'diverged':>14s}" for v in values))
+    for i, (column, (_, seq)) in enumerate(zip(columns, seqs)):
+        if not pieces:
+            break
+        spans = next(iter(pieces.values()))[i]
+        print(f"\n{column} ({seq.name}): RMSE (m) of each {args.chunks:g} s piece, each aligned on its own")
+        print(f"{'':12s}" + "".join(f"{f'{a - spans[0][0]:.0f}-{b - spans[0][0]:.0f} s':>12s}" for a, b, _ in spans))
+        for label, per_seq in pieces.items():
+            print(f"{label:12s}" + "".join(f"{r:>12.2f}" if math.isfinite(r) else f"{'diverged':>12s}"
+                                           for _, _, r in per_seq[i]))
 
 
 if __name__ == "__main__":

@@ -23,6 +23,7 @@ from torch import Tensor
 from flowins.data.streams import PoseStream
 from flowins.evaluation.alignment import (
     Alignment,
+    align_yaw,
     apply_alignment,
     apply_alignment_to_quaternions,
     check_points,
@@ -157,6 +158,36 @@ def position_rmse(est: Tensor, ref: Tensor) -> Tensor:
     if est.shape[-2] == 0:
         raise ValueError("est and ref are empty (K = 0): the RMSE of no points is undefined")
     return ((est - ref) ** 2).sum(dim=-1).mean(dim=-1).sqrt()
+
+
+def chunk_rmse(t_est_s: Tensor, pos_est: Tensor, t_ref_s: Tensor, pos_ref: Tensor, chunk_s: float, *,
+               max_dt_s: float = 0.1) -> list[tuple[float, float, float]]:
+    """``[(start_s, end_s, rmse_m)]``: the position RMSE of each consecutive ``chunk_s`` piece of a
+    long run, each piece aligned on its own by a yaw rotation and a translation
+    (:func:`~flowins.evaluation.alignment.align_yaw`, the alignment of the training loss's
+    windows): how the error a window loss sees grows along the run. The pieces cut the
+    associated reference times from the first; a last piece shorter than half of ``chunk_s``
+    joins the one before, and a piece with fewer than 3 associated samples is left out."""
+    if not chunk_s > 0:
+        raise ValueError(f"chunk_s must be > 0, got {chunk_s!r}")
+    association = associate(t_est_s, t_ref_s, max_dt_s=max_dt_s)
+    est = interpolate_positions(pos_est, association)
+    ref = pos_ref[association.ref_index.to(pos_ref.device)].to(est)
+    t = t_ref_s[association.ref_index.to(t_ref_s.device)].to(torch.float64)
+    if t.numel() == 0:
+        return []
+    t0, t1 = float(t[0]), float(t[-1])
+    edges = [t0 + k * chunk_s for k in range(int((t1 - t0) // chunk_s) + 1)] + [t1]
+    if len(edges) > 2 and edges[-1] - edges[-2] < 0.5 * chunk_s:
+        del edges[-2]
+    out = []
+    for k, (a, b) in enumerate(zip(edges[:-1], edges[1:])):
+        inside = ((t >= a) & ((t <= b) if k == len(edges) - 2 else (t < b))).to(est.device)
+        if int(inside.sum()) < 3:
+            continue
+        e, r = est[inside].detach(), ref[inside]
+        out.append((a, b, float(position_rmse(apply_alignment(align_yaw(e, r), e), r))))
+    return out
 
 
 class SegmentErrors(NamedTuple):

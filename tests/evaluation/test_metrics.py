@@ -276,3 +276,36 @@ def test_segment_errors_refuse_bad_input():
         segment_errors(t, pos, pos, [1.0], q_est=q)
     with pytest.raises(ValueError, match="expected t_s"):
         segment_errors(t, pos[:5], pos, [1.0])
+
+
+def test_chunk_rmse_aligns_each_piece_on_its_own_and_measures_a_scale_error_in_closed_form():
+    """chunk_rmse: a track that is the truth turned by another yaw and moved by another offset in
+    each 10 s piece has zero error per piece (each piece aligned on its own); a track 10 % too
+    long on a straight line has, in each piece of uniform samples, RMSE 0.1·v·√((n²-1)/12)·dt;
+    a 2 s tail joins the piece before; the pieces need >= 3 samples."""
+    from flowins.evaluation.metrics import chunk_rmse
+
+    t = torch.arange(0.0, 32.0 + 1e-9, 0.1, dtype=torch.float64)  # 0 .. 32 s: pieces 0-10, 10-20, 20-32
+    s = torch.sin(0.3 * t)
+    truth = torch.stack((3.0 * t, 5.0 * s, 0.1 * t), -1)
+    est = truth.clone()
+    for k, (a, b) in enumerate(((0, 10), (10, 20), (20, 33))):
+        m = (t >= a) & (t < b)
+        yaw = 0.4 + 0.7 * k
+        c, sn = math.cos(yaw), math.sin(yaw)
+        R = torch.tensor([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+        est[m] = truth[m] @ R.T + torch.tensor([10.0 * k, -3.0, 2.0 * k], dtype=torch.float64)
+    pieces = chunk_rmse(t, est, t, truth, 10.0)
+    assert [(a, b) for a, b, _ in pieces] == [(0.0, 10.0), (10.0, 20.0), (20.0, pytest.approx(32.0))]
+    assert max(r for _, _, r in pieces) < 1e-9
+    # the whole run aligned once is not zero: the pieces' own alignments are what made it so
+    assert float(trajectory_errors(t, est, t, truth, align="se3").rmse_m) > 1.0
+
+    line = torch.stack((2.0 * t, torch.zeros_like(t), torch.zeros_like(t)), -1)
+    pieces = chunk_rmse(t, 1.1 * line, t, line, 10.0)
+    for a, b, rmse in pieces:
+        n = int(((t >= a - 1e-9) & (t < b - 1e-9)).sum()) + (1 if b == pieces[-1][1] else 0)
+        assert rmse == pytest.approx(0.1 * 2.0 * 0.1 * math.sqrt((n * n - 1) / 12.0), rel=1e-9)
+    assert chunk_rmse(t[:2], line[:2], t[:2], line[:2], 10.0) == []
+    with pytest.raises(ValueError, match="chunk_s"):
+        chunk_rmse(t, line, t, line, 0.0)
