@@ -14,10 +14,11 @@ overfits (better on the training sequences, worse held out).
 ``--sequence`` adds a sequence to score (a ``data.train`` entry: ``{seed: N, duration_s: S}``
 or ``{path: DIR}``), such as the 300 s walk of ``evaluate.py``, which ``--points 256`` scores
 with as many points per frame as ``evaluate.py`` uses: how far the parameters learned on
-short walks carry. ``--chunks S`` also prints, per sequence, the RMSE of each ``S``-second piece
-of the run aligned on its own (``flowins.evaluation.metrics.chunk_rmse``, the alignment of the
-training loss's windows): where along a long walk the error grows. ``--hand`` sets the named parameters to their hand-tuned values in every
-row but the hand-tuned one: which learned parameters a result hinges on.
+short walks carry. ``--chunks S`` also prints, per sequence, the RMSE of each ``S``-second
+piece of the run aligned on its own (``flowins.evaluation.metrics.chunk_rmse``, the alignment
+of the training loss's windows): where along a long walk the error grows. ``--hand`` sets the
+named parameters to their hand-tuned values in every row but the hand-tuned one: which
+learned parameters a result hinges on.
 
 It reads the run's ``.hydra/config.yaml`` (its sequences, settings and flow, from the cache)
 and ``selection.json``, and prints the filter RMSE after the Table I alignment (hard gates, as
@@ -34,12 +35,12 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
-from flowins.evaluation.metrics import chunk_rmse, trajectory_errors
+from flowins.evaluation.metrics import chunk_rmse
 from flowins.settings import flow_config, training_setup
 from flowins.state import STATE
 from flowins.training.data import load_training_sequence
 from flowins.training.parameters import NAMES, FilterParameters
-from flowins.training.unroll import run_windows
+from flowins.training.unroll import run_windows, track_rmse
 
 
 def main() -> None:
@@ -96,8 +97,7 @@ def main() -> None:
             for _, seq in seqs:
                 (result,) = run_windows([seq], args.method, config, [(0, seq.imu.t_s.shape[0] - 1)], dropout_p=p)
                 track = result.track
-                rmse.append(float(trajectory_errors(track.t, track.mean[:, STATE.p], seq.truth.t_s, seq.truth.pos_m,
-                                                    align="se3").rmse_m))
+                rmse.append(track_rmse(track, seq.truth))
                 if args.chunks is not None:
                     pieces.setdefault(label, []).append(chunk_rmse(track.t, track.mean[:, STATE.p], seq.truth.t_s,
                                                                    seq.truth.pos_m, args.chunks))

@@ -150,10 +150,10 @@ class SequenceDataModule(pl.LightningDataModule):
         return DataLoader(_Sequences(self.sequences[split]), batch_size=None, shuffle=shuffle, collate_fn=_identity)
 
     def train_dataloader(self) -> DataLoader:
-        """Shuffled batches of ``batch_size`` sequences, in an order that depends on ``seed`` alone; with several processes (DDP) each
-        process takes its own share of the sequences (``trainer.use_distributed_sampler`` is
-        off, so that every process validates every held-out sequence and the processes agree
-        on the best validation)."""
+        """Shuffled batches of ``batch_size`` sequences, in an order that depends on ``seed``
+        alone; with several processes (DDP) each process takes its own share of the sequences
+        (``trainer.use_distributed_sampler`` is off, so that every process validates every
+        held-out sequence and the processes agree on the best validation)."""
         sequences = _Sequences(self.sequences["train"])
         trainer = getattr(self, "trainer", None)
         if trainer is not None and trainer.world_size > 1:

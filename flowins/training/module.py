@@ -269,19 +269,16 @@ class FilterLearner(pl.LightningModule):
         with ``params`` (hard gates, no gradient) after the SE(3) alignment of Table I, as
         :func:`~flowins.training.unroll.sequences_errors` computes them (the smoother's NaN
         without ``smoother``); every sequence under every method runs in one batched filter
-        pass, one per kind of flow (with or without dropout moments)."""
+        pass (the dropout rate applies to the rows whose flow has dropout moments)."""
         config = params.apply(self.base, training=False, device=self.device)
         pairs = [(k, method) for method in self.methods for k in range(len(seqs))]
+        moments = any(_has_moments(seqs[k], m) for k, m in pairs)
+        p = float(params.value("dropout_p").detach()) if moments else None
+        values = sequences_errors([seqs[k] for k, _ in pairs], [m for _, m in pairs], config, dropout_p=p,
+                                  smoother=smoother)
         errors = {method: [(math.nan, math.nan)] * len(seqs) for method in self.methods}
-        for moments in (False, True):
-            rows = [(k, m) for k, m in pairs if _has_moments(seqs[k], m) == moments]
-            if not rows:
-                continue
-            p = float(params.value("dropout_p").detach()) if moments else None
-            values = sequences_errors([seqs[k] for k, _ in rows], [m for _, m in rows], config, dropout_p=p,
-                                      smoother=smoother)
-            for (k, m), value in zip(rows, values):
-                errors[m][k] = value
+        for (k, m), value in zip(pairs, values):
+            errors[m][k] = value
         return errors
 
     def _filter_rmse(self, seqs: Sequence[TrainingSequence], params: FilterParameters) -> dict[str, list[float]]:

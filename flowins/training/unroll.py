@@ -31,6 +31,7 @@ from flowins.evaluation.metrics import (
     interpolate_positions,
     interpolate_quaternions,
     segment_errors,
+    trajectory_errors,
 )
 from flowins.filter.chain import NodeTrack
 from flowins.filter.runner import FilterInput, run_filters
@@ -349,14 +350,13 @@ def sequences_errors(seqs: Sequence[TrainingSequence], method: str | Sequence[st
     """The filter and the RTS smoother RMSE (m) of ``method`` (one, or one per sequence) over each
     whole sequence of ``seqs`` after the SE(3) alignment of Table I, their filters run as one batch
     (:func:`run_windows`), no gradient; ``smoother=False``: the filter alone (the smoother's RMSE is NaN)."""
-    from flowins.evaluation.metrics import trajectory_errors
-
-    def rmse(track: NodeTrack, seq: TrainingSequence) -> float:
-        return float(trajectory_errors(track.t, track.mean[:, STATE.p], seq.truth.t_s, seq.truth.pos_m,
-                                       align="se3").rmse_m)
-
     with torch.no_grad():
         results = run_windows(list(seqs), method, config, [(0, seq.imu.t_s.shape[0] - 1) for seq in seqs],
                               dropout_p=dropout_p, smooth=smoother)
-        return [(rmse(result.track, seq), rmse(result.smoothed, seq) if smoother else float("nan"))
-                for seq, result in zip(seqs, results)]
+        return [(track_rmse(result.track, seq.truth), track_rmse(result.smoothed, seq.truth) if smoother
+                 else float("nan")) for seq, result in zip(seqs, results)]
+
+
+def track_rmse(track: NodeTrack, truth: PoseStream) -> float:
+    """Position RMSE (m) of a whole track against the truth after Table I's SE(3) alignment."""
+    return float(trajectory_errors(track.t, track.mean[:, STATE.p], truth.t_s, truth.pos_m, align="se3").rmse_m)
