@@ -10,9 +10,13 @@
 # A check of the script itself on a CPU: GPU_SH_DEVICE=cpu GPU_SH_QUICK=1 bash benchmarks/gpu.sh
 # (every section on the CPU, the 60 s walk, a batch of 4, one training epoch; the device
 # tests are skipped there). Its figures mean nothing.
-# GPU_SH_SECTIONS="1 2 3 4" runs only those sections (default: all six, in order; 3 and 4
-# need 2's cache, 6 needs 5's). A section that fails is reported and the others still run;
-# the script then exits with 1, naming the failed sections.
+# GPU_SH_SECTIONS="2 5 3 4 6 1" runs only those sections, in that order (default: all six, in
+# order; 3 and 4 need 2's cache, 6 needs 5's). The sections run one at a time: sections 2 and 5
+# side by side on an H200 machine's 16 cores finished neither simulation in 590 s, where
+# section 2's alone takes 97 s.
+# GPU_SH_TRAIN_S=N and GPU_SH_BENCH_S=N stop section 6 and section 4 after N s (they print
+# what they measured up to then: section 6 a line per epoch). A section that fails is
+# reported and the others still run; the script then exits with 1, naming the failed sections.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 # the checkout's package for every script and child process (a CUDA machine may run it uninstalled)
@@ -36,7 +40,15 @@ started=$SECONDS
 sections=${GPU_SH_SECTIONS:-1 2 3 4 5 6}
 failed=()
 section() { echo; echo "== [$((SECONDS - started)) s] $*"; }
-wanted() { [[ " $sections " == *" $1 "* ]]; }
+# run "$@" for at most $1 s (0: no limit); a stop at the limit is said, and is no failure
+capped() {
+  local limit=$1; shift
+  [ "$limit" = 0 ] && { "$@"; return; }
+  timeout "$limit" "$@"
+  local rc=$?
+  [ "$rc" = 124 ] && { echo "stopped at the limit of $limit s"; return 0; }
+  return "$rc"
+}
 
 section "the machine"
 GPU_SH_DEVICE=$device python - <<'PY' || exit 1
@@ -75,8 +87,8 @@ s3() {
 
 s4() {
   section "4. bench_flow_filter.py --device cuda --batch 256 (cached flow; target >= 2000x in all)"
-  python benchmarks/bench_flow_filter.py "${bench_quick[@]}" --device "$device" --batch "$batch" \
-    --repeats 1 --reference-s 0 --breakdown-s 0 --count-ops-s 0 2>&1 | grep -v "^filter:"
+  capped "${GPU_SH_BENCH_S:-0}" python benchmarks/bench_flow_filter.py "${bench_quick[@]}" --device "$device" \
+    --batch "$batch" --repeats 1 --reference-s 0 --breakdown-s 0 --count-ops-s 0 2>&1 | grep -v "^filter:"
 }
 
 trainer=gpu
@@ -90,15 +102,17 @@ s5() {
 s6() {
   section "6. python train.py experiment=mistuned trainer=gpu (walks and flow cached; target: 4x the 2-core CPU's time, held out within 5 %)"
   local t0=$SECONDS
-  python train.py experiment=mistuned trainer="$trainer" "${epochs[@]}" flow.device="$device" progress=false \
-    hydra.run.dir="$out/train" 2>&1 | grep -v "read from the cache" || return  # a line per validation as it ends
+  capped "${GPU_SH_TRAIN_S:-0}" python train.py experiment=mistuned trainer="$trainer" "${epochs[@]}" \
+    flow.device="$device" progress=false hydra.run.dir="$out/train" 2>&1 \
+    | grep -v "read from the cache" || return  # a line per validation as it ends
   echo "train.py on the GPU: $((SECONDS - t0)) s"
 }
 
-for n in 1 2 3 4 5 6; do
-  if wanted "$n"; then
-    "s$n" || { echo "error: section $n failed (exit $?)"; failed+=("$n"); }
-  fi
+for n in $sections; do
+  [[ " 1 2 3 4 5 6 " == *" $n "* ]] || { echo "error: GPU_SH_SECTIONS: no section $n (1 to 6)"; exit 1; }
+done
+for n in $sections; do
+  "s$n" || { echo "error: section $n failed (exit $?)"; failed+=("$n"); }
 done
 
 section "done in $((SECONDS - started)) s; outputs in $out"
