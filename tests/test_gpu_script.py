@@ -1,0 +1,60 @@
+"""``benchmarks/gpu.sh``'s own logic (the order of its sections, its time caps, a bad section
+name), with a stand-in ``python`` on the PATH that logs its arguments and sleeps in
+``train.py``, so that no section computes anything."""
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "gpu.sh"
+
+FAKE_PYTHON = """#!/usr/bin/env bash
+echo "python $*" >>"$FAKE_LOG"
+case "$*" in
+  *train.py*) sleep 5 ;;
+esac
+cat >/dev/null 2>&1 </dev/null
+exit 0
+"""
+
+
+def _run(tmp_path: Path, sections: str, **env: str) -> tuple[subprocess.CompletedProcess, list[str]]:
+    if shutil.which("timeout") is None:
+        pytest.skip("no timeout(1) on this machine")
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir(exist_ok=True)
+    fake = bin_dir / "python"
+    fake.write_text(FAKE_PYTHON)
+    fake.chmod(0o755)
+    log = tmp_path / "calls.log"
+    log.write_text("")
+    environ = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}", "FAKE_LOG": str(log),
+               "GPU_SH_DEVICE": "cpu", "GPU_SH_SECTIONS": sections, "FLOWINS_GPU_CACHE": str(tmp_path / "cache"),
+               **env}
+    done = subprocess.run(["bash", str(SCRIPT)], capture_output=True, text=True, env=environ, timeout=120)
+    return done, log.read_text().splitlines()
+
+
+def test_the_sections_run_in_the_order_given(tmp_path):
+    done, calls = _run(tmp_path, "4 3 1")
+    headers = [line.split("] ", 1)[1][:2] for line in done.stdout.splitlines() if line.startswith("== [")]
+    assert headers[1:4] == ["4.", "3.", "1."], done.stdout
+    scripts = [c for c in calls if "bench_flow_filter.py" in c or "evaluate.py" in c or "pytest" in c]
+    assert ["bench_flow_filter.py" in scripts[0], "evaluate.py" in scripts[1], "pytest" in scripts[-1]] == [True] * 3
+
+
+def test_a_capped_training_stops_at_its_limit_and_is_no_failure(tmp_path):
+    done, _ = _run(tmp_path, "6", GPU_SH_TRAIN_S="1")
+    assert "stopped at the limit of 1 s" in done.stdout, done.stdout
+    assert done.returncode == 0, done.stdout
+    uncapped, _ = _run(tmp_path, "6")
+    assert "stopped at the limit" not in uncapped.stdout
+
+
+def test_an_unknown_section_is_refused_before_any_work(tmp_path):
+    done, calls = _run(tmp_path, "2 9")
+    assert done.returncode == 1
+    assert "error: GPU_SH_SECTIONS: no section 9 (1 to 6)" in done.stdout
+    assert not any("evaluate.py" in c for c in calls)
