@@ -48,6 +48,7 @@ from flowins.training.unroll import (
     has_moments,
     run_windows,
     sequences_errors,
+    split_gradient,
     window_bounds,
     window_loss,
 )
@@ -92,6 +93,7 @@ class FilterLearner(pl.LightningModule):
         self.nll_weight = model.nll_weight
         self.orientation_weight = model.orientation_weight_m_per_rad
         self.innovation_weight = model.innovation_weight
+        self.innovation_learns = frozenset(model.innovation_learns)
         self.loss = model.loss
         self.segment_s = tuple(model.segment_s)
         self.lr = model.lr
@@ -116,7 +118,8 @@ class FilterLearner(pl.LightningModule):
         self.save_hyperparameters({"methods": self.methods, "window_s": self.window_s,
                                    "curriculum_window_s": self.curriculum, "nll_weight": self.nll_weight,
                                    "orientation_weight_m_per_rad": self.orientation_weight,
-                                   "innovation_weight": self.innovation_weight, "loss": self.loss,
+                                   "innovation_weight": self.innovation_weight,
+                                   "innovation_learns": sorted(self.innovation_learns), "loss": self.loss,
                                    "segment_s": list(self.segment_s), "lr": self.lr,
                                    "lr_final": self.lr_final, "warmup_steps": self.warmup_steps,
                                    "accumulate_windows": self.accumulate, "gradient_clip": self.gradient_clip,
@@ -134,7 +137,9 @@ class FilterLearner(pl.LightningModule):
         seqs = batch if isinstance(batch, list) else [batch]
         window = window_length(self.current_epoch, window_s=self.window_s, curriculum=self.curriculum)
         bounds = [window_bounds(seq.imu.t_s, window) for seq in seqs]
-        learned = [q for q in self.params.parameters() if q.requires_grad]
+        named = [(n, q) for n, q in self.params.raw.items() if q.requires_grad]
+        learned = [q for _, q in named]
+        from_likelihood = [n in self.innovation_learns for n, _ in named]
         # one row per sequence and method: the i-th windows of all of them run as one batched filter
         pairs = [(k, method) for method in self.methods for k in range(len(seqs))]
         starts: list = [None] * len(pairs)
@@ -148,9 +153,10 @@ class FilterLearner(pl.LightningModule):
             rows = [r for r, (k, _) in enumerate(pairs) if going[r] and i < len(bounds[k])]
             losses = self._window_losses(seqs, pairs, rows, starts, going, bounds, i, aligned)
             if losses:
-                total = torch.stack([w.loss for _, w in losses]).sum()
-                grads = (torch.autograd.grad(total, learned, allow_unused=True) if total.requires_grad
-                         else [None] * len(learned))
+                total = torch.stack([w.loss for _, w, _ in losses]).sum()
+                parts = [x for _, _, x in losses if x is not None]
+                likelihood = torch.stack(parts).sum() if parts and any(from_likelihood) else None
+                grads = split_gradient(total, likelihood, learned, from_likelihood)
                 flat = torch.cat([q.new_zeros(q.numel()) if g is None else g.reshape(-1)
                                   for q, g in zip(learned, grads)])
                 if bool(torch.isfinite(flat).all()):
@@ -166,7 +172,9 @@ class FilterLearner(pl.LightningModule):
         self.log("train/skipped_windows", float(self.skipped_windows), on_step=True, batch_size=1)
 
     def _window_losses(self, seqs, pairs, rows, starts, going, bounds, i, aligned) -> list:
-        """``[(method, loss)]`` of the rows' ``i``-th windows (row ``r`` is sequence
+        """``[(method, loss, likelihood)]`` of the rows' ``i``-th windows (``likelihood``: the
+        innovation negative log-likelihood per scalar measurement with its graph where
+        ``model.innovation_learns`` names parameters, else None) (row ``r`` is sequence
         ``pairs[r][0]`` under method ``pairs[r][1]``; one batched filter pass); the rows'
         states go on, detached, to their next windows (with ``model.loss=start``, their first
         window's alignment too, in ``aligned``), and a row whose state is not finite leaves
@@ -178,7 +186,7 @@ class FilterLearner(pl.LightningModule):
         p = self.params.value("dropout_p") if moments else None
         results = run_windows([seqs[pairs[r][0]] for r in rows], [pairs[r][1] for r in rows], config,
                               [bounds[pairs[r][0]][i] for r in rows], dropout_p=p, starts=[starts[r] for r in rows],
-                              likelihood=self.innovation_weight > 0)
+                              likelihood=self.innovation_weight > 0 or bool(self.innovation_learns))
         losses = []
         for r, result in zip(rows, results):
             k, method = pairs[r]
@@ -190,8 +198,12 @@ class FilterLearner(pl.LightningModule):
                 aligned[r] = loss.alignment
             state_ok = bool(torch.isfinite(result.mean).all() and torch.isfinite(result.cov).all())
             finite = bool(torch.isfinite(loss.loss))
+            # the innovation likelihood per scalar measurement, with its graph (model.innovation_learns)
+            per_measurement = (result.nll / max(result.nll_count, 1.0) if self.innovation_learns and result.nll is not None
+                               else None)
+            finite = finite and (per_measurement is None or bool(torch.isfinite(per_measurement)))
             if finite:
-                losses.append((method, loss))
+                losses.append((method, loss, per_measurement))
             if state_ok:
                 starts[r] = (result.mean.detach(), result.cov.detach())
             else:
@@ -241,10 +253,14 @@ class FilterLearner(pl.LightningModule):
 
     def _log_windows(self, mean_loss: torch.Tensor, losses: list) -> None:
         """Log the window group's mean loss and, per method, its windows' figures (``losses``:
-        ``[(method, WindowLoss)]``)."""
+        ``[(method, WindowLoss, likelihood or None)]``)."""
         self.log("train/loss", mean_loss, on_step=True, prog_bar=True, batch_size=len(losses))
-        for method in dict.fromkeys(m for m, _ in losses):
-            mine = [w for m, w in losses if m == method]
+        for method in dict.fromkeys(m for m, _, _ in losses):
+            mine = [w for m, w, _ in losses if m == method]
+            likelihoods = [x.detach() for m, _, x in losses if m == method and x is not None]
+            if likelihoods:
+                self.log(f"train/{method}/innovation_nll", torch.stack(likelihoods).mean(), on_step=True,
+                         batch_size=len(likelihoods))
             n = len(mine)
             self.log(f"train/{method}/rmse_m", torch.stack([w.rmse_m for w in mine]).mean(), on_step=True, batch_size=n)
             if self.nll_weight > 0:
@@ -252,7 +268,7 @@ class FilterLearner(pl.LightningModule):
             if self.loss == "segments":
                 self.log(f"train/{method}/segment_rmse_m", torch.stack([w.segment_rmse_m for w in mine]).mean(),
                          on_step=True, batch_size=n)
-            if self.innovation_weight > 0:
+            if self.innovation_weight > 0 and not likelihoods:
                 self.log(f"train/{method}/innovation_nll", torch.stack([w.innovation_nll for w in mine]).mean(),
                          on_step=True, batch_size=n)
             if self.orientation_weight > 0:

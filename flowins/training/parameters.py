@@ -132,6 +132,10 @@ class ModelSettings:
         nll_weight: weight of the Gaussian negative log-likelihood of the position errors.
         innovation_weight: weight of the innovation negative log-likelihood per scalar
             measurement (metres per nat; :func:`~flowins.training.unroll.window_loss`).
+        innovation_learns: parameters learned from the innovation negative log-likelihood
+            per scalar measurement alone, the rest from the window loss
+            (:func:`~flowins.training.unroll.split_gradient`). The likelihood fixes absolute
+            noise levels, which the window loss sees only as ratios; () for none.
         orientation_weight_m_per_rad: weight of the orientation RMSE (rad) in the loss.
         loss: ``window`` (the position RMSE after each window's yaw alignment), ``segments``
             (relative errors over segments of ``segment_s``) or ``start`` (the position RMSE after
@@ -153,6 +157,7 @@ class ModelSettings:
     gradient_clip: float = bounded(1.0, minimum=1e-12)
     nll_weight: float = bounded(0.0, minimum=0.0)
     innovation_weight: float = bounded(0.0, minimum=0.0)
+    innovation_learns: tuple[str, ...] = ()
     orientation_weight_m_per_rad: float = bounded(0.0, minimum=0.0)
     loss: Literal["window", "segments", "start"] = "window"
     segment_s: tuple[float, ...] = bounded((10.0, 20.0, 40.0), minimum=1e-3, nonempty=True)
@@ -170,7 +175,7 @@ class ModelSettings:
                 raise ValueError(f"model.start.{name}: unknown parameter; expected names from {', '.join(NAMES)}")
             if not value >= 0.0:
                 raise ValueError(f"model.start.{name}={value!r}: expected a number >= 0")
-        for key in ("learn", "freeze"):
+        for key in ("learn", "freeze", "innovation_learns"):
             for name in getattr(self, key) or ():
                 if name not in NAMES:
                     raise ValueError(f"model.{key}: unknown parameter {name!r}; expected names from {', '.join(NAMES)}")

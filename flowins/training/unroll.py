@@ -333,6 +333,25 @@ def window_loss(
                       position.detach() if segments is not None else pos.new_zeros(()), alignment)
 
 
+def split_gradient(loss: Tensor, likelihood: Tensor | None, params: Sequence[Tensor],
+                   from_likelihood: Sequence[bool]) -> list[Tensor | None]:
+    """The gradient of each of ``params``: of ``likelihood`` where ``from_likelihood`` says so,
+    of ``loss`` elsewhere (None where the chosen one does not reach it or is None). Two backward passes
+    through one graph (``model.innovation_learns``: the flow noise's absolute level from the
+    innovation likelihood, the rest from the window loss)."""
+    if len(from_likelihood) != len(params):
+        raise ValueError(f"split_gradient: {len(from_likelihood)} flags for {len(params)} parameters")
+    mine = [i for i, f in enumerate(from_likelihood) if f]
+    rest = [i for i, f in enumerate(from_likelihood) if not f]
+    grads: list[Tensor | None] = [None] * len(params)
+    for indices, target, keep in ((rest, loss, bool(mine)), (mine, likelihood, False)):
+        if indices and target is not None and target.requires_grad:
+            found = torch.autograd.grad(target, [params[i] for i in indices], allow_unused=True, retain_graph=keep)
+            for i, g in zip(indices, found):
+                grads[i] = g
+    return grads
+
+
 def sequence_rmse(seq: TrainingSequence, method: str, config: NavigationConfig, *, dropout_p: float | None = None) -> float:
     """Filter RMSE (m) of ``method`` over the whole sequence after the SE(3) Procrustes
     alignment of Table I (:func:`~flowins.evaluation.metrics.trajectory_errors`), no gradient."""

@@ -129,3 +129,55 @@ def test_accumulated_windows_take_one_adam_step_on_their_mean_gradient(tmp_path)
             expected -= 0.05 * g / (abs(g) + 1e-8)
         assert float(last.raw[name]) == pytest.approx(expected, rel=1e-9, abs=1e-12), name
     assert len(reached) >= 5 and {"acc_noise", "gnss_noise_scale"} <= set(reached)
+
+
+def test_innovation_learns_takes_those_parameters_from_the_likelihood(tmp_path):
+    """``model.innovation_learns=[gnss_noise_scale]`` over one 12 s window: Adam's first step
+    moves ``gnss_noise_scale`` along the gradient of the window's innovation negative
+    log-likelihood per scalar measurement and every other parameter along the window loss's
+    (both computed here from the start values); the two gradients of ``gnss_noise_scale``
+    have opposite signs here, so a step on the wrong one fails."""
+    import torch
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+    from pathlib import Path
+
+    from flowins.ins.imu_model import imu_model
+    from flowins.jobs.train import run
+    from flowins.settings import flow_config, navigation_config
+    from flowins.training.data import load_training_sequence
+    from flowins.training.unroll import run_window, window_bounds, window_loss
+
+    configs = str(Path(__file__).resolve().parents[2] / "configs")
+    source = {"seed": 1, "duration_s": 12.0}
+    with initialize_config_dir(config_dir=configs, version_base="1.3"):
+        cfg = OmegaConf.to_container(compose("train", overrides=[
+            f"output_dir={tmp_path / 'out'}", f"cache_dir={tmp_path / 'cache'}", "progress=false", "logger=csv",
+            "methods=[ins_gnss]", "filter.gnss_heading.enabled=false", "data.train=[{seed: 1, duration_s: 12.0}]",
+            "data.val=[{seed: 1, duration_s: 12.0}]", "window_s=12.0", "curriculum_window_s=[]",
+            "trainer.max_epochs=1", "model.warmup_steps=0", "model.lr=0.05", "model.innovation_learns=[gnss_noise_scale]"]),
+            resolve=True)
+    result = run(cfg)
+    seq = load_training_sequence(source, {**cfg, "flow": flow_config(cfg, moments=True)}, methods=["ins_gnss"])
+    base = navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=False))
+    learn = [n for n in NAMES if n not in ("initial_position_m", "initial_yaw_rad")]
+    params = FilterParameters(result["start"], learn=learn)
+    (window,) = window_bounds(seq.imu.t_s, 12.0)
+    out = run_window(seq, "ins_gnss", params.apply(base, training=True), window, likelihood=True)
+    loss = window_loss(out.track, seq.truth).loss
+    likelihood = out.nll / out.nll_count
+    by_loss = dict(zip(learn, torch.autograd.grad(loss, [params.raw[n] for n in learn], allow_unused=True,
+                                                  retain_graph=True)))
+    by_likelihood = float(torch.autograd.grad(likelihood, params.raw["gnss_noise_scale"])[0])
+    assert by_likelihood * float(by_loss["gnss_noise_scale"]) < 0
+    reached = {n: g for n, g in by_loss.items() if g is not None and n != "gnss_noise_scale"}
+    reached["gnss_noise_scale"] = torch.tensor(by_likelihood)
+    norm = torch.linalg.vector_norm(torch.stack(list(reached.values())))
+    clip = min(1.0, 1.0 / (float(norm) + 1e-6))
+    last = FilterParameters.from_checkpoint(tmp_path / "out" / "checkpoints" / "last.ckpt")
+    for name in NAMES:
+        expected = float(params.raw[name].detach())
+        if name in reached:
+            g = float(reached[name]) * clip
+            expected -= 0.05 * g / (abs(g) + 1e-8)
+        assert float(last.raw[name]) == pytest.approx(expected, rel=1e-9, abs=1e-12), name

@@ -448,6 +448,7 @@ def test_model_bounds_override_bound_decades_by_name():
     ("bounds", {"acc_nosie": 1.0}, r"model\.bounds\.acc_nosie: unknown parameter"),
     ("bounds", {"acc_noise": 0.0}, r"model\.bounds\.acc_noise=0\.0: expected a number > 0 or null"),
     ("bounds", {"acc_noise": "abc"}, r"model\.bounds\.acc_noise='abc': expected a number"),
+    ("innovation_learns", ["flow_sigma_scal"], r"model\.innovation_learns: unknown parameter 'flow_sigma_scal'"),
 ])
 def test_a_bad_bound_raises_naming_its_key(key, value, message):
     from flowins.config import build

@@ -7,7 +7,8 @@ from flowins.data.synthetic import synthetic_walk_recording
 from flowins.measurements.gnss_heading import HeadingAlignment
 from flowins.navigation import NavigationConfig
 from flowins.training.parameters import NAMES, FilterParameters, starting_values
-from flowins.training.unroll import LOSSES, TrainingSequence, run_windows, sequences_rmse, window_bounds, window_loss
+from flowins.training.unroll import (LOSSES, TrainingSequence, run_windows, sequences_rmse, split_gradient, window_bounds,
+                                     window_loss)
 
 
 def test_the_unroll_on_another_device_gives_the_cpu_losses_gradients_and_rmse(fake_device):
@@ -89,7 +90,7 @@ def test_one_sequence_under_two_methods_in_one_batch_equals_each_method_alone():
     for b, a in zip(batched, alone):
         torch.testing.assert_close(b.mean, a.mean, rtol=1e-9, atol=1e-9)
         torch.testing.assert_close(b.cov, a.cov, rtol=1e-9, atol=1e-12)
-    assert float((batched[0].mean - batched[1].mean).abs().max()) > 1e-3
+    assert float((batched[0].mean - batched[1].mean).detach().abs().max()) > 1e-3
     loss_b, grad_b = grads(batched)
     loss_a, grad_a = grads(alone)
     torch.testing.assert_close(loss_b, loss_a, rtol=1e-9, atol=0.0)
@@ -97,3 +98,21 @@ def test_one_sequence_under_two_methods_in_one_batch_equals_each_method_alone():
     assert bool((grad_a != 0).all())
     with pytest.raises(ValueError, match="one per sequence"):
         run_windows([seq], ["ins", "ins_gnss"], config, [window])
+
+
+def test_split_gradient_takes_each_parameter_from_its_own_loss():
+    """Closed forms: loss = a² + 3ab, likelihood = b³ + ab; a learns from the loss (2a + 3b),
+    b from the likelihood (3b² + a); c reaches neither the loss nor (it is not asked there)."""
+    a, b, c = (torch.tensor(v, dtype=torch.float64, requires_grad=True) for v in (1.5, -0.7, 2.0))
+    loss = a * a + 3 * a * b
+    likelihood = b**3 + a * b + c
+    ga, gb, gc = split_gradient(loss, likelihood, [a, b, c], [False, True, False])
+    assert float(ga) == pytest.approx(2 * 1.5 + 3 * -0.7, rel=1e-15)
+    assert float(gb) == pytest.approx(3 * 0.49 + 1.5, rel=1e-15)
+    assert gc is None  # c is in the likelihood only, and learns from the loss
+    loss = a * a + 3 * a * b
+    assert [float(g) for g in split_gradient(loss, None, [a, b], [False, False])] == pytest.approx([2 * 1.5 - 2.1, 4.5])
+    loss = a * a + 3 * a * b
+    assert split_gradient(loss, None, [a, b], [False, True])[1] is None  # no likelihood: nothing for b
+    with pytest.raises(ValueError, match="2 flags for 3 parameters"):
+        split_gradient(loss, None, [a, b, c], [False, True])
