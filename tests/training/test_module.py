@@ -83,10 +83,10 @@ def test_the_heldout_table_puts_the_select_mean_and_std_beside_the_val_mean():
     assert lines[3].split() == ["reduction", "50.0", "%", "0.0", "/", "60.0", "%"]
 
 
-def test_accumulated_windows_take_one_adam_step_on_their_mean_gradient(tmp_path):
-    """``model.accumulate_windows=2`` over a sequence of two windows: one step, on the mean of
-    both windows' gradients (computed here window by window), as Adam's first step takes it."""
-    import torch
+def _one_epoch(tmp_path, *overrides):
+    """``python train.py`` for one epoch of ``ins_gnss`` on a 12 s walk (GNSS heading alignment
+    off, no warm-up, rate 0.05) with ``overrides``; returns the sequence, the filter
+    configuration, the learned names, the start parameters and the parameters after the epoch."""
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
     from pathlib import Path
@@ -95,23 +95,47 @@ def test_accumulated_windows_take_one_adam_step_on_their_mean_gradient(tmp_path)
     from flowins.jobs.train import run
     from flowins.settings import flow_config, navigation_config
     from flowins.training.data import load_training_sequence
-    from flowins.training.unroll import run_window, window_bounds, window_loss
 
     configs = str(Path(__file__).resolve().parents[2] / "configs")
-    source = {"seed": 1, "duration_s": 12.0}
     with initialize_config_dir(config_dir=configs, version_base="1.3"):
         cfg = OmegaConf.to_container(compose("train", overrides=[
             f"output_dir={tmp_path / 'out'}", f"cache_dir={tmp_path / 'cache'}", "progress=false", "logger=csv",
             "methods=[ins_gnss]", "filter.gnss_heading.enabled=false", "data.train=[{seed: 1, duration_s: 12.0}]",
-            "data.val=[{seed: 1, duration_s: 12.0}]", "window_s=6.0", "curriculum_window_s=[]",
-            "trainer.max_epochs=1", "model.warmup_steps=0", "model.lr=0.05", "model.accumulate_windows=2"]),
-            resolve=True)
+            "data.val=[{seed: 1, duration_s: 12.0}]", "curriculum_window_s=[]", "trainer.max_epochs=1",
+            "model.warmup_steps=0", "model.lr=0.05", *overrides]), resolve=True)
     result = run(cfg)
-    # the reference: both windows' losses from the start values, their mean's gradient, Adam's first step
-    seq = load_training_sequence(source, {**cfg, "flow": flow_config(cfg, moments=True)}, methods=["ins_gnss"])
+    seq = load_training_sequence({"seed": 1, "duration_s": 12.0}, {**cfg, "flow": flow_config(cfg, moments=True)},
+                                 methods=["ins_gnss"])
     base = navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=False))
     learn = [n for n in NAMES if n not in ("initial_position_m", "initial_yaw_rad")]
-    params = FilterParameters(result["start"], learn=learn)
+    last = FilterParameters.from_checkpoint(tmp_path / "out" / "checkpoints" / "last.ckpt")
+    return seq, base, learn, FilterParameters(result["start"], learn=learn), last
+
+
+def _assert_first_adam_step(params, last, reached, lr=0.05):
+    """``last`` is one Adam step of rate ``lr`` from ``params`` on the gradient ``reached`` (by
+    name), clipped to norm 1: each coordinate moves ``lr`` against its gradient's sign."""
+    import torch
+
+    norm = torch.linalg.vector_norm(torch.stack([torch.as_tensor(g) for g in reached.values()]))
+    clip = min(1.0, 1.0 / (float(norm) + 1e-6))
+    for name in NAMES:
+        expected = float(params.raw[name].detach())
+        if name in reached:
+            g = float(reached[name]) * clip
+            expected -= lr * g / (abs(g) + 1e-8)
+        assert float(last.raw[name]) == pytest.approx(expected, rel=1e-9, abs=1e-12), name
+
+
+def test_accumulated_windows_take_one_adam_step_on_their_mean_gradient(tmp_path):
+    """``model.accumulate_windows=2`` over a sequence of two windows: one step, on the mean of
+    both windows' gradients (computed here window by window), as Adam's first step takes it."""
+    import torch
+
+    from flowins.training.unroll import run_window, window_bounds, window_loss
+
+    seq, base, learn, params, last = _one_epoch(tmp_path, "window_s=6.0", "model.accumulate_windows=2")
+    # the reference: both windows' losses from the start values, their mean's gradient, Adam's first step
     config = params.apply(base, training=True)
     first, second = window_bounds(seq.imu.t_s, 6.0)
     a = run_window(seq, "ins_gnss", config, first)
@@ -119,15 +143,7 @@ def test_accumulated_windows_take_one_adam_step_on_their_mean_gradient(tmp_path)
     loss = 0.5 * (window_loss(a.track, seq.truth).loss + window_loss(b.track, seq.truth).loss)
     grads = torch.autograd.grad(loss, [params.raw[n] for n in learn], allow_unused=True)
     reached = {n: g for n, g in zip(learn, grads) if g is not None}
-    norm = torch.linalg.vector_norm(torch.stack(list(reached.values())))
-    clip = min(1.0, 1.0 / (float(norm) + 1e-6))
-    last = FilterParameters.from_checkpoint(tmp_path / "out" / "checkpoints" / "last.ckpt")
-    for name in NAMES:
-        expected = float(params.raw[name].detach())
-        if name in reached:
-            g = float(reached[name]) * clip
-            expected -= 0.05 * g / (abs(g) + 1e-8)
-        assert float(last.raw[name]) == pytest.approx(expected, rel=1e-9, abs=1e-12), name
+    _assert_first_adam_step(params, last, reached)
     assert len(reached) >= 5 and {"acc_noise", "gnss_noise_scale"} <= set(reached)
 
 
@@ -138,30 +154,10 @@ def test_innovation_learns_takes_those_parameters_from_the_likelihood(tmp_path):
     (both computed here from the start values); the two gradients of ``gnss_noise_scale``
     have opposite signs here, so a step on the wrong one fails."""
     import torch
-    from hydra import compose, initialize_config_dir
-    from omegaconf import OmegaConf
-    from pathlib import Path
 
-    from flowins.ins.imu_model import imu_model
-    from flowins.jobs.train import run
-    from flowins.settings import flow_config, navigation_config
-    from flowins.training.data import load_training_sequence
     from flowins.training.unroll import run_window, window_bounds, window_loss
 
-    configs = str(Path(__file__).resolve().parents[2] / "configs")
-    source = {"seed": 1, "duration_s": 12.0}
-    with initialize_config_dir(config_dir=configs, version_base="1.3"):
-        cfg = OmegaConf.to_container(compose("train", overrides=[
-            f"output_dir={tmp_path / 'out'}", f"cache_dir={tmp_path / 'cache'}", "progress=false", "logger=csv",
-            "methods=[ins_gnss]", "filter.gnss_heading.enabled=false", "data.train=[{seed: 1, duration_s: 12.0}]",
-            "data.val=[{seed: 1, duration_s: 12.0}]", "window_s=12.0", "curriculum_window_s=[]",
-            "trainer.max_epochs=1", "model.warmup_steps=0", "model.lr=0.05", "model.innovation_learns=[gnss_noise_scale]"]),
-            resolve=True)
-    result = run(cfg)
-    seq = load_training_sequence(source, {**cfg, "flow": flow_config(cfg, moments=True)}, methods=["ins_gnss"])
-    base = navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=False))
-    learn = [n for n in NAMES if n not in ("initial_position_m", "initial_yaw_rad")]
-    params = FilterParameters(result["start"], learn=learn)
+    seq, base, learn, params, last = _one_epoch(tmp_path, "window_s=12.0", "model.innovation_learns=[gnss_noise_scale]")
     (window,) = window_bounds(seq.imu.t_s, 12.0)
     out = run_window(seq, "ins_gnss", params.apply(base, training=True), window, likelihood=True)
     loss = window_loss(out.track, seq.truth).loss
@@ -172,12 +168,4 @@ def test_innovation_learns_takes_those_parameters_from_the_likelihood(tmp_path):
     assert by_likelihood * float(by_loss["gnss_noise_scale"]) < 0
     reached = {n: g for n, g in by_loss.items() if g is not None and n != "gnss_noise_scale"}
     reached["gnss_noise_scale"] = torch.tensor(by_likelihood)
-    norm = torch.linalg.vector_norm(torch.stack(list(reached.values())))
-    clip = min(1.0, 1.0 / (float(norm) + 1e-6))
-    last = FilterParameters.from_checkpoint(tmp_path / "out" / "checkpoints" / "last.ckpt")
-    for name in NAMES:
-        expected = float(params.raw[name].detach())
-        if name in reached:
-            g = float(reached[name]) * clip
-            expected -= 0.05 * g / (abs(g) + 1e-8)
-        assert float(last.raw[name]) == pytest.approx(expected, rel=1e-9, abs=1e-12), name
+    _assert_first_adam_step(params, last, reached)
