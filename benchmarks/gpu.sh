@@ -38,6 +38,9 @@ reference=${1:-benchmarks/table1_cpu.json}
 out=$(mktemp -d)
 started=$SECONDS
 sections=${GPU_SH_SECTIONS:-1 2 3 4 5 6}
+for n in $sections; do
+  [[ " 1 2 3 4 5 6 " == *" $n "* ]] || { echo "error: GPU_SH_SECTIONS: no section $n (1 to 6)"; exit 1; }
+done
 failed=()
 section() { echo; echo "== [$((SECONDS - started)) s] $*"; }
 # run "$@" for at most $1 s (0: no limit); a stop at the limit is said, and is no failure
@@ -108,9 +111,6 @@ s6() {
   echo "train.py on the GPU: $((SECONDS - t0)) s"
 }
 
-for n in $sections; do
-  [[ " 1 2 3 4 5 6 " == *" $n "* ]] || { echo "error: GPU_SH_SECTIONS: no section $n (1 to 6)"; exit 1; }
-done
 for n in $sections; do
   "s$n" || { echo "error: section $n failed (exit $?)"; failed+=("$n"); }
 done
