@@ -155,7 +155,7 @@ class FilterLearner(pl.LightningModule):
             if losses:
                 total = torch.stack([w.loss for _, w, _ in losses]).sum()
                 parts = [x for _, _, x in losses if x is not None]
-                likelihood = torch.stack(parts).sum() if parts and any(from_likelihood) else None
+                likelihood = torch.stack(parts).sum() if parts else None
                 grads = split_gradient(total, likelihood, learned, from_likelihood)
                 flat = torch.cat([q.new_zeros(q.numel()) if g is None else g.reshape(-1)
                                   for q, g in zip(learned, grads)])
