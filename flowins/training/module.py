@@ -41,7 +41,7 @@ import torch
 from pytorch_lightning.trainer.states import TrainerFn
 
 from flowins.navigation import NavigationConfig
-from flowins.training.parameters import FilterParameters, ModelSettings
+from flowins.training.parameters import LEVEL_NAMES, FilterParameters, ModelSettings
 from flowins.training.schedule import learning_rate, window_length
 from flowins.training.unroll import (
     TrainingSequence,
@@ -94,6 +94,14 @@ class FilterLearner(pl.LightningModule):
         self.orientation_weight = model.orientation_weight_m_per_rad
         self.innovation_weight = model.innovation_weight
         self.innovation_learns = frozenset(model.innovation_learns)
+        self.noise_level = model.noise_level
+        self.level_names = (frozenset(LEVEL_NAMES) & set(params.learned)) - self.innovation_learns
+        if self.noise_level == "likelihood" and len(self.level_names) < 2:
+            raise ValueError(f"model.noise_level=likelihood: needs at least two learned noise parameters of "
+                             f"{', '.join(LEVEL_NAMES)} outside model.innovation_learns; learned: "
+                             f"{sorted(self.level_names) or 'none'}")
+        if self.noise_level != "likelihood":
+            self.level_names = frozenset()
         self.loss = model.loss
         self.segment_s = tuple(model.segment_s)
         self.lr = model.lr
@@ -119,7 +127,8 @@ class FilterLearner(pl.LightningModule):
                                    "curriculum_window_s": self.curriculum, "nll_weight": self.nll_weight,
                                    "orientation_weight_m_per_rad": self.orientation_weight,
                                    "innovation_weight": self.innovation_weight,
-                                   "innovation_learns": sorted(self.innovation_learns), "loss": self.loss,
+                                   "innovation_learns": sorted(self.innovation_learns),
+                                   "noise_level": self.noise_level, "loss": self.loss,
                                    "segment_s": list(self.segment_s), "lr": self.lr,
                                    "lr_final": self.lr_final, "warmup_steps": self.warmup_steps,
                                    "accumulate_windows": self.accumulate, "gradient_clip": self.gradient_clip,
@@ -140,6 +149,7 @@ class FilterLearner(pl.LightningModule):
         named = [(n, q) for n, q in self.params.raw.items() if q.requires_grad]
         learned = [q for _, q in named]
         from_likelihood = [n in self.innovation_learns for n, _ in named]
+        level = [n in self.level_names for n, _ in named] if self.level_names else None
         # one row per sequence and method: the i-th windows of all of them run as one batched filter
         pairs = [(k, method) for method in self.methods for k in range(len(seqs))]
         starts: list = [None] * len(pairs)
@@ -156,7 +166,7 @@ class FilterLearner(pl.LightningModule):
                 total = torch.stack([w.loss for _, w, _ in losses]).sum()
                 parts = [x for _, _, x in losses if x is not None]
                 likelihood = torch.stack(parts).sum() if parts else None
-                grads = split_gradient(total, likelihood, learned, from_likelihood)
+                grads = split_gradient(total, likelihood, learned, from_likelihood, level)
                 flat = torch.cat([q.new_zeros(q.numel()) if g is None else g.reshape(-1)
                                   for q, g in zip(learned, grads)])
                 if bool(torch.isfinite(flat).all()):
@@ -186,7 +196,7 @@ class FilterLearner(pl.LightningModule):
         p = self.params.value("dropout_p") if moments else None
         results = run_windows([seqs[pairs[r][0]] for r in rows], [pairs[r][1] for r in rows], config,
                               [bounds[pairs[r][0]][i] for r in rows], dropout_p=p, starts=[starts[r] for r in rows],
-                              likelihood=self.innovation_weight > 0 or bool(self.innovation_learns))
+                              likelihood=self.innovation_weight > 0 or self._per_measurement)
         losses = []
         for r, result in zip(rows, results):
             k, method = pairs[r]
@@ -199,7 +209,7 @@ class FilterLearner(pl.LightningModule):
             state_ok = bool(torch.isfinite(result.mean).all() and torch.isfinite(result.cov).all())
             finite = bool(torch.isfinite(loss.loss))
             # the innovation likelihood per scalar measurement, with its graph (model.innovation_learns)
-            per_measurement = (result.nll / max(result.nll_count, 1.0) if self.innovation_learns and result.nll is not None
+            per_measurement = (result.nll / max(result.nll_count, 1.0) if self._per_measurement and result.nll is not None
                                else None)
             finite = finite and (per_measurement is None or bool(torch.isfinite(per_measurement)))
             if finite:
@@ -210,6 +220,12 @@ class FilterLearner(pl.LightningModule):
                 going[r] = False
             self._skip((0 if finite else 1) + (0 if state_ok else len(bounds[k]) - i - 1))
         return losses
+
+    @property
+    def _per_measurement(self) -> bool:
+        """Whether a window's innovation likelihood per scalar measurement has its own gradient
+        (``model.innovation_learns``, ``model.noise_level=likelihood``)."""
+        return bool(self.innovation_learns or self.level_names)
 
     def _no_gradient(self, learned: list[torch.Tensor]) -> torch.Tensor:
         return torch.zeros(sum(q.numel() for q in learned), dtype=torch.float64, device=self.device)

@@ -110,6 +110,10 @@ NOISE_NAMES: tuple[str, ...] = (
     "initial_velocity_mps", "initial_roll_pitch_rad", "initial_acc_bias_mps2", "initial_gyro_bias_rps",
     "initial_acc_scale", "gnss_noise_scale", "flow_sigma_scale", "flow_sigma_floor_px",
 )  # fmt: skip
+#: the noise levels one factor scales with the filter's estimates unchanged (``model.noise_level``):
+#: the noise parameters and the other measurements' σs
+LEVEL_NAMES: tuple[str, ...] = (*NOISE_NAMES, "vehicle_lateral_sigma_mps", "vehicle_vertical_sigma_mps",
+                                "tracks_sigma_px")
 #: frozen unless the config says otherwise
 FROZEN_BY_DEFAULT = frozenset({"initial_position_m", "initial_yaw_rad"})
 #: how far a learned value may go from its start, in decades each way (``model.bound_decades``)
@@ -136,6 +140,10 @@ class ModelSettings:
             per scalar measurement alone, the rest from the window loss
             (:func:`~flowins.training.unroll.split_gradient`). The likelihood fixes absolute
             noise levels, which the window loss sees only as ratios; () for none.
+        noise_level: ``loss``: every parameter from the loss; ``likelihood``: the learned
+            parameters of :data:`LEVEL_NAMES` keep their ratios from the loss and take their
+            common level from the innovation likelihood per scalar measurement
+            (:func:`~flowins.training.unroll.level_gradient`).
         orientation_weight_m_per_rad: weight of the orientation RMSE (rad) in the loss.
         loss: ``window`` (the position RMSE after each window's yaw alignment), ``segments``
             (relative errors over segments of ``segment_s``) or ``start`` (the position RMSE after
@@ -158,6 +166,7 @@ class ModelSettings:
     nll_weight: float = bounded(0.0, minimum=0.0)
     innovation_weight: float = bounded(0.0, minimum=0.0)
     innovation_learns: tuple[str, ...] = ()
+    noise_level: Literal["loss", "likelihood"] = "loss"
     orientation_weight_m_per_rad: float = bounded(0.0, minimum=0.0)
     loss: Literal["window", "segments", "start"] = "window"
     segment_s: tuple[float, ...] = bounded((10.0, 20.0, 40.0), minimum=1e-3, nonempty=True)

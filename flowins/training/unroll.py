@@ -334,22 +334,66 @@ def window_loss(
 
 
 def split_gradient(loss: Tensor, likelihood: Tensor | None, params: Sequence[Tensor],
-                   from_likelihood: Sequence[bool]) -> list[Tensor | None]:
+                   from_likelihood: Sequence[bool], level: Sequence[bool] | None = None) -> list[Tensor | None]:
     """The gradient of each of ``params``: of ``likelihood`` where ``from_likelihood`` says so,
     of ``loss`` elsewhere (None where the chosen one does not reach it or is None). Two backward passes
     through one graph (``model.innovation_learns``: the flow noise's absolute level from the
-    innovation likelihood, the rest from the window loss)."""
+    innovation likelihood, the rest from the window loss).
+
+    ``level`` marks a group of noise parameters (``model.noise_level=likelihood``) whose common
+    level comes from ``likelihood`` and whose ratios come from ``loss``: each one's gradient is
+    :func:`level_gradient` of both (a parameter both in ``level`` and ``from_likelihood`` takes
+    the likelihood's alone)."""
     if len(from_likelihood) != len(params):
         raise ValueError(f"split_gradient: {len(from_likelihood)} flags for {len(params)} parameters")
-    mine = [i for i, f in enumerate(from_likelihood) if f]
-    rest = [i for i, f in enumerate(from_likelihood) if not f]
-    grads: list[Tensor | None] = [None] * len(params)
-    for indices, target, keep in ((rest, loss, bool(mine)), (mine, likelihood, False)):
+    if level is not None and len(level) != len(params):
+        raise ValueError(f"split_gradient: {len(level)} level flags for {len(params)} parameters")
+    grouped = [bool(g) and not f for g, f in zip(level or [False] * len(params), from_likelihood)]
+    by_loss = [i for i, f in enumerate(from_likelihood) if not f]
+    by_likelihood = [i for i, f in enumerate(from_likelihood) if f or grouped[i]]
+    found_loss: dict[int, Tensor | None] = {}
+    found_likelihood: dict[int, Tensor | None] = {}
+    for indices, target, keep, out in ((by_loss, loss, bool(by_likelihood), found_loss),
+                                       (by_likelihood, likelihood, False, found_likelihood)):
         if indices and target is not None and target.requires_grad:
-            found = torch.autograd.grad(target, [params[i] for i in indices], allow_unused=True, retain_graph=keep)
-            for i, g in zip(indices, found):
-                grads[i] = g
+            out.update(zip(indices, torch.autograd.grad(target, [params[i] for i in indices], allow_unused=True,
+                                                         retain_graph=keep)))
+    grads: list[Tensor | None] = [found_likelihood.get(i) if f else found_loss.get(i)
+                                  for i, f in enumerate(from_likelihood)]
+    members = [i for i, g in enumerate(grouped) if g]
+    if members:
+        mixed = level_gradient([found_loss.get(i) for i in members], [found_likelihood.get(i) for i in members])
+        for i, g in zip(members, mixed):
+            grads[i] = g
     return grads
+
+
+def level_gradient(by_loss: Sequence[Tensor | None], by_likelihood: Sequence[Tensor | None]) -> list[Tensor | None]:
+    """The gradients of a group of noise parameters' coordinates (each ``≈ ln θ`` near its
+    start) that move their common level along the likelihood and their ratios along the loss:
+    ``g_i − mean(g) + mean(ℓ)``, with ``g`` the loss's gradients and ``ℓ`` the likelihood's
+    (a likelihood gradient of None counts as 0). A parameter the loss does not reach (None, or
+    exactly 0: a GNSS noise scale while every fix is held) has no ratio to learn: its gradient
+    is ``mean(ℓ)`` alone, and the mean of ``g`` is over the others. All None: None for each.
+
+    Scaling every noise density, walk, initial 1-σ and measurement σ of a linear-Gaussian
+    filter by one factor leaves its gains and so its estimates unchanged: a position loss
+    sees the ratios between them only, while the innovation likelihood fixes their level
+    (``model.noise_level=likelihood``). The mean over the group is the loss's derivative
+    along that common direction, taken out; the likelihood's enters in its place."""
+    if len(by_loss) != len(by_likelihood) or not by_loss:
+        raise ValueError(f"level_gradient: {len(by_loss)} loss and {len(by_likelihood)} likelihood gradients; "
+                         "expected one of each per parameter of the group, at least one")
+    ref = next((g for g in (*by_loss, *by_likelihood) if g is not None), None)
+    if ref is None:
+        return [None] * len(by_loss)
+    seen = torch.tensor([g is not None and bool((g != 0).any()) for g in by_loss], device=ref.device)
+    g = torch.stack([torch.zeros_like(ref) if x is None else x for x in by_loss])
+    ell = torch.stack([torch.zeros_like(ref) if x is None else x for x in by_likelihood])
+    shape = (-1,) + (1,) * ref.dim()
+    common = (g * seen.reshape(shape)).sum(dim=0) / seen.sum().clamp_min(1)
+    ratio = torch.where(seen.reshape(shape), g - common, torch.zeros_like(g))
+    return list(ratio + ell.mean(dim=0))
 
 
 def sequence_rmse(seq: TrainingSequence, method: str, config: NavigationConfig, *, dropout_p: float | None = None) -> float:

@@ -169,3 +169,37 @@ def test_innovation_learns_takes_those_parameters_from_the_likelihood(tmp_path):
     reached = {n: g for n, g in by_loss.items() if g is not None and n != "gnss_noise_scale"}
     reached["gnss_noise_scale"] = torch.tensor(by_likelihood)
     _assert_first_adam_step(params, last, reached)
+
+
+def test_noise_level_likelihood_steps_on_the_level_gradient(tmp_path):
+    """``model.noise_level=likelihood`` over one 12 s window: Adam's first step moves every
+    learned noise parameter along :func:`level_gradient` of the window loss's and the innovation
+    likelihood's gradients (both computed here from the start values), and the gates and other
+    parameters along the loss's alone."""
+    import torch
+
+    from flowins.training.parameters import LEVEL_NAMES
+    from flowins.training.unroll import level_gradient, run_window, window_bounds, window_loss
+
+    seq, base, learn, params, last = _one_epoch(tmp_path, "window_s=12.0", "model.noise_level=likelihood")
+    (window,) = window_bounds(seq.imu.t_s, 12.0)
+    out = run_window(seq, "ins_gnss", params.apply(base, training=True), window, likelihood=True)
+    loss = window_loss(out.track, seq.truth).loss
+    likelihood = out.nll / out.nll_count
+    by_loss = dict(zip(learn, torch.autograd.grad(loss, [params.raw[n] for n in learn], allow_unused=True,
+                                                  retain_graph=True)))
+    group = [n for n in learn if n in LEVEL_NAMES]
+    by_likelihood = torch.autograd.grad(likelihood, [params.raw[n] for n in group], allow_unused=True)
+    reached = {n: g for n, g in by_loss.items() if g is not None and n not in group}
+    reached.update(zip(group, level_gradient([by_loss[n] for n in group], by_likelihood)))
+    _assert_first_adam_step(params, last, reached)
+    assert {"acc_noise", "gnss_noise_scale", "gnss_gate_threshold"} <= set(reached)
+
+
+def test_noise_level_needs_two_learned_noise_parameters():
+    from flowins.training.parameters import ModelSettings, starting_values
+
+    params = FilterParameters(starting_values(NavigationConfig()), learn=["acc_noise", "flow_gate_threshold"])
+    with pytest.raises(ValueError, match="model.noise_level=likelihood: needs at least two learned noise"):
+        FilterLearner(params, NavigationConfig(), methods=["ins_gnss"], model=ModelSettings(noise_level="likelihood"))
+

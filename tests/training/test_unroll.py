@@ -7,7 +7,7 @@ from flowins.data.synthetic import synthetic_walk_recording
 from flowins.measurements.gnss_heading import HeadingAlignment
 from flowins.navigation import NavigationConfig
 from flowins.training.parameters import NAMES, FilterParameters, starting_values
-from flowins.training.unroll import (LOSSES, TrainingSequence, run_windows, sequences_rmse, split_gradient, window_bounds,
+from flowins.training.unroll import (LOSSES, TrainingSequence, run_windows, sequences_rmse, split_gradient, level_gradient, window_bounds,
                                      window_loss)
 
 
@@ -116,3 +116,31 @@ def test_split_gradient_takes_each_parameter_from_its_own_loss():
     assert split_gradient(loss, None, [a, b], [False, True])[1] is None  # no likelihood: nothing for b
     with pytest.raises(ValueError, match="2 flags for 3 parameters"):
         split_gradient(loss, None, [a, b, c], [False, True])
+
+
+def test_level_gradient_moves_the_common_level_by_the_likelihood_and_the_ratios_by_the_loss():
+    """Closed forms for a group of three: loss = (a − b)² + c·a (the ratios, and a common part),
+    likelihood = (a + b + c − 3)² (the level alone). Each gradient is the loss's minus its mean
+    over the group plus the likelihood's mean; a fourth parameter outside the group takes the
+    loss's, a fifth in ``from_likelihood`` the likelihood's alone."""
+    a, b, c, d, e = (torch.tensor(v, dtype=torch.float64, requires_grad=True) for v in (0.4, -0.2, 1.1, 0.7, 0.3))
+    loss = (a - b) ** 2 + c * a + d * d * a + e
+    likelihood = (a + b + c - 3) ** 2 + e * e
+    ga, gb, gc, gd, ge = split_gradient(loss, likelihood, [a, b, c, d, e], [False, False, False, False, True],
+                                        level=[True, True, True, False, True])
+    by_loss = [2 * 0.6 + 1.1 + 0.49, -2 * 0.6, 0.4]  # ∂/∂a, ∂/∂b, ∂/∂c of the loss
+    by_likelihood = 2 * (0.4 - 0.2 + 1.1 - 3)  # the same for a, b and c
+    mean = sum(by_loss) / 3
+    assert [float(g) for g in (ga, gb, gc)] == pytest.approx([x - mean + by_likelihood for x in by_loss], rel=1e-14)
+    assert float(ga + gb + gc) == pytest.approx(3 * by_likelihood, rel=1e-14)  # the level: the likelihood's alone
+    assert float(gd) == pytest.approx(2 * 0.7 * 0.4, rel=1e-14)
+    assert float(ge) == pytest.approx(2 * 0.3, rel=1e-14)
+    # the likelihood reaching none of them (None): the ratios' part alone
+    assert [float(g) for g in level_gradient([torch.tensor(1.0), torch.tensor(3.0)], [None, None])] == [-1.0, 1.0]
+    # one the loss does not reach (None or 0) follows the level alone, and is left out of the loss's mean
+    got = level_gradient([torch.tensor(1.0), None, torch.tensor(0.0), torch.tensor(3.0)],
+                         [torch.tensor(2.0), torch.tensor(-4.0), None, torch.tensor(6.0)])
+    assert [float(g) for g in got] == [-1.0 + 1.0, 1.0, 1.0, 1.0 + 1.0]
+    assert level_gradient([None, None], [None, None]) == [None, None]
+    with pytest.raises(ValueError, match="1 level flags for 2 parameters"):
+        split_gradient(a * b, None, [a, b], [False, False], level=[True])
