@@ -1,5 +1,6 @@
 """The training unroll on another device: windows, their losses and gradients, and the
 held-out RMSE, on the fake device of ``conftest.FakeDevice`` (a GPU's stand-in)."""
+import math
 import pytest
 import torch
 
@@ -144,3 +145,41 @@ def test_level_gradient_moves_the_common_level_by_the_likelihood_and_the_ratios_
     assert level_gradient([None, None], [None, None]) == [None, None]
     with pytest.raises(ValueError, match="1 level flags for 2 parameters"):
         split_gradient(a * b, None, [a, b], [False, False], level=[True])
+
+
+def test_one_factor_on_every_noise_level_leaves_the_estimates_unchanged():
+    """The premise of ``model.noise_level=likelihood`` (:func:`level_gradient`): every noise
+    density, walk, initial 1-σ and measurement σ of ``ins_gnss`` times ``e^0.4`` (the start's
+    covariance times ``e^0.8``, the GNSS gate and the still start's zero-velocity updates off) leaves the filter's means and so the window
+    loss unchanged, and scales every covariance by ``e^0.8``; one of them alone changes the loss."""
+    from dataclasses import replace
+
+    from flowins.filter.ekf import Gate
+    from flowins.navigation import NavigationRun, prepare_navigation
+    from flowins.training.parameters import LEVEL_NAMES
+
+    rec = synthetic_walk_recording(duration_s=12.0, seed=1)
+    seq = TrainingSequence("walk", rec.imu, rec.gnss, rec.truth)
+    base = NavigationConfig(gnss_heading=HeadingAlignment(enabled=False), gnss_gate=Gate(mode="off"))
+    # no zero-velocity updates at the still start: their σ is no learned parameter
+    base = replace(base, start=replace(base.start, still=replace(base.start.still, zupt_hz=0.0)))
+    start = starting_values(base)
+    window = (0, seq.imu.t_s.shape[0] - 1)
+
+    def run(shift: dict[str, float], factor: float):  # unbounded: a shift of the coordinate is one of ln θ
+        params = FilterParameters(start, learn=(), bounds={n: None for n in NAMES}, ceilings={})
+        with torch.no_grad():
+            for name, x in shift.items():
+                params.raw[name].fill_(x)
+        config = params.apply(base, training=False)
+        setup = prepare_navigation(NavigationRun(seq.imu, seq.gnss), config=base)
+        (out,) = run_windows([seq], "ins_gnss", config, [window], starts=[(setup.mean0, setup.cov0 * factor)])
+        return out, float(window_loss(out.track, seq.truth).loss)
+
+    group = [n for n in (*LEVEL_NAMES, "initial_position_m", "initial_yaw_rad") if start[n] > 0]
+    (a, loss_a), (b, loss_b) = run({}, 1.0), run({n: 0.4 for n in group}, math.exp(0.8))
+    torch.testing.assert_close(b.track.mean, a.track.mean, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(b.track.cov, a.track.cov * math.exp(0.8), rtol=1e-7, atol=1e-15)
+    assert loss_b == pytest.approx(loss_a, rel=1e-9)
+    _, loss_c = run({"gnss_noise_scale": 0.4}, 1.0)
+    assert abs(loss_c - loss_a) > 1e-3 * loss_a
