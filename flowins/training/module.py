@@ -102,7 +102,6 @@ class FilterLearner(pl.LightningModule):
                              f"{sorted(self.level_names) or 'none'}")
         if self.noise_level != "likelihood":
             self.level_names = frozenset()
-        self.level_follows = frozenset(model.level_follows)
         self.loss = model.loss
         self.segment_s = tuple(model.segment_s)
         self.lr = model.lr
@@ -129,8 +128,7 @@ class FilterLearner(pl.LightningModule):
                                    "orientation_weight_m_per_rad": self.orientation_weight,
                                    "innovation_weight": self.innovation_weight,
                                    "innovation_learns": sorted(self.innovation_learns),
-                                   "noise_level": self.noise_level, "level_follows": sorted(self.level_follows),
-                                   "loss": self.loss,
+                                   "noise_level": self.noise_level, "loss": self.loss,
                                    "segment_s": list(self.segment_s), "lr": self.lr,
                                    "lr_final": self.lr_final, "warmup_steps": self.warmup_steps,
                                    "accumulate_windows": self.accumulate, "gradient_clip": self.gradient_clip,
@@ -152,7 +150,6 @@ class FilterLearner(pl.LightningModule):
         learned = [q for _, q in named]
         from_likelihood = [n in self.innovation_learns for n, _ in named]
         level = [n in self.level_names for n, _ in named] if self.level_names else None
-        follows = [n in self.level_follows for n, _ in named] if self.level_names else None
         # one row per sequence and method: the i-th windows of all of them run as one batched filter
         pairs = [(k, method) for method in self.methods for k in range(len(seqs))]
         starts: list = [None] * len(pairs)
@@ -169,7 +166,7 @@ class FilterLearner(pl.LightningModule):
                 total = torch.stack([w.loss for _, w, _ in losses]).sum()
                 parts = [x for _, _, x in losses if x is not None]
                 likelihood = torch.stack(parts).sum() if parts else None
-                grads = split_gradient(total, likelihood, learned, from_likelihood, level, follows)
+                grads = split_gradient(total, likelihood, learned, from_likelihood, level)
                 flat = torch.cat([q.new_zeros(q.numel()) if g is None else g.reshape(-1)
                                   for q, g in zip(learned, grads)])
                 if bool(torch.isfinite(flat).all()):

@@ -144,8 +144,6 @@ class ModelSettings:
             parameters of :data:`LEVEL_NAMES` keep their ratios from the loss and take their
             common level from the innovation likelihood per scalar measurement
             (:func:`~flowins.training.unroll.level_gradient`).
-        level_follows: noise parameters that, with ``noise_level=likelihood``, move with the
-            common level alone, keeping their ratio to the others from the start.
         orientation_weight_m_per_rad: weight of the orientation RMSE (rad) in the loss.
         loss: ``window`` (the position RMSE after each window's yaw alignment), ``segments``
             (relative errors over segments of ``segment_s``) or ``start`` (the position RMSE after
@@ -169,7 +167,6 @@ class ModelSettings:
     innovation_weight: float = bounded(0.0, minimum=0.0)
     innovation_learns: tuple[str, ...] = ()
     noise_level: Literal["loss", "likelihood"] = "loss"
-    level_follows: tuple[str, ...] = ()
     orientation_weight_m_per_rad: float = bounded(0.0, minimum=0.0)
     loss: Literal["window", "segments", "start"] = "window"
     segment_s: tuple[float, ...] = bounded((10.0, 20.0, 40.0), minimum=1e-3, nonempty=True)
@@ -187,12 +184,7 @@ class ModelSettings:
                 raise ValueError(f"model.start.{name}: unknown parameter; expected names from {', '.join(NAMES)}")
             if not value >= 0.0:
                 raise ValueError(f"model.start.{name}={value!r}: expected a number >= 0")
-        if self.level_follows and self.noise_level != "likelihood":
-            raise ValueError(f"model.level_follows={list(self.level_follows)}: needs model.noise_level=likelihood, "
-                             f"got {self.noise_level!r}")
-        if bad := [n for n in self.level_follows if n in NAMES and n not in LEVEL_NAMES]:
-            raise ValueError(f"model.level_follows: {bad} are no noise levels; expected names from {', '.join(LEVEL_NAMES)}")
-        for key in ("learn", "freeze", "innovation_learns", "level_follows"):
+        for key in ("learn", "freeze", "innovation_learns"):
             for name in getattr(self, key) or ():
                 if name not in NAMES:
                     raise ValueError(f"model.{key}: unknown parameter {name!r}; expected names from {', '.join(NAMES)}")

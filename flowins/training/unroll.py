@@ -334,8 +334,7 @@ def window_loss(
 
 
 def split_gradient(loss: Tensor, likelihood: Tensor | None, params: Sequence[Tensor],
-                   from_likelihood: Sequence[bool], level: Sequence[bool] | None = None,
-                   follows: Sequence[bool] | None = None) -> list[Tensor | None]:
+                   from_likelihood: Sequence[bool], level: Sequence[bool] | None = None) -> list[Tensor | None]:
     """The gradient of each of ``params``: of ``likelihood`` where ``from_likelihood`` says so,
     of ``loss`` elsewhere (None where the chosen one does not reach it or is None). Two backward passes
     through one graph (``model.innovation_learns``: the flow noise's absolute level from the
@@ -344,13 +343,11 @@ def split_gradient(loss: Tensor, likelihood: Tensor | None, params: Sequence[Ten
     ``level`` marks a group of noise parameters (``model.noise_level=likelihood``) whose common
     level comes from ``likelihood`` and whose ratios come from ``loss``: each one's gradient is
     :func:`level_gradient` of both (a parameter both in ``level`` and ``from_likelihood`` takes
-    the likelihood's alone); those of them marked in ``follows`` move with the level alone."""
+    the likelihood's alone)."""
     if len(from_likelihood) != len(params):
         raise ValueError(f"split_gradient: {len(from_likelihood)} flags for {len(params)} parameters")
     if level is not None and len(level) != len(params):
         raise ValueError(f"split_gradient: {len(level)} level flags for {len(params)} parameters")
-    if follows is not None and len(follows) != len(params):
-        raise ValueError(f"split_gradient: {len(follows)} follows flags for {len(params)} parameters")
     grouped = [bool(g) and not f for g, f in zip(level or [False] * len(params), from_likelihood)]
     by_loss = [i for i, f in enumerate(from_likelihood) if not f]
     by_likelihood = [i for i, f in enumerate(from_likelihood) if f or grouped[i]]
@@ -365,22 +362,19 @@ def split_gradient(loss: Tensor, likelihood: Tensor | None, params: Sequence[Ten
                                   for i, f in enumerate(from_likelihood)]
     members = [i for i, g in enumerate(grouped) if g]
     if members:
-        mixed = level_gradient([found_loss.get(i) for i in members], [found_likelihood.get(i) for i in members],
-                               follows=None if follows is None else [bool(follows[i]) for i in members])
+        mixed = level_gradient([found_loss.get(i) for i in members], [found_likelihood.get(i) for i in members])
         for i, g in zip(members, mixed):
             grads[i] = g
     return grads
 
 
-def level_gradient(by_loss: Sequence[Tensor | None], by_likelihood: Sequence[Tensor | None],
-                   follows: Sequence[bool] | None = None) -> list[Tensor | None]:
+def level_gradient(by_loss: Sequence[Tensor | None], by_likelihood: Sequence[Tensor | None]) -> list[Tensor | None]:
     """The gradients of a group of noise parameters' coordinates (each ``≈ ln θ`` near its
     start) that move their common level along the likelihood and their ratios along the loss:
     ``g_i − mean(g) + mean(ℓ)``, with ``g`` the loss's gradients and ``ℓ`` the likelihood's
     (a likelihood gradient of None counts as 0). A parameter the loss does not reach (None, or
-    exactly 0: a GNSS noise scale while every fix is held), or one marked in ``follows``
-    (``model.level_follows``), learns no ratio: its gradient is ``mean(ℓ)`` alone, and the mean
-    of ``g`` is over the others. All None: None for each.
+    exactly 0: a GNSS noise scale while every fix is held) has no ratio to learn: its gradient
+    is ``mean(ℓ)`` alone, and the mean of ``g`` is over the others. All None: None for each.
 
     Scaling every noise density, walk, initial 1-σ and measurement σ of a linear-Gaussian
     filter by one factor leaves its gains and so its estimates unchanged: a position loss
@@ -393,11 +387,7 @@ def level_gradient(by_loss: Sequence[Tensor | None], by_likelihood: Sequence[Ten
     ref = next((g for g in (*by_loss, *by_likelihood) if g is not None), None)
     if ref is None:
         return [None] * len(by_loss)
-    if follows is not None and len(follows) != len(by_loss):
-        raise ValueError(f"level_gradient: {len(follows)} follows flags for {len(by_loss)} parameters")
-    fixed = list(follows) if follows is not None else [False] * len(by_loss)
-    seen = torch.tensor([g is not None and bool((g != 0).any()) and not f for g, f in zip(by_loss, fixed)],
-                        device=ref.device)
+    seen = torch.tensor([g is not None and bool((g != 0).any()) for g in by_loss], device=ref.device)
     g = torch.stack([torch.zeros_like(ref) if x is None else x for x in by_loss])
     ell = torch.stack([torch.zeros_like(ref) if x is None else x for x in by_likelihood])
     shape = (-1,) + (1,) * ref.dim()

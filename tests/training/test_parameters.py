@@ -449,8 +449,6 @@ def test_model_bounds_override_bound_decades_by_name():
     ("bounds", {"acc_noise": 0.0}, r"model\.bounds\.acc_noise=0\.0: expected a number > 0 or null"),
     ("bounds", {"acc_noise": "abc"}, r"model\.bounds\.acc_noise='abc': expected a number"),
     ("innovation_learns", ["flow_sigma_scal"], r"model\.innovation_learns: unknown parameter 'flow_sigma_scal'"),
-    ("noise_level", "joint", r"model\.noise_level='joint': expected one of loss, likelihood"),
-    ("level_follows", ["gnss_noise_scale"], r"model\.level_follows=\['gnss_noise_scale'\]: needs model\.noise_level=likelihood"),
 ])
 def test_a_bad_bound_raises_naming_its_key(key, value, message):
     from flowins.config import build
@@ -601,13 +599,3 @@ def test_a_checkpoint_from_before_the_vehicle_constraint_loads_it_at_its_default
     # the learned sigmas reach the constraint's settings
     config = FilterParameters(some_start()).apply(NavigationConfig(), training=False)
     assert config.measurements["vehicle"].lateral_sigma_mps == pytest.approx(some_start()["vehicle_lateral_sigma_mps"])
-
-
-def test_level_follows_takes_noise_levels_only():
-    from flowins.training.parameters import ModelSettings
-
-    with pytest.raises(ValueError, match=r"model\.level_follows: \['flow_gate_threshold'\] are no noise levels"):
-        ModelSettings(noise_level="likelihood", level_follows=("flow_gate_threshold",))
-    with pytest.raises(ValueError, match=r"model\.level_follows: unknown parameter 'gnss_scale'"):
-        ModelSettings(noise_level="likelihood", level_follows=("gnss_scale",))
-    assert ModelSettings(noise_level="likelihood", level_follows=("gnss_noise_scale",)).level_follows == ("gnss_noise_scale",)

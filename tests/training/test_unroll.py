@@ -142,10 +142,6 @@ def test_level_gradient_moves_the_common_level_by_the_likelihood_and_the_ratios_
     got = level_gradient([torch.tensor(1.0), None, torch.tensor(0.0), torch.tensor(3.0)],
                          [torch.tensor(2.0), torch.tensor(-4.0), None, torch.tensor(6.0)])
     assert [float(g) for g in got] == [-1.0 + 1.0, 1.0, 1.0, 1.0 + 1.0]
-    # model.level_follows: one the loss does reach, marked to follow the level alone
-    got = level_gradient([torch.tensor(1.0), torch.tensor(5.0), torch.tensor(3.0)],
-                         [torch.tensor(2.0), torch.tensor(-4.0), torch.tensor(5.0)], follows=[False, True, False])
-    assert [float(g) for g in got] == [-1.0 + 1.0, 1.0, 1.0 + 1.0]
     assert level_gradient([None, None], [None, None]) == [None, None]
     with pytest.raises(ValueError, match="1 level flags for 2 parameters"):
         split_gradient(a * b, None, [a, b], [False, False], level=[True])
