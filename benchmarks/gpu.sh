@@ -98,14 +98,15 @@ trainer=gpu
 [ "$device" = cpu ] && trainer=cpu
 s5() {
   section "5. the training walks simulated and their flow computed (train.py trainer.max_epochs=0)"
-  python train.py experiment=mistuned trainer="$trainer" trainer.max_epochs=0 flow.device="$device" progress=false \
-    hydra.run.dir="$out/train-data" 2>&1 | tail -n 3
+  python train.py experiment=mistuned 'data.select=[]' trainer="$trainer" trainer.max_epochs=0 flow.device="$device" \
+    progress=false hydra.run.dir="$out/train-data" 2>&1 | tail -n 3
 }
 
 s6() {
   section "6. python train.py experiment=mistuned trainer=gpu (walks and flow cached; target: 4x the 2-core CPU's time, held out within 5 %)"
   local t0=$SECONDS
-  capped "${GPU_SH_TRAIN_S:-0}" python train.py experiment=mistuned trainer="$trainer" "${epochs[@]}" \
+  # without the three 300 s selection walks, as the CPU's reference time was taken
+  capped "${GPU_SH_TRAIN_S:-0}" python train.py experiment=mistuned 'data.select=[]' trainer="$trainer" "${epochs[@]}" \
     flow.device="$device" progress=false hydra.run.dir="$out/train" 2>&1 \
     | grep -v "read from the cache" || return  # a line per validation as it ends
   echo "train.py on the GPU: $((SECONDS - t0)) s"

@@ -372,9 +372,10 @@ def level_gradient(by_loss: Sequence[Tensor | None], by_likelihood: Sequence[Ten
     """The gradients of a group of noise parameters' coordinates (each ``≈ ln θ`` near its
     start) that move their common level along the likelihood and their ratios along the loss:
     ``g_i − mean(g) + mean(ℓ)``, with ``g`` the loss's gradients and ``ℓ`` the likelihood's
-    (a likelihood gradient of None counts as 0). A parameter the loss does not reach (None, or
-    exactly 0: a GNSS noise scale while every fix is held) has no ratio to learn: its gradient
-    is ``mean(ℓ)`` alone, and the mean of ``g`` is over the others. All None: None for each.
+    (None counts as 0; all None: None for each). The loss's part is its gradient projected
+    onto the directions that keep the group's mean coordinate, so a parameter the loss does not
+    reach (a GNSS noise scale while every fix is held) moves against the others' mean: its
+    ratio to them is what the loss changes.
 
     Scaling every noise density, walk, initial 1-σ and measurement σ of a linear-Gaussian
     filter by one factor leaves its gains and so its estimates unchanged: a position loss
@@ -387,13 +388,9 @@ def level_gradient(by_loss: Sequence[Tensor | None], by_likelihood: Sequence[Ten
     ref = next((g for g in (*by_loss, *by_likelihood) if g is not None), None)
     if ref is None:
         return [None] * len(by_loss)
-    seen = torch.tensor([g is not None and bool((g != 0).any()) for g in by_loss], device=ref.device)
     g = torch.stack([torch.zeros_like(ref) if x is None else x for x in by_loss])
     ell = torch.stack([torch.zeros_like(ref) if x is None else x for x in by_likelihood])
-    shape = (-1,) + (1,) * ref.dim()
-    common = (g * seen.reshape(shape)).sum(dim=0) / seen.sum().clamp_min(1)
-    ratio = torch.where(seen.reshape(shape), g - common, torch.zeros_like(g))
-    return list(ratio + ell.mean(dim=0))
+    return list(g - g.mean(dim=0) + ell.mean(dim=0))
 
 
 def sequence_rmse(seq: TrainingSequence, method: str, config: NavigationConfig, *, dropout_p: float | None = None) -> float:

@@ -35,8 +35,8 @@ def workdir(tmp_path_factory):
     return tmp_path_factory.mktemp("train")
 
 
-TINY = ["data.train=[{seed: 1, duration_s: 20.0}]", "data.val=[{seed: 3, duration_s: 20.0}]", "window_s=10.0",
-        "filter.flow.n_points=32", "trainer.max_epochs=1"]
+TINY = ["data.train=[{seed: 1, duration_s: 20.0}]", "data.val=[{seed: 3, duration_s: 20.0}]", "data.select=[]",
+        "window_s=10.0", "filter.flow.n_points=32", "trainer.max_epochs=1"]
 
 
 #: what Lightning printed on every run before the job dealt with it (the cause fixed, or the

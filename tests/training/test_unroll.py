@@ -138,10 +138,9 @@ def test_level_gradient_moves_the_common_level_by_the_likelihood_and_the_ratios_
     assert float(ge) == pytest.approx(2 * 0.3, rel=1e-14)
     # the likelihood reaching none of them (None): the ratios' part alone
     assert [float(g) for g in level_gradient([torch.tensor(1.0), torch.tensor(3.0)], [None, None])] == [-1.0, 1.0]
-    # one the loss does not reach (None or 0) follows the level alone, and is left out of the loss's mean
-    got = level_gradient([torch.tensor(1.0), None, torch.tensor(0.0), torch.tensor(3.0)],
-                         [torch.tensor(2.0), torch.tensor(-4.0), None, torch.tensor(6.0)])
-    assert [float(g) for g in got] == [-1.0 + 1.0, 1.0, 1.0, 1.0 + 1.0]
+    # one the loss does not reach (None) takes the others' mean loss gradient, negated, and the level
+    got = level_gradient([torch.tensor(1.0), None, torch.tensor(5.0)], [torch.tensor(2.0), torch.tensor(-4.0), None])
+    assert [float(g) for g in got] == pytest.approx([-1.0 - 2 / 3, -2.0 - 2 / 3, 3.0 - 2 / 3], rel=1e-6)
     assert level_gradient([None, None], [None, None]) == [None, None]
     with pytest.raises(ValueError, match="1 level flags for 2 parameters"):
         split_gradient(a * b, None, [a, b], [False, False], level=[True])
