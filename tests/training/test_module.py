@@ -147,6 +147,21 @@ def test_accumulated_windows_take_one_adam_step_on_their_mean_gradient(tmp_path)
     assert len(reached) >= 5 and {"acc_noise", "gnss_noise_scale"} <= set(reached)
 
 
+def _window_gradients(seq, base, learn, params):
+    """The window loss's gradient by learned name (None where it does not reach) and the
+    innovation likelihood per scalar measurement (with its graph) of ``ins_gnss`` over the
+    sequence's one 12 s window at ``params``' values."""
+    import torch
+
+    from flowins.training.unroll import run_window, window_bounds, window_loss
+
+    (window,) = window_bounds(seq.imu.t_s, 12.0)
+    out = run_window(seq, "ins_gnss", params.apply(base, training=True), window, likelihood=True)
+    loss = window_loss(out.track, seq.truth).loss
+    grads = torch.autograd.grad(loss, [params.raw[n] for n in learn], allow_unused=True, retain_graph=True)
+    return dict(zip(learn, grads)), out.nll / out.nll_count
+
+
 def test_innovation_learns_takes_those_parameters_from_the_likelihood(tmp_path):
     """``model.innovation_learns=[gnss_noise_scale]`` over one 12 s window: Adam's first step
     moves ``gnss_noise_scale`` along the gradient of the window's innovation negative
@@ -155,15 +170,8 @@ def test_innovation_learns_takes_those_parameters_from_the_likelihood(tmp_path):
     have opposite signs here, so a step on the wrong one fails."""
     import torch
 
-    from flowins.training.unroll import run_window, window_bounds, window_loss
-
     seq, base, learn, params, last = _one_epoch(tmp_path, "window_s=12.0", "model.innovation_learns=[gnss_noise_scale]")
-    (window,) = window_bounds(seq.imu.t_s, 12.0)
-    out = run_window(seq, "ins_gnss", params.apply(base, training=True), window, likelihood=True)
-    loss = window_loss(out.track, seq.truth).loss
-    likelihood = out.nll / out.nll_count
-    by_loss = dict(zip(learn, torch.autograd.grad(loss, [params.raw[n] for n in learn], allow_unused=True,
-                                                  retain_graph=True)))
+    by_loss, likelihood = _window_gradients(seq, base, learn, params)
     by_likelihood = float(torch.autograd.grad(likelihood, params.raw["gnss_noise_scale"])[0])
     assert by_likelihood * float(by_loss["gnss_noise_scale"]) < 0
     reached = {n: g for n, g in by_loss.items() if g is not None and n != "gnss_noise_scale"}
@@ -179,15 +187,10 @@ def test_noise_level_likelihood_steps_on_the_level_gradient(tmp_path):
     import torch
 
     from flowins.training.parameters import LEVEL_NAMES
-    from flowins.training.unroll import level_gradient, run_window, window_bounds, window_loss
+    from flowins.training.unroll import level_gradient
 
     seq, base, learn, params, last = _one_epoch(tmp_path, "window_s=12.0", "model.noise_level=likelihood")
-    (window,) = window_bounds(seq.imu.t_s, 12.0)
-    out = run_window(seq, "ins_gnss", params.apply(base, training=True), window, likelihood=True)
-    loss = window_loss(out.track, seq.truth).loss
-    likelihood = out.nll / out.nll_count
-    by_loss = dict(zip(learn, torch.autograd.grad(loss, [params.raw[n] for n in learn], allow_unused=True,
-                                                  retain_graph=True)))
+    by_loss, likelihood = _window_gradients(seq, base, learn, params)
     group = [n for n in learn if n in LEVEL_NAMES]
     by_likelihood = torch.autograd.grad(likelihood, [params.raw[n] for n in group], allow_unused=True)
     reached = {n: g for n, g in by_loss.items() if g is not None and n not in group}
