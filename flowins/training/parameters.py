@@ -188,6 +188,12 @@ class ModelSettings:
             for name in getattr(self, key) or ():
                 if name not in NAMES:
                     raise ValueError(f"model.{key}: unknown parameter {name!r}; expected names from {', '.join(NAMES)}")
+        if self.noise_level == "likelihood" and self.learn is not None:
+            group = sorted((set(self.learn) - set(self.freeze) - set(self.innovation_learns)) & set(LEVEL_NAMES))
+            if len(group) < 2:
+                raise ValueError(f"model.noise_level=likelihood: needs at least two learned noise parameters of "
+                                 f"{', '.join(LEVEL_NAMES)} outside model.innovation_learns; model.learn gives "
+                                 f"{group or 'none'}")
         for name, decades in self.bounds.items():
             if name not in NAMES:
                 raise ValueError(f"model.bounds.{name}: unknown parameter; expected names from {', '.join(NAMES)}")

@@ -599,3 +599,13 @@ def test_a_checkpoint_from_before_the_vehicle_constraint_loads_it_at_its_default
     # the learned sigmas reach the constraint's settings
     config = FilterParameters(some_start()).apply(NavigationConfig(), training=False)
     assert config.measurements["vehicle"].lateral_sigma_mps == pytest.approx(some_start()["vehicle_lateral_sigma_mps"])
+
+
+def test_noise_level_likelihood_needs_two_noise_parameters_in_model_learn():
+    """Checked with the settings, before any sequence is loaded, where ``model.learn`` names the parameters."""
+    from flowins.training.parameters import ModelSettings
+
+    with pytest.raises(ValueError, match=r"model\.noise_level=likelihood: needs at least two .* gives \['acc_noise'\]"):
+        ModelSettings(noise_level="likelihood", learn=("acc_noise", "gyro_noise", "flow_gate_threshold"),
+                      freeze=("gyro_noise",))
+    assert ModelSettings(noise_level="likelihood", learn=("acc_noise", "gyro_noise")).learn == ("acc_noise", "gyro_noise")
