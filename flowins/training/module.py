@@ -41,7 +41,7 @@ import torch
 from pytorch_lightning.trainer.states import TrainerFn
 
 from flowins.navigation import NavigationConfig
-from flowins.training.parameters import LEVEL_NAMES, FilterParameters, ModelSettings
+from flowins.training.parameters import FilterParameters, ModelSettings
 from flowins.training.schedule import learning_rate, window_length
 from flowins.training.unroll import (
     TrainingSequence,
@@ -95,13 +95,7 @@ class FilterLearner(pl.LightningModule):
         self.innovation_weight = model.innovation_weight
         self.innovation_learns = frozenset(model.innovation_learns)
         self.noise_level = model.noise_level
-        self.level_names = (frozenset(LEVEL_NAMES) & set(params.learned)) - self.innovation_learns
-        if self.noise_level == "likelihood" and len(self.level_names) < 2:
-            raise ValueError(f"model.noise_level=likelihood: needs at least two learned noise parameters of "
-                             f"{', '.join(LEVEL_NAMES)} outside model.innovation_learns; learned: "
-                             f"{sorted(self.level_names) or 'none'}")
-        if self.noise_level != "likelihood":
-            self.level_names = frozenset()
+        self.level_names = model.level_group(params.learned)
         self.loss = model.loss
         self.segment_s = tuple(model.segment_s)
         self.lr = model.lr

@@ -188,17 +188,26 @@ class ModelSettings:
             for name in getattr(self, key) or ():
                 if name not in NAMES:
                     raise ValueError(f"model.{key}: unknown parameter {name!r}; expected names from {', '.join(NAMES)}")
-        if self.noise_level == "likelihood" and self.learn is not None:
-            group = sorted((set(self.learn) - set(self.freeze) - set(self.innovation_learns)) & set(LEVEL_NAMES))
-            if len(group) < 2:
-                raise ValueError(f"model.noise_level=likelihood: needs at least two learned noise parameters of "
-                                 f"{', '.join(LEVEL_NAMES)} outside model.innovation_learns; model.learn gives "
-                                 f"{group or 'none'}")
+        if self.learn is not None:  # checked here, before any sequence is loaded, where the names are given
+            self.level_group(set(self.learn) - set(self.freeze), source="model.learn")
         for name, decades in self.bounds.items():
             if name not in NAMES:
                 raise ValueError(f"model.bounds.{name}: unknown parameter; expected names from {', '.join(NAMES)}")
             if decades is not None and not decades > 0.0:
                 raise ValueError(f"model.bounds.{name}={decades!r}: expected a number > 0 or null (unbounded)")
+
+    def level_group(self, learned: Iterable[str], *, source: str = "the learned parameters") -> frozenset[str]:
+        """The parameters of ``learned`` whose common level comes from the likelihood (those of
+        :data:`LEVEL_NAMES` outside ``innovation_learns``; none unless ``noise_level=likelihood``).
+        Raises where that mode has fewer than two of them (``source`` names where ``learned`` came from)."""
+        if self.noise_level != "likelihood":
+            return frozenset()
+        group = (frozenset(learned) & frozenset(LEVEL_NAMES)) - frozenset(self.innovation_learns)
+        if len(group) < 2:
+            raise ValueError(f"model.noise_level=likelihood: needs at least two learned noise parameters of "
+                             f"{', '.join(LEVEL_NAMES)} outside model.innovation_learns; {source} gives "
+                             f"{sorted(group) or 'none'}")
+        return group
 
     def parameter_bounds(self) -> dict[str, float | None]:
         """Every parameter's bound in decades (None: unbounded): ``bounds``, else ``bound_decades``."""
