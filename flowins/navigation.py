@@ -29,7 +29,7 @@ from flowins.measurements.registry import NavigationContext, measurement_kind
 from flowins.measurements.tracks import TrackUpdate, track_frames
 from flowins.measurements.vehicle import VehicleConstraint  # noqa: F401  (registers the kind "vehicle")
 from flowins.measurements.zero_velocity import ZeroVelocity
-from flowins.state import STATE
+from flowins.state import STATE, STATE_DIM
 from flowins.start import Start, StartSettings, choose_start
 
 
@@ -353,7 +353,7 @@ def _navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig,
     return [
         NavigationResult(
             filter=track,
-            smoother=rts_smooth(track),
+            smoother=rts_smooth(track, marginal=STATE_DIM),  # the clones of a window: left out
             frame=setup.frame,
             gnss_t_s=None if run.gnss is None else run.gnss.t_s,
             gnss_enu_m=setup.gnss_enu_m,

@@ -41,29 +41,19 @@ def _key_nodes(track: FilterTrack) -> Tensor:
     return changed
 
 
-def _transitions_to_next_key(transition: Tensor, key: Tensor) -> tuple[Tensor, Tensor]:
-    """For each node ``j < J-1``: ``Φ_{j→k(j)}`` ``(J-1, D, D)``, the transition from node
-    ``j`` to the first key node ``k(j) > j``, and ``k(j)`` ``(J-1,)``.
+def _transitions_to_next_key(transition: Tensor, next_key: Tensor) -> Tensor:
+    """``Φ_{j→k(j)}`` ``(J-1, D, D)``: for each node ``j < J-1`` the transition to the first key
+    node ``k(j) > j`` (``next_key`` ``(J-1,)``), the product ``Φ_k ⋯ Φ_{j+1}``.
 
-    A segmented suffix product ``Φ_{k} ⋯ Φ_{j+1}`` computed as a log-depth scan:
-    ``X_j = Φ_{j+1}``, extended by ``X_{j+d}`` while node ``j+d`` is not a key.
+    Built from the key nodes backwards, ``Φ_{j→k} = Φ_{j+1→k} Φ_{j+1}``: one batched product
+    per distance from the key, for all runs of nodes at once (one product per node).
     """
-    J = key.shape[0]
-    X = transition[1:]  # X_j = Φ_{j+1}
-    reach = torch.arange(1, J, device=key.device)  # node X_j currently reaches
-    open_ = ~key[1:]  # X_j still has to be extended beyond reach_j
-    shift = 1
-    while bool(open_.any()):
-        if shift >= J - 1:
-            raise RuntimeError("smoother: a run of nodes has no key node after it")  # the last node is a key
-        later = torch.cat((X[shift:], X[-1:].expand(shift, *X.shape[1:])))
-        later_open = torch.cat((open_[shift:], open_.new_zeros(shift)))
-        later_reach = torch.cat((reach[shift:], reach[-1:].expand(shift)))
-        X = torch.where(open_[:, None, None], later @ X, X)
-        reach = torch.where(open_, later_reach, reach)
-        open_ = open_ & later_open
-        shift *= 2
-    return X, reach
+    to_key = transition[1:].clone()  # distance 1: Φ_{j+1}
+    distance = next_key - torch.arange(next_key.shape[0], device=next_key.device)
+    for d in range(2, int(distance.max()) + 1 if distance.numel() else 0):
+        j = torch.nonzero(distance == d).squeeze(-1)
+        to_key.index_copy_(0, j, to_key[j + 1] @ transition[j + 1])
+    return to_key
 
 
 def _factor_predicted(cov: Tensor, t_s: Tensor) -> tuple[Tensor, Tensor]:
@@ -97,7 +87,20 @@ def _factor_predicted(cov: Tensor, t_s: Tensor) -> tuple[Tensor, Tensor]:
                      f"1e-3 of its largest variance; run the filter in float64 (filter.dtype=float64)")
 
 
-def rts_smooth(track: FilterTrack, *, normalize: bool = True) -> SmoothedTrack:
+def _frame_changes_of_marginal(frame_changes, dim: int) -> list:
+    """The ``(node, A, b, Q)`` of ``frame_changes`` for the first ``dim`` state entries; a change
+    must not mix the later entries into them (``A[:dim, dim:] = 0``, as a heading alignment's
+    block-diagonal map does for any layout boundary)."""
+    out = []
+    for node, A, b, Q in frame_changes:
+        if A.shape[-1] > dim and bool((A[:dim, dim:] != 0).any()):
+            raise ValueError(f"rts_smooth(marginal={dim}): the change of frame at node {node} mixes state entries "
+                             f"beyond the first {dim} into them; smooth the whole state (marginal=None)")
+        out.append((node, A[:dim, :dim], b[:dim], Q[:dim, :dim]))
+    return out
+
+
+def rts_smooth(track: FilterTrack, *, normalize: bool = True, marginal: int | None = None) -> SmoothedTrack:
     """Smoothed means and covariances at every node of ``track``.
 
     Between updates the RTS gains compose: for a run of prediction-only nodes
@@ -111,44 +114,53 @@ def rts_smooth(track: FilterTrack, *, normalize: bool = True) -> SmoothedTrack:
     node follows in one batched step. The result is the same as the node-by-node
     recursion (:func:`rts_smooth_sequential`, tests check 1e-9).
 
+    ``marginal``: the smoothed Gaussians of the first ``marginal`` state entries only,
+    ``(J, marginal)`` and ``(J, marginal, marginal)`` (None: the whole state). The recursion
+    still carries the whole state at the key nodes, but every node's output needs only the
+    rows ``𝒢_j[:marginal]`` of its gain: with a window of cloned poses (``D = 19 + 7 N``) and
+    ``marginal = 26`` that is about ``26 / D`` of the work and memory there.
+
     ``normalize`` re-normalises the quaternions of the smoothed means (the
     covariances are left as the recursion gives them).
     """
-    J = track.t_s.shape[0]
+    J, D = track.node_mean.shape[-2:]
+    c = D if marginal is None else marginal
+    if not 1 <= c <= D:
+        raise ValueError(f"rts_smooth(marginal={marginal}): expected 1 .. {D}, the state's size, or None")
+    frame_changes = track.frame_changes if c == D else _frame_changes_of_marginal(track.frame_changes, c)
+    node_mean, node_cov = track.node_mean, track.node_cov
     if J == 1:
-        return SmoothedTrack(track.t_s, track.node_mean.clone(), track.node_cov.clone())
-    key = _key_nodes(track)
-    Phi_to_key, k_of = _transitions_to_next_key(track.transition, key)
-    P = track.node_cov[:-1]
-    keys = torch.nonzero(key).squeeze(-1)
+        return SmoothedTrack(track.t_s, node_mean[:, :c].clone(), node_cov[:, :c, :c].clone())
+    keys = torch.nonzero(_key_nodes(track)).squeeze(-1)
+    slot = torch.searchsorted(keys, torch.arange(J - 1, device=keys.device), right=True)  # each node's next key
+    to_key = _transitions_to_next_key(track.transition, keys[slot])
     LU, pivots = _factor_predicted(symmetrize(track.pred_cov[keys]), track.t_s[keys.to(track.t_s.device)])
-    slot = torch.searchsorted(keys, k_of)  # which key's factor each node needs
-    # 𝒢_jᵀ = (P⁻_k)⁻¹ Φ_{j→k} P_j
-    gains = torch.linalg.lu_solve(LU[slot], pivots[slot], Phi_to_key @ P).transpose(-1, -2)
+    # 𝒢_jᵀ[:, :c] = (P⁻_k)⁻¹ Φ_{j→k} P_j[:, :c] for every node; the key nodes' whole gains
+    gains = torch.linalg.lu_solve(LU[slot], pivots[slot], to_key @ node_cov[:-1, :, :c]).transpose(-1, -2)
+    inner = keys[:-1]
+    if c == D:
+        key_gains = gains[inner]
+    else:
+        key_slot = slot[inner]
+        key_gains = torch.linalg.lu_solve(LU[key_slot], pivots[key_slot], to_key[inner] @ node_cov[inner]).transpose(-1, -2)
+    del to_key
 
     # backward over the key nodes only: r_k = mˢ_k - m⁻_k, R_k = Pˢ_k - P⁻_k
-    mean_s = track.node_mean.clone()
-    cov_s = track.node_cov.clone()
     key_list = keys.tolist()
-    residual_mean: dict[int, Tensor] = {}
-    residual_cov: dict[int, Tensor] = {}
-    k_next = key_list[-1]
-    residual_mean[k_next] = mean_s[k_next] - track.pred_mean[k_next]
-    residual_cov[k_next] = cov_s[k_next] - track.pred_cov[k_next]
-    node_mean, node_cov = track.node_mean, track.node_cov
-    for k in reversed(key_list[:-1]):
-        G = gains[k]
-        m_k = node_mean[k] + G @ residual_mean[k_next]
-        P_k = node_cov[k] + G @ residual_cov[k_next] @ G.T
-        residual_mean[k] = m_k - track.pred_mean[k]
-        residual_cov[k] = P_k - track.pred_cov[k]
-        k_next = k
+    residual_mean: list[Tensor] = [node_mean[key_list[-1]] - track.pred_mean[key_list[-1]]]
+    residual_cov: list[Tensor] = [node_cov[key_list[-1]] - track.pred_cov[key_list[-1]]]
+    for i in range(len(key_list) - 2, -1, -1):
+        k, G = key_list[i], key_gains[i]
+        m_k = node_mean[k] + G @ residual_mean[-1]
+        P_k = node_cov[k] + G @ residual_cov[-1] @ G.T
+        residual_mean.append(m_k - track.pred_mean[k])
+        residual_cov.append(P_k - track.pred_cov[k])
     # every node j < J-1 from its next key's residuals, batched
-    r_m = torch.stack([residual_mean[k] for k in key_list])[slot]
-    r_P = torch.stack([residual_cov[k] for k in key_list])[slot]
-    mean = torch.cat((node_mean[:-1] + (gains @ r_m.unsqueeze(-1)).squeeze(-1), node_mean[-1:]))
-    cov = torch.cat((P + gains @ r_P @ gains.transpose(-1, -2), node_cov[-1:]))
-    mean, cov = to_final_frame(mean, cov, track.frame_changes)
+    r_m = torch.stack(residual_mean[::-1])[slot]
+    r_P = torch.stack(residual_cov[::-1])[slot]
+    mean = torch.cat((node_mean[:-1, :c] + (gains @ r_m.unsqueeze(-1)).squeeze(-1), node_mean[-1:, :c]))
+    cov = torch.cat((node_cov[:-1, :c, :c] + gains @ r_P @ gains.transpose(-1, -2), node_cov[-1:, :c, :c]))
+    mean, cov = to_final_frame(mean, cov, frame_changes)
     if normalize:
         mean = normalize_quaternions(mean)
     return SmoothedTrack(track.t_s, mean, symmetrize(cov))

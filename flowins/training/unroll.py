@@ -39,7 +39,7 @@ from flowins.filter.smoother import rts_smooth
 from flowins.flow.pairs import FlowPairs
 from flowins.measurements.flow import FlowCamera
 from flowins.navigation import NavigationConfig, NavigationRun, prepare_navigation
-from flowins.state import STATE
+from flowins.state import STATE, STATE_DIM
 
 #: the rows of Table I as (GNSS, sparse, dense) sources
 METHODS: dict[str, tuple[bool, bool, bool]] = {
@@ -192,7 +192,7 @@ def run_windows(
                                   mean0, cov0, events))
     tracks = run_filters(inputs, **config.filter_settings(), likelihood=likelihood)
     return [WindowResult(track.in_final_frame(), track.node_mean[-1], track.node_cov[-1], track.nll, track.nll_count,
-                         rts_smooth(track) if smooth else None)
+                         rts_smooth(track, marginal=STATE_DIM) if smooth else None)
             for track in tracks]
 
 

@@ -314,6 +314,49 @@ def test_rts_through_long_prediction_runs_equals_batch_posterior(run_length):
     assert_close_scaled(smoothed.node_cov, cov_true, 1e-8)
 
 
+@pytest.mark.parametrize("marginal", [1, 2, 4])
+def test_marginal_smoother_equals_batch_posterior_marginal(marginal):
+    """``rts_smooth(marginal=m)``: the batch posterior's marginal of the first ``m`` entries, through
+    short runs of prediction-only nodes, forgetting-like steps and a long run, and the same
+    figures as the whole-state smoother's first ``m`` entries."""
+    gen = torch.Generator().manual_seed(11 + marginal)
+    D = 4
+    lc = LinearChain(torch.randn(D, generator=gen, dtype=F64), random_spd(gen, D))
+    for run_length in (0, 1, 2, 7, 30, 1):
+        for _ in range(run_length):
+            lc.predict(torch.eye(D, dtype=F64) + 0.1 * torch.randn(D, D, generator=gen, dtype=F64), random_spd(gen, D, scale=0.02))
+        lc.predict_same_time(torch.eye(D, dtype=F64) + 0.1 * torch.randn(D, D, generator=gen, dtype=F64), random_spd(gen, D, scale=0.01))
+        H = torch.randn(2, D, generator=gen, dtype=F64)
+        lc.measure(H, torch.randn(2, generator=gen, dtype=F64), random_spd(gen, 2, scale=0.2))
+    lc.predict(torch.eye(D, dtype=F64), random_spd(gen, D, scale=0.02))
+    track = lc.chain.finish()
+    part = rts_smooth(track, normalize=False, marginal=marginal)
+    mean_true, cov_true, _, _ = lc.batch_posterior()
+    assert part.node_mean.shape == (lc.J, marginal) and part.node_cov.shape == (lc.J, marginal, marginal)
+    assert_close_scaled(part.node_mean, mean_true[:, :marginal], 1e-8)
+    assert_close_scaled(part.node_cov, cov_true[:, :marginal, :marginal], 1e-8)
+    whole = rts_smooth(track, normalize=False)
+    assert_close_scaled(part.node_cov, whole.node_cov[:, :marginal, :marginal], 1e-12)
+
+
+def test_marginal_smoother_refuses_a_frame_change_that_mixes_in_later_entries():
+    gen = torch.Generator().manual_seed(5)
+    D = 3
+    lc = LinearChain(torch.randn(D, generator=gen, dtype=F64), random_spd(gen, D))
+    lc.predict(torch.eye(D, dtype=F64), random_spd(gen, D, scale=0.1))
+    track = lc.chain.finish()
+    A = torch.eye(D, dtype=F64)
+    track.frame_changes = [(1, A, torch.zeros(D, dtype=F64), torch.zeros(D, D, dtype=F64))]
+    assert rts_smooth(track, normalize=False, marginal=2).node_mean.shape == (2, 2)  # block-diagonal: fine
+    A = A.clone()
+    A[0, 2] = 0.5
+    track.frame_changes = [(1, A, torch.zeros(D, dtype=F64), torch.zeros(D, D, dtype=F64))]
+    with pytest.raises(ValueError, match="marginal=2"):
+        rts_smooth(track, marginal=2)
+    with pytest.raises(ValueError, match="expected 1 .. 3"):
+        rts_smooth(track, marginal=4)
+
+
 def test_key_node_smoother_equals_node_by_node_recursion_on_ins_gnss():
     from flowins.data.synthetic import synthetic_walk_recording
     from flowins.filter.smoother import rts_smooth_sequential
