@@ -203,17 +203,11 @@ class BatchChain:
 
     def finish(self) -> list[FilterTrack]:
         """Each row's :class:`FilterTrack` (its own nodes only)."""
-        parts = [torch.cat(chunks, dim=1) for chunks in
-                 (self._transition, self._pred_mean, self._pred_cov, self._mean, self._cov)]
+        own = [self._own_columns(chunks) for chunks in
+               (self._transition, self._pred_mean, self._pred_cov, self._mean, self._cov)]
         tracks = []
         for b in range(self.rows):
-            columns = self._columns[b]
-            if columns == list(range(self._count)):
-                own = [part[b] for part in parts]
-            else:
-                index = torch.tensor(columns, device=parts[0].device)
-                own = [part[b].index_select(0, index) for part in parts]
-            transition, pred_mean, pred_cov, mean, cov = own
+            transition, pred_mean, pred_cov, mean, cov = (part[b] for part in own)
             nll = (torch.stack(self._nll[b]).sum() if self._nll[b] else mean.new_zeros(())) if self.likelihood else None
             count = float(torch.stack(self._nll_count[b]).sum()) if self._nll_count[b] else 0.0
             tracks.append(FilterTrack(t_s=torch.tensor(self.t_s[b], dtype=torch.float64), transition=transition,
@@ -221,6 +215,30 @@ class BatchChain:
                                       log=self.logs[b], frame_changes=self.frame_changes[b], nll=nll,
                                       nll_count=count))
         return tracks
+
+    def _own_columns(self, chunks: list[Tensor]) -> list[Tensor]:
+        """Per row, its own columns of ``chunks`` (``(B, n, ...)`` each) in one tensor: one copy,
+        each chunk taken whole where the row owns all of it, else only the columns it owns."""
+        sizes = torch.tensor([c.shape[1] for c in chunks])
+        ends = sizes.cumsum(0)
+        starts = (ends - sizes).tolist()
+        out = []
+        for b in range(self.rows):
+            columns = torch.tensor(self._columns[b], dtype=torch.long)
+            # how many of the row's columns fall in each chunk (columns are increasing)
+            cut = torch.searchsorted(columns, ends).tolist()
+            pieces, first = [], 0
+            for chunk, start, last in zip(chunks, starts, cut):
+                if last == first:
+                    continue
+                if last - first == chunk.shape[1]:
+                    pieces.append(chunk[b])
+                else:
+                    local = (columns[first:last] - start).to(chunk.device)
+                    pieces.append(chunk[b].index_select(0, local))
+                first = last
+            out.append(torch.cat(pieces) if len(pieces) > 1 else pieces[0].clone() if pieces else chunks[0][b, :0].clone())
+        return out
 
 
 class ChainBuilder:

@@ -288,9 +288,10 @@ def block_information(innovation: Tensor, H: Tensor, noise_cov: Tensor) -> tuple
     ``R⁻¹`` from its Cholesky factor (a batched ``cholesky_solve`` with ``D`` right-hand sides is
     two orders of magnitude slower on the CPU than the ``d x d`` inverse and a product)."""
     Rinv = torch.cholesky_inverse(torch.linalg.cholesky(symmetrize(noise_cov)))
-    Ht = H.transpose(-1, -2)
-    Ht_Rinv = Ht @ Rinv  # (..., M, D, d)
-    return (Ht_Rinv @ H).sum(-3), (Ht_Rinv @ innovation.unsqueeze(-1)).squeeze(-1).sum(-2)
+    *batch, M, d, D = H.shape
+    Rinv_H = (Rinv @ H).reshape(*batch, M * d, D)  # (..., M d, D): the sums over blocks are one product each
+    G = H.reshape(*batch, M * d, D).transpose(-1, -2) @ Rinv_H
+    return G, (Rinv_H.transpose(-1, -2) @ innovation.reshape(*batch, M * d, 1)).squeeze(-1)
 
 
 def block_nis(cov: Tensor, innovation: Tensor, H: Tensor, noise_cov: Tensor) -> Tensor:
@@ -328,7 +329,9 @@ def block_nll(cov: Tensor, innovation: Tensor, H: Tensor, noise_cov: Tensor) -> 
 
 def _block_innovation_cov(cov: Tensor, H: Tensor, noise_cov: Tensor) -> Tensor:
     """``S_i = H_i P H_iᵀ + R_i`` ``(..., M, d, d)`` of each block, symmetrised."""
-    return symmetrize(H @ cov.unsqueeze(-3) @ H.transpose(-1, -2) + noise_cov)
+    *batch, M, d, D = H.shape
+    HP = (H.reshape(*batch, M * d, D) @ cov).reshape(H.shape)  # one product per covariance, not one per block
+    return symmetrize(HP @ H.transpose(-1, -2) + noise_cov)
 
 
 def _scalar_innovation_variance(cov: Tensor, H: Tensor, noise_cov: Tensor) -> Tensor:
