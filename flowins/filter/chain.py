@@ -81,6 +81,7 @@ class BatchChain:
         self._pred_cov: list[Tensor] = []
         self._mean: list[Tensor] = []  # chunks; the last is (B, 1, 26)
         self._cov: list[Tensor] = []
+        self._finished = False
 
     @property
     def mean(self) -> Tensor:
@@ -202,9 +203,18 @@ class BatchChain:
         self.log_rows(rows, infos)
 
     def finish(self) -> list[FilterTrack]:
-        """Each row's :class:`FilterTrack` (its own nodes only)."""
-        own = [self._own_columns(chunks) for chunks in
-               (self._transition, self._pred_mean, self._pred_cov, self._mean, self._cov)]
+        """Each row's :class:`FilterTrack` (its own nodes only). The chain's storage is handed
+        over part by part (each part's columns are freed once the rows have copied theirs, so
+        the nodes are not held twice): after it the chain keeps only its newest nodes
+        (:attr:`mean`, :attr:`cov`)."""
+        if self._finished:
+            raise RuntimeError("BatchChain.finish: the chain is finished already (it hands its nodes over once)")
+        self._finished = True
+        own = []
+        for name in ("_transition", "_pred_mean", "_pred_cov", "_mean", "_cov"):
+            chunks = getattr(self, name)
+            own.append(self._own_columns(chunks))
+            setattr(self, name, chunks[-1:])
         tracks = []
         for b in range(self.rows):
             transition, pred_mean, pred_cov, mean, cov = (part[b] for part in own)

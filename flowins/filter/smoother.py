@@ -100,6 +100,25 @@ def _frame_changes_of_marginal(frame_changes, dim: int) -> list:
     return out
 
 
+#: the most bytes of one (nodes, D, D) tensor the smoother's batched steps form at a time
+_BLOCK_BYTES = 32 << 20
+
+
+def _node_blocks(keys: Tensor, J: int, D: int) -> list[tuple[int, int]]:
+    """The nodes ``0 .. J-2`` as ranges ``[a, b)`` with ``b`` a key node (whole runs: the nodes
+    whose next key is ``b`` or before, so each node's transition to its next key stays inside
+    its block), each of about :data:`_BLOCK_BYTES` of ``D x D`` float64 matrices (a single
+    longer run is one block)."""
+    per_block = max(1, _BLOCK_BYTES // (8 * D * D))
+    blocks, a = [], 0
+    for end in keys.tolist():  # the last key is J-1
+        if end - a >= per_block or end == J - 1:
+            if end > a:
+                blocks.append((a, end))
+            a = end
+    return blocks
+
+
 def rts_smooth(track: FilterTrack, *, normalize: bool = True, marginal: int | None = None) -> SmoothedTrack:
     """Smoothed means and covariances at every node of ``track``.
 
@@ -133,17 +152,25 @@ def rts_smooth(track: FilterTrack, *, normalize: bool = True, marginal: int | No
         return SmoothedTrack(track.t_s, node_mean[:, :c].clone(), node_cov[:, :c, :c].clone())
     keys = torch.nonzero(_key_nodes(track)).squeeze(-1)
     slot = torch.searchsorted(keys, torch.arange(J - 1, device=keys.device), right=True)  # each node's next key
-    to_key = _transitions_to_next_key(track.transition, keys[slot])
     LU, pivots = _factor_predicted(symmetrize(track.pred_cov[keys]), track.t_s[keys.to(track.t_s.device)])
+    # the nodes in blocks of whole runs (each ends at a key node), so that the (nodes, D, D)
+    # products below stay small
+    blocks = _node_blocks(keys, J, D)
     # 𝒢_jᵀ[:, :c] = (P⁻_k)⁻¹ Φ_{j→k} P_j[:, :c] for every node; the key nodes' whole gains
-    gains = torch.linalg.lu_solve(LU[slot], pivots[slot], to_key @ node_cov[:-1, :, :c]).transpose(-1, -2)
-    inner = keys[:-1]
-    if c == D:
-        key_gains = gains[inner]
-    else:
-        key_slot = slot[inner]
-        key_gains = torch.linalg.lu_solve(LU[key_slot], pivots[key_slot], to_key[inner] @ node_cov[inner]).transpose(-1, -2)
-    del to_key
+    gains, key_gains = [], []
+    for a, b in blocks:
+        nodes = slice(a, b)
+        to_key = _transitions_to_next_key(track.transition[a : b + 1], keys[slot[nodes]] - a)
+        gains.append(torch.linalg.lu_solve(LU[slot[nodes]], pivots[slot[nodes]],
+                                           to_key @ node_cov[nodes, :, :c]).transpose(-1, -2))
+        inner = keys[(keys >= a) & (keys < b)]
+        if c == D:
+            key_gains.append(gains[-1][inner - a])
+        else:
+            key_slot = slot[inner]
+            key_gains.append(torch.linalg.lu_solve(LU[key_slot], pivots[key_slot],
+                                                   to_key[inner - a] @ node_cov[inner]).transpose(-1, -2))
+    key_gains = torch.cat(key_gains)
 
     # backward over the key nodes only: r_k = mˢ_k - m⁻_k, R_k = Pˢ_k - P⁻_k
     key_list = keys.tolist()
@@ -155,11 +182,16 @@ def rts_smooth(track: FilterTrack, *, normalize: bool = True, marginal: int | No
         P_k = node_cov[k] + G @ residual_cov[-1] @ G.T
         residual_mean.append(m_k - track.pred_mean[k])
         residual_cov.append(P_k - track.pred_cov[k])
-    # every node j < J-1 from its next key's residuals, batched
-    r_m = torch.stack(residual_mean[::-1])[slot]
-    r_P = torch.stack(residual_cov[::-1])[slot]
-    mean = torch.cat((node_mean[:-1, :c] + (gains @ r_m.unsqueeze(-1)).squeeze(-1), node_mean[-1:, :c]))
-    cov = torch.cat((node_cov[:-1, :c, :c] + gains @ r_P @ gains.transpose(-1, -2), node_cov[-1:, :c, :c]))
+    r_m = torch.stack(residual_mean[::-1])
+    r_P = torch.stack(residual_cov[::-1])
+    # every node j < J-1 from its next key's residuals, batched by block
+    means, covs = [], []
+    for (a, b), G in zip(blocks, gains):
+        nodes = slice(a, b)
+        means.append(node_mean[nodes, :c] + (G @ r_m[slot[nodes]].unsqueeze(-1)).squeeze(-1))
+        covs.append(node_cov[nodes, :c, :c] + G @ r_P[slot[nodes]] @ G.transpose(-1, -2))
+    mean = torch.cat((*means, node_mean[-1:, :c]))
+    cov = torch.cat((*covs, node_cov[-1:, :c, :c]))
     mean, cov = to_final_frame(mean, cov, frame_changes)
     if normalize:
         mean = normalize_quaternions(mean)

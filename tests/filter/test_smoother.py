@@ -314,11 +314,18 @@ def test_rts_through_long_prediction_runs_equals_batch_posterior(run_length):
     assert_close_scaled(smoothed.node_cov, cov_true, 1e-8)
 
 
+@pytest.mark.parametrize("blocks", ["one", "many"])
 @pytest.mark.parametrize("marginal", [1, 2, 4])
-def test_marginal_smoother_equals_batch_posterior_marginal(marginal):
+def test_marginal_smoother_equals_batch_posterior_marginal(marginal, blocks, monkeypatch):
     """``rts_smooth(marginal=m)``: the batch posterior's marginal of the first ``m`` entries, through
     short runs of prediction-only nodes, forgetting-like steps and a long run, and the same
-    figures as the whole-state smoother's first ``m`` entries."""
+    figures as the whole-state smoother's first ``m`` entries; the same with the nodes taken in
+    blocks of a few nodes (a run longer than a block is one block)."""
+    from flowins.filter import smoother
+
+    if blocks == "many":
+        monkeypatch.setattr(smoother, "_BLOCK_BYTES", 3 * 8 * 4 * 4)
+        assert smoother._node_blocks(torch.tensor([0, 2, 3, 9, 40, 41]), 42, 4) == [(0, 3), (3, 9), (9, 40), (40, 41)]
     gen = torch.Generator().manual_seed(11 + marginal)
     D = 4
     lc = LinearChain(torch.randn(D, generator=gen, dtype=F64), random_spd(gen, D))
