@@ -392,13 +392,21 @@ class FilterTrack(_NodeOutputs):
     nll: Tensor | None = None
     nll_count: float = 0.0
 
-    def in_final_frame(self) -> NodeTrack:
+    def in_final_frame(self, *, marginal: int | None = None) -> NodeTrack:
         """The filtered nodes with those before each change of frame re-expressed after it
         (``m ↦ A m + b``, ``P ↦ A P Aᵀ + Q``): each node is still the filter's estimate from
-        the data up to its time, relative to its start; only its frame is the final one."""
+        the data up to its time, relative to its start; only its frame is the final one.
+        ``marginal``: the first ``marginal`` state entries only (None: all)."""
+        D = self.node_mean.shape[-1]
+        c = D if marginal is None else marginal
+        if not 1 <= c <= D:
+            raise ValueError(f"FilterTrack.in_final_frame(marginal={marginal}): expected 1 .. {D}, the state's size, or None")
+        mean, cov = self.node_mean[:, :c], self.node_cov[:, :c, :c]
         if not self.frame_changes:
-            return NodeTrack(self.t_s, self.node_mean, self.node_cov)
-        mean, cov = to_final_frame(self.node_mean, self.node_cov, self.frame_changes)
+            return NodeTrack(self.t_s, mean, cov)
+        changes = self.frame_changes if c == D else marginal_frame_changes(
+            self.frame_changes, c, where=f"FilterTrack.in_final_frame(marginal={c})")
+        mean, cov = to_final_frame(mean, cov, changes)
         return NodeTrack(self.t_s, normalize_quaternions(mean), symmetrize(cov))
 
 
@@ -409,6 +417,19 @@ class NodeTrack(_NodeOutputs):
     t_s: Tensor
     node_mean: Tensor
     node_cov: Tensor
+
+
+def marginal_frame_changes(frame_changes, dim: int, *, where: str) -> list:
+    """The ``(node, A, b, Q)`` of ``frame_changes`` for the first ``dim`` state entries; a change
+    must not mix the later entries into them (``A[:dim, dim:] = 0``, as a heading alignment's
+    block-diagonal map does at any pose's boundary)."""
+    out = []
+    for node, A, b, Q in frame_changes:
+        if A.shape[-1] > dim and bool((A[:dim, dim:] != 0).any()):
+            raise ValueError(f"{where}: the change of frame at node {node} mixes state entries beyond the first "
+                             f"{dim} into them; take the whole state (marginal=None)")
+        out.append((node, A[:dim, :dim], b[:dim], Q[:dim, :dim]))
+    return out
 
 
 def to_final_frame(mean: Tensor, cov: Tensor, frame_changes) -> tuple[Tensor, Tensor]:

@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from flowins.filter.chain import FilterTrack, NodeTrack, to_final_frame
+from flowins.filter.chain import FilterTrack, NodeTrack, marginal_frame_changes, to_final_frame
 from flowins.state import normalize_quaternions, symmetrize
 
 
@@ -87,19 +87,6 @@ def _factor_predicted(cov: Tensor, t_s: Tensor) -> tuple[Tensor, Tensor]:
                      f"1e-3 of its largest variance; run the filter in float64 (filter.dtype=float64)")
 
 
-def _frame_changes_of_marginal(frame_changes, dim: int) -> list:
-    """The ``(node, A, b, Q)`` of ``frame_changes`` for the first ``dim`` state entries; a change
-    must not mix the later entries into them (``A[:dim, dim:] = 0``, as a heading alignment's
-    block-diagonal map does for any layout boundary)."""
-    out = []
-    for node, A, b, Q in frame_changes:
-        if A.shape[-1] > dim and bool((A[:dim, dim:] != 0).any()):
-            raise ValueError(f"rts_smooth(marginal={dim}): the change of frame at node {node} mixes state entries "
-                             f"beyond the first {dim} into them; smooth the whole state (marginal=None)")
-        out.append((node, A[:dim, :dim], b[:dim], Q[:dim, :dim]))
-    return out
-
-
 #: the most bytes of one (nodes, D, D) tensor the smoother's batched steps form at a time
 _BLOCK_BYTES = 32 << 20
 
@@ -146,7 +133,7 @@ def rts_smooth(track: FilterTrack, *, normalize: bool = True, marginal: int | No
     c = D if marginal is None else marginal
     if not 1 <= c <= D:
         raise ValueError(f"rts_smooth(marginal={marginal}): expected 1 .. {D}, the state's size, or None")
-    frame_changes = track.frame_changes if c == D else _frame_changes_of_marginal(track.frame_changes, c)
+    frame_changes = track.frame_changes if c == D else marginal_frame_changes(track.frame_changes, c, where=f"rts_smooth(marginal={c})")
     node_mean, node_cov = track.node_mean, track.node_cov
     if J == 1:
         return SmoothedTrack(track.t_s, node_mean[:, :c].clone(), node_cov[:, :c, :c].clone())

@@ -36,7 +36,7 @@ from flowins.measurements.vehicle import platform_streams
 from flowins.navigation import (NavigationConfig, NavigationResult, NavigationRun, flow_statistics, navigate_batch,
                                 run_warnings, track_statistics)
 from flowins.settings import evaluate_settings, filter_setup
-from flowins.state import STATE
+from flowins.state import STATE, STATE_DIM
 
 log = logging.getLogger("flowins")
 
@@ -252,7 +252,7 @@ def _export(out: Path, name: str, result: NavigationResult, rec: Recording, *, p
     tracks = {}
     # the filter's nodes before a heading alignment are re-expressed in the aligned frame
     # (FilterTrack.in_final_frame): one frame per track, as the smoother's
-    for kind, track in (("filter", result.filter.in_final_frame()), ("smoother", result.smoother)):
+    for kind, track in (("filter", result.filter.in_final_frame(marginal=STATE_DIM)), ("smoother", result.smoother)):
         pos, q = track.mean[:, STATE.p], track.mean[:, STATE.q]
         write_tum(out / f"{name}_{kind}.tum", track.t, pos, q)
         if not score:

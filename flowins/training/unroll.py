@@ -191,7 +191,7 @@ def run_windows(
         inputs.append(FilterInput(imu.t_s[i_a : i_b + 1], imu.acc_mps2[i_a : i_b + 1], imu.gyro_rps[i_a : i_b + 1],
                                   mean0, cov0, events))
     tracks = run_filters(inputs, **config.filter_settings(), likelihood=likelihood)
-    return [WindowResult(track.in_final_frame(), track.node_mean[-1], track.node_cov[-1], track.nll, track.nll_count,
+    return [WindowResult(track.in_final_frame(marginal=STATE_DIM), track.node_mean[-1], track.node_cov[-1], track.nll, track.nll_count,
                          rts_smooth(track, marginal=STATE_DIM) if smooth else None)
             for track in tracks]
 

@@ -65,3 +65,38 @@ def test_a_log_entry_goes_to_its_row_with_the_node_time_and_an_empty_one_is_left
     chain.add_nodes([[0.5], [0.75]], eye, torch.zeros(2, 1, STATE_DIM, dtype=F64), eye)
     chain.log_rows([1, 0], [{"kind": "toy"}, {}])
     assert chain.logs == [[], [{"t_s": 0.75, "kind": "toy"}]]
+
+
+def test_the_final_frame_of_the_first_entries_is_the_whole_states_block():
+    """``in_final_frame(marginal=26)`` of a state with 3 cloned poses and a heading alignment:
+    the first 26 entries of the whole state's final frame (the map keeps each pose's block
+    apart), and a map that mixes later entries in is refused."""
+    import pytest
+
+    from flowins.measurements.gnss_heading import HeadingFit, heading_transform
+    from flowins.state import normalize_quaternions, state_dim
+
+    gen = torch.Generator().manual_seed(4)
+    D = state_dim(3)
+    chain = ChainBuilder()
+    mean = normalize_quaternions(torch.randn(D, generator=gen, dtype=F64))
+    L = torch.randn(D, D, generator=gen, dtype=F64)
+    chain.add_node(0.0, torch.eye(D, dtype=F64), mean, L @ L.T / D + torch.eye(D, dtype=F64))
+    chain.add_node(1.0, torch.eye(D, dtype=F64), mean, 2.0 * (L @ L.T / D + torch.eye(D, dtype=F64)))
+    fit = HeadingFit(torch.tensor(0.7, dtype=F64), torch.tensor(0.01, dtype=F64), torch.tensor([1.0, 2.0], dtype=F64),
+                     torch.tensor([-3.0, 5.0], dtype=F64), torch.tensor(0.1, dtype=F64), torch.ones(3, dtype=torch.bool))
+    A, b = heading_transform(fit, dim=D)
+    Q = torch.diag(torch.rand(D, generator=gen, dtype=F64))
+    chain.change_frame(A, Q, b)
+    track = chain.finish()
+    whole, part = track.in_final_frame(), track.in_final_frame(marginal=STATE_DIM)
+    assert part.node_mean.shape == (3, STATE_DIM)
+    torch.testing.assert_close(part.node_mean, whole.node_mean[:, :STATE_DIM], rtol=0, atol=1e-14)
+    torch.testing.assert_close(part.node_cov, whole.node_cov[:, :STATE_DIM, :STATE_DIM], rtol=0, atol=1e-13)
+    # node 0 moved: R(0.7) about the vertical
+    assert not torch.allclose(part.node_mean[0], mean[:STATE_DIM])
+    mixed = A.clone()
+    mixed[0, STATE_DIM] = 0.1
+    track.frame_changes = [(track.frame_changes[0][0], mixed, b, Q)]
+    with pytest.raises(ValueError, match="in_final_frame.*mixes state entries"):
+        track.in_final_frame(marginal=STATE_DIM)
