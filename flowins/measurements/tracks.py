@@ -123,18 +123,19 @@ class Projection(NamedTuple):
 
 
 def project(X: Tensor, p: Tensor, q: Tensor, K: Tensor, R_ci: Tensor, centre_b: Tensor, *,
-            pose_jacobian: bool = True) -> Projection:
+            pose_jacobian: bool = True, R_wc: Tensor | None = None) -> Projection:
     """The pixel of the world point ``X`` ``(..., 3)`` seen by the camera on the IMU pose ``p``
     ``(..., 3)``, ``q`` ``(..., 4)`` (intrinsics ``K``, IMU→camera rotation ``R_ci`` and the camera
     centre in the body ``centre_b``, each broadcast), with its Jacobians (``H_pose`` None
-    without ``pose_jacobian``).
+    without ``pose_jacobian``). ``R_wc``: the camera's rotation ``R(q) R_ciᵀ`` when the caller
+    holds it already (a point projected again into the same views).
 
-    ``X_c = R_ci (R(q)ᵀ (X - p) - c_b)``, ``pixel = (f_x x_c / z_c + c_x, f_y y_c / z_c + c_y)``.
+    ``X_c = R_ci R(q)ᵀ (X - c_w)`` with the camera centre ``c_w = p + R(q) c_b``,
+    ``pixel = (f_x x_c / z_c + c_x, f_y y_c / z_c + c_y)``.
     """
     w = X - p
-    R_bw = quat.to_matrix(q).transpose(-1, -2)
-    R_cw = R_ci @ R_bw
-    X_c = (R_ci @ ((R_bw @ w.unsqueeze(-1)).squeeze(-1) - centre_b).unsqueeze(-1)).squeeze(-1)
+    R_cw = (quat.to_matrix(q) @ R_ci.transpose(-1, -2) if R_wc is None else R_wc).transpose(-1, -2)
+    X_c = (R_cw @ w.unsqueeze(-1)).squeeze(-1) - (R_ci @ centre_b.unsqueeze(-1)).squeeze(-1)
     z = X_c[..., 2]
     z_safe = torch.where(z.abs() > torch.finfo(z.dtype).tiny ** 0.5, z, torch.ones_like(z))
     f = torch.stack((K[..., 0, 0], K[..., 1, 1]), -1)
@@ -228,7 +229,7 @@ def track_measurements(x: Tensor, uv_px: Tensor, ages: Tensor, mask: Tensor, cam
     X = tri.point
     eye3 = torch.eye(3, **like)
     for _ in range(update.refine_iterations):  # Gauss-Newton on the pixel residuals
-        proj = project(X.unsqueeze(-2), p, q, K, R_ci, centre_b, pose_jacobian=False)
+        proj = project(X.unsqueeze(-2), p, q, K, R_ci, centre_b, pose_jacobian=False, R_wc=R_wc)
         Hf = proj.H_point * maskf[..., None, None]
         res = (uv_px - proj.pixel) * maskf.unsqueeze(-1)
         normal = torch.einsum("rmvia,rmvib->rmab", Hf, Hf) + 1e-12 * eye3
@@ -236,7 +237,7 @@ def track_measurements(x: Tensor, uv_px: Tensor, ages: Tensor, mask: Tensor, cam
         step = (torch.linalg.inv(normal) @ torch.einsum("rmvia,rmvi->rma", Hf, res).unsqueeze(-1)).squeeze(-1)
         ok = tri.in_front & torch.isfinite(step).all(-1)
         X = torch.where(ok.unsqueeze(-1), X + torch.where(ok.unsqueeze(-1), step, 0.0), X)
-    proj = project(X.unsqueeze(-2), p, q, K, R_ci, centre_b)
+    proj = project(X.unsqueeze(-2), p, q, K, R_ci, centre_b, R_wc=R_wc)
     # validity: a finite point in front of every view, not too close, with parallax
     degenerate = ~tri.in_front | ~(tri.conditioning > update.min_conditioning) | ~torch.isfinite(X).all(-1)
     behind = ((proj.depth <= update.min_depth_m) & mask).any(-1) & ~degenerate
@@ -252,13 +253,15 @@ def track_measurements(x: Tensor, uv_px: Tensor, ages: Tensor, mask: Tensor, cam
     # Π = I - H_f (H_fᵀ H_f)⁻¹ H_fᵀ (identity on the padded rows and on invalid tracks)
     eye = torch.eye(2 * V, **like)
     normal = Hf.transpose(-1, -2) @ Hf + torch.where(valid, 0.0, 1.0)[..., None, None] * eye3
-    Pi = eye - Hf @ (torch.linalg.inv(normal) @ Hf.transpose(-1, -2))
+    Hf_N = Hf @ torch.linalg.inv(normal)  # Π x = x - H_f N⁻¹ (H_fᵀ x), of rank 3 (no 2V x 2V product with H_x)
+    Pi = eye - Hf_N @ Hf.transpose(-1, -2)
     sigma = torch.as_tensor(update.sigma_px, **like)
     Pi_real = Pi * (rowmask.unsqueeze(-1) * rowmask.unsqueeze(-2))
     noise = sigma**2 * Pi_real + (eye - Pi_real)
     dof = (2 * views - 3).clamp_min(1) * valid
     counts = [flag.sum(-1) for flag in (degenerate & real, behind & real, low & real)]
-    return TrackMeasurements((Pi @ residual.unsqueeze(-1)).squeeze(-1), Pi @ Hx, noise, dof, valid, *counts, X)
+    Pi_Hx = Hx - Hf_N @ (Hf.transpose(-1, -2) @ Hx)
+    return TrackMeasurements((Pi @ residual.unsqueeze(-1)).squeeze(-1), Pi_Hx, noise, dof, valid, *counts, X)
 
 
 # ----------------------------------------------------------------------------- the schedule

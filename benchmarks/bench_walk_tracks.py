@@ -1,0 +1,95 @@
+"""The multi-view track update against the paper's two-view update on the simulated walk, per frame.
+
+Runs the two sparse rows of ``python evaluate.py`` (``ins_sparse`` and ``ins_gnss_sparse``, as one
+batched filter pass, filter + smoother) on the default 300 s walk, with the two-view update
+(``filter.tracks.window=0``) and with a window of ``--window`` cloned poses, alternating, and
+prints for each the median wall time of ``--repeats`` passes, its time per camera frame, the
+filter / smoother RMSE of both rows, and the ratio of the two times (the issue's target: the
+window at most 2x the two-view update per frame). The walk, its tracks (``--sparse lk``:
+Lucas-Kanade with ids kept across frames; ``tracks``: the simulator's ``tracks.csv``) and the
+two-view flow pairs are read from the cache that ``python evaluate.py`` fills (computed here
+if missing). The last line is ``RESULT window=<N> two_view=<s> multi_view=<s> ratio=<x>``.
+
+    python benchmarks/bench_walk_tracks.py [--window 10] [--sparse lk|tracks] [--repeats 3] [--quick]
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from flowins.data.load import load_recording
+from flowins.evaluation.metrics import trajectory_errors
+from flowins.flow.load import load_flow, load_tracks
+from flowins.jobs.evaluate import _runs
+from flowins.navigation import navigate_batch
+from flowins.settings import filter_setup
+from flowins.state import STATE
+
+CONFIGS = str(Path(__file__).resolve().parents[1] / "configs")
+ROWS = ["ins_sparse", "ins_gnss_sparse"]
+
+
+def setup(window: int, sparse: str, quick: bool):
+    """The recording, the two rows' runs and the navigation settings of one window size."""
+    overrides = [f"sparse={sparse}", f"filter.tracks.window={window}", f"combinations=[{','.join(ROWS)}]"]
+    with initialize_config_dir(config_dir=CONFIGS, version_base=None):
+        cfg = OmegaConf.to_container(compose("evaluate", overrides=overrides), resolve=False)
+    rec = load_recording(cfg["sequence"], quick=quick, progress=True)
+    flow = load_tracks(rec, cfg, progress=True) if window else load_flow("sparse", rec, cfg, progress=True)
+    if isinstance(flow, str):
+        raise SystemExit(f"error: no sparse input for window {window}: {flow}")
+    config = filter_setup(cfg, [rec], recorded=False).navigation
+    runs = [run for name in ROWS for run in _runs(name, cfg, [rec], config, [{"sparse": flow}])]
+    return rec, runs, config
+
+
+def rmse(rec, results) -> str:
+    out = []
+    for result in results:
+        for track in (result.filter.in_final_frame(marginal=STATE.dim), result.smoother):
+            err = trajectory_errors(track.t, track.mean[:, STATE.p], rec.truth.t_s, rec.truth.pos_m, align="se3")
+            out.append(f"{err.rmse_m:.2f}")
+    return " / ".join(out[:2]) + " m, " + " / ".join(out[2:]) + " m"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--window", type=int, default=10, help="cloned poses of the multi-view update (>= 1)")
+    parser.add_argument("--sparse", choices=["lk", "tracks"], default="lk")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--quick", action="store_true", help="the 60 s walk instead of the 300 s one")
+    args = parser.parse_args()
+    if args.window < 1:
+        raise SystemExit(f"error: --window must be >= 1, got {args.window}")
+    variants = {"two-view": setup(0, args.sparse, args.quick), f"window {args.window}": setup(args.window, args.sparse, args.quick)}
+    rec = variants["two-view"][0]
+    frames = len(rec.sequence.frames.t_s) if rec.sequence.frames is not None else 0
+    print(f"{rec.name}: {float(rec.imu.t_s[-1] - rec.imu.t_s[0]):.0f} s, {frames} camera frames, sparse={args.sparse}, "
+          f"rows {' + '.join(ROWS)} in one batched pass (filter + smoother), the CPU with {torch.get_num_threads()} threads")
+    times: dict[str, list[float]] = {name: [] for name in variants}
+    scores = {}
+    for _ in range(args.repeats):
+        for name, (rec_v, runs, config) in variants.items():
+            t0 = time.perf_counter()
+            results = navigate_batch(runs, config=config)
+            times[name].append(time.perf_counter() - t0)
+            scores[name] = rmse(rec_v, results)
+    print(f"{'update':<12} {'wall (median)':>14} {'ms/frame':>9}   filter / smoother RMSE ({ROWS[0]}, {ROWS[1]})")
+    median = {name: statistics.median(t) for name, t in times.items()}
+    for name in variants:
+        print(f"{name:<12} {median[name]:12.2f} s {1e3 * median[name] / max(1, frames):9.2f}   {scores[name]}"
+              f"   (runs: {', '.join(f'{t:.1f}' for t in times[name])} s)")
+    ratio = median[f"window {args.window}"] / median["two-view"]
+    print(f"window {args.window} / two-view per frame: {ratio:.2f}x (target <= 2x)")
+    print(f"RESULT window={args.window} two_view={median['two-view']:.2f} multi_view={median[f'window {args.window}']:.2f} "
+          f"ratio={ratio:.2f}")
+
+
+if __name__ == "__main__":
+    main()
