@@ -293,40 +293,52 @@ def schedule_tracks(t_s: Tensor, track_id: Tensor, uv_px: Tensor, frame_times_s:
     if window < 1:
         raise ValueError(f"schedule_tracks: window must be >= 1, got {window}")
     V = window + 1
-    frames = frame_times_s.tolist()
-    rows_by_time: dict[float, tuple[np.ndarray, np.ndarray]] = {}
-    times, counts = torch.unique_consecutive(t_s, return_counts=True)
-    start = 0
-    ids_all, uv_all = track_id.numpy(), uv_px.numpy()
-    for t, n in zip(times.tolist(), counts.tolist()):
-        rows_by_time[t] = (ids_all[start:start + n], uv_all[start:start + n])
-        start += n
-    active: dict[int, list[tuple[int, np.ndarray]]] = {}
+    frames = frame_times_s.numpy()
+    F = len(frames)
+    t_all, ids_all, uv_all = t_s.numpy(), track_id.numpy(), uv_px.numpy()
+    # each row's frame (rows at other times are not used) and its place among its frame's rows
+    k_row = np.searchsorted(frames, t_all).clip(0, max(F - 1, 0))
+    used = (k_row < F) & (frames[k_row] == t_all) if F else np.zeros(len(t_all), bool)
+    rows = np.flatnonzero(used)
+    k, ids = k_row[rows], ids_all[rows]
+    # segments: a track's rows in consecutive frames, cut every V views
+    order = np.lexsort((k, ids))
+    k, ids, rows = k[order], ids[order], rows[order]
+    run_start = np.ones(len(k), bool)
+    run_start[1:] = (ids[1:] != ids[:-1]) | (k[1:] != k[:-1] + 1)
+    run_first = np.maximum.accumulate(np.where(run_start, np.arange(len(k)), 0))
+    seg_start = run_start | ((np.arange(len(k)) - run_first) % V == 0)
+    first = np.flatnonzero(seg_start)  # each segment's first row (in this order)
+    length = np.diff(np.append(first, len(k)))
+    k0, k1 = k[first], k[first + length - 1]
+    # where each is used: where it reaches V views, else where it is not seen (the frame after
+    # its last view), else (seen at the last frame) the last frame; and in which order there:
+    # ended ones, then those reaching V (in their frame's row order), then the last frame's rest,
+    # each group in the order the segments began (the loop's order, kept by a stable sort)
+    reached = length == V
+    at = np.where(reached, k1, np.minimum(k1 + 1, F - 1))
+    group = np.where(reached, 1, np.where(k1 + 1 <= F - 1, 0, 2))
+    began = np.where(reached, rows[first + length - 1], rows[first])  # a row index orders (frame, row)
+    began = np.where(group == 1, began, k0 * (len(t_all) + 1) + rows[first])
+    keep = length >= 2
+    sel = np.flatnonzero(keep)
+    sel = sel[np.lexsort((began[sel], group[sel], -length[sel], at[sel]))]  # by frame, then longest first
+    bounds = np.searchsorted(at[sel], np.arange(F + 1))
     out = []
-    empty_ids, empty_uv = np.zeros(0, np.int64), np.zeros((0, 2))
-    for k, t in enumerate(frames):
-        ids, uvs = rows_by_time.get(t, (empty_ids, empty_uv))
-        seen = set(ids.tolist())
-        complete = [active.pop(i) for i in [i for i in active if i not in seen]]
-        for i, uv in zip(ids.tolist(), uvs):
-            segment = active.setdefault(i, [])
-            segment.append((k, uv))
-            if len(segment) == V:
-                complete.append(active.pop(i))
-        if k == len(frames) - 1:
-            complete += list(active.values())
-        complete = [s for s in complete if len(s) >= 2]
-        candidates = len(complete)
-        complete.sort(key=len, reverse=True)  # stable: the longest first, then in order
+    j = np.arange(V)
+    for f in range(F):
+        chosen = sel[bounds[f]:bounds[f + 1]]
+        candidates = len(chosen)
         if max_tracks is not None:
-            complete = complete[:max_tracks]
-        uv = np.zeros((len(complete), V, 2))
-        ages = np.zeros((len(complete), V), np.int64)
-        mask = np.zeros((len(complete), V), bool)
-        for m, segment in enumerate(complete):
-            for j, (frame, pixel) in enumerate(reversed(segment)):
-                uv[m, j], ages[m, j], mask[m, j] = pixel, k - frame, True
-        out.append(TrackViews(torch.from_numpy(uv), torch.from_numpy(ages), torch.from_numpy(mask), candidates))
+            chosen = chosen[:max_tracks]
+        n = length[chosen][:, None]
+        mask = j[None, :] < n
+        # view j (newest first) is the segment's row L - 1 - j
+        index = np.where(mask, first[chosen][:, None] + n - 1 - j[None, :], 0)
+        uv = np.where(mask[..., None], uv_all[rows[index]], 0.0).astype(np.float64)
+        ages = np.where(mask, f - k[index], 0)
+        out.append(TrackViews(torch.from_numpy(uv), torch.from_numpy(ages.astype(np.int64)), torch.from_numpy(mask),
+                              candidates))
     return out
 
 

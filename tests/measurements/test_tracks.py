@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 import pytest
 import torch
 
@@ -308,3 +310,75 @@ def test_bad_settings_name_their_key():
     with pytest.raises(ValueError, match="filter.tracks.sigma_px"):
         TrackUpdate(window=3, sigma_px=0.0)
     assert math.isfinite(TrackUpdate(window=3).min_parallax_rad)
+
+
+def naive_schedule(t_s, track_id, uv_px, frame_times_s, *, window: int,
+                    max_tracks: int | None = None) -> list:
+    """The frame-by-frame loop the schedule is (the reference: a dict of open segments)."""
+    if window < 1:
+        raise ValueError(window)
+    V = window + 1
+    frames = frame_times_s.tolist()
+    rows_by_time: dict[float, tuple[np.ndarray, np.ndarray]] = {}
+    times, counts = torch.unique_consecutive(t_s, return_counts=True)
+    start = 0
+    ids_all, uv_all = track_id.numpy(), uv_px.numpy()
+    for t, n in zip(times.tolist(), counts.tolist()):
+        rows_by_time[t] = (ids_all[start:start + n], uv_all[start:start + n])
+        start += n
+    active: dict[int, list[tuple[int, np.ndarray]]] = {}
+    out = []
+    empty_ids, empty_uv = np.zeros(0, np.int64), np.zeros((0, 2))
+    for k, t in enumerate(frames):
+        ids, uvs = rows_by_time.get(t, (empty_ids, empty_uv))
+        seen = set(ids.tolist())
+        complete = [active.pop(i) for i in [i for i in active if i not in seen]]
+        for i, uv in zip(ids.tolist(), uvs):
+            segment = active.setdefault(i, [])
+            segment.append((k, uv))
+            if len(segment) == V:
+                complete.append(active.pop(i))
+        if k == len(frames) - 1:
+            complete += list(active.values())
+        complete = [s for s in complete if len(s) >= 2]
+        candidates = len(complete)
+        complete.sort(key=len, reverse=True)  # stable: the longest first, then in order
+        if max_tracks is not None:
+            complete = complete[:max_tracks]
+        uv = np.zeros((len(complete), V, 2))
+        ages = np.zeros((len(complete), V), np.int64)
+        mask = np.zeros((len(complete), V), bool)
+        for m, segment in enumerate(complete):
+            for j, (frame, pixel) in enumerate(reversed(segment)):
+                uv[m, j], ages[m, j], mask[m, j] = pixel, k - frame, True
+        out.append(TrackViews(torch.from_numpy(uv), torch.from_numpy(ages), torch.from_numpy(mask), candidates))
+    return out
+
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_schedule_equals_the_frame_by_frame_loop(seed):
+    """Random tracks (ids that end, reappear and run past the window; rows at times between the
+    frames; frames without rows; ties in length beyond ``max_tracks``): the same views, in the
+    same order, as the frame-by-frame loop."""
+    gen = np.random.default_rng(seed)
+    frames = np.arange(40, dtype=np.float64) * 0.1
+    rows = []
+    for k, t in enumerate(frames):
+        if k in (7, 8):
+            continue  # no rows at all
+        seen = gen.choice(30, size=int(gen.integers(5, 25)), replace=False)
+        rows += [(t, int(i)) for i in seen]
+        if k % 5 == 0:
+            rows.append((t + 0.05, 99))  # between frames: not used
+    t = torch.tensor([r[0] for r in rows], dtype=torch.float64)
+    ids = torch.tensor([r[1] for r in rows])
+    uv = torch.from_numpy(gen.normal(size=(len(rows), 2)))
+    for window, cap in ((3, None), (4, 5), (1, 2)):
+        got = schedule_tracks(t, ids, uv, torch.from_numpy(frames), window=window, max_tracks=cap)
+        want = naive_schedule(t, ids, uv, torch.from_numpy(frames), window=window, max_tracks=cap)
+        assert len(got) == len(want) == len(frames)
+        for g, w in zip(got, want):
+            assert g.candidates == w.candidates
+            for name in ("uv_px", "ages", "mask"):
+                assert torch.equal(getattr(g, name), getattr(w, name)), name
