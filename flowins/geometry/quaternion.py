@@ -69,8 +69,7 @@ def _constants(dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor
 
 
 def _outer(a: Tensor, b: Tensor) -> Tensor:
-    batch = torch.broadcast_shapes(a.shape[:-1], b.shape[:-1])  # shapes only: no tensor operation
-    return (a.unsqueeze(-1) * b.unsqueeze(-2)).reshape(*batch, 16)
+    return (a.unsqueeze(-1) * b.unsqueeze(-2)).flatten(-2)  # (..., 4, 4) -> (..., 16), a view
 
 
 def multiply(a: Tensor, b: Tensor) -> Tensor:
@@ -341,8 +340,7 @@ def rotate_jacobian(q: Tensor, a: Tensor) -> Tensor:
 
 
 def _outer_qa(q: Tensor, a: Tensor) -> Tensor:
-    batch = torch.broadcast_shapes(q.shape[:-1], a.shape[:-1])
-    return (q.unsqueeze(-1) * a.unsqueeze(-2)).reshape(*batch, 12)
+    return (q.unsqueeze(-1) * a.unsqueeze(-2)).flatten(-2)  # (..., 4, 3) -> (..., 12), a view
 
 
 @cached_constant
