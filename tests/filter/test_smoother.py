@@ -426,3 +426,39 @@ def test_matrices_whose_batched_pivots_come_out_invalid_are_factorised_alone(mon
     for i in range(5):
         LU_i, piv_i, _ = torch.linalg.lu_factor_ex(cov[i])
         assert torch.equal(LU[i], LU_i) and torch.equal(pivots[i], piv_i)
+
+
+def test_smoother_gradient_equals_finite_differences_through_runs_and_blocks(monkeypatch):
+    """The smoother is in the training graph: the gradient of a smoothed mean and variance
+    with respect to a process noise and a measurement value, through runs of prediction-only
+    nodes (each node's transition to its next key built in place) and several blocks, equals
+    central finite differences."""
+    from flowins.filter import smoother
+
+    monkeypatch.setattr(smoother, "_BLOCK_BYTES", 4 * 8 * 3 * 3)
+    D = 3
+    gen = torch.Generator().manual_seed(8)
+    A = [torch.eye(D, dtype=F64) + 0.1 * torch.randn(D, D, generator=gen, dtype=F64) for _ in range(12)]
+    Hs = [torch.randn(1, D, generator=gen, dtype=F64) for _ in range(4)]
+    P0 = random_spd(gen, D)
+
+    def smoothed(q, z):
+        lc = LinearChain(torch.zeros(D, dtype=F64), P0)
+        for i, Ai in enumerate(A):
+            lc.predict(Ai, q * torch.eye(D, dtype=F64))
+            if i % 3 == 2:
+                lc.measure(Hs[i // 3], z[i // 3 : i // 3 + 1], 0.1 * torch.eye(1, dtype=F64))
+        out = rts_smooth(lc.chain.finish(), normalize=False, marginal=2)
+        return out.node_mean[1:4, 0].sum() + out.node_cov[1:4, 1, 1].sum()
+
+    q = torch.tensor(0.05, dtype=F64, requires_grad=True)
+    z = torch.tensor([0.3, -0.2, 0.5, 0.1], dtype=F64, requires_grad=True)
+    value = smoothed(q, z)
+    g_q, g_z = torch.autograd.grad(value, (q, z))
+    h = 1e-6
+    fd_q = (smoothed(q.detach() + h, z.detach()) - smoothed(q.detach() - h, z.detach())) / (2 * h)
+    e = torch.zeros(4, dtype=F64)
+    e[1] = h
+    fd_z = (smoothed(q.detach(), z.detach() + e) - smoothed(q.detach(), z.detach() - e)) / (2 * h)
+    assert abs(float(g_q) - float(fd_q)) <= 1e-6 * max(1.0, abs(float(fd_q)))
+    assert abs(float(g_z[1]) - float(fd_z)) <= 1e-6 * max(1.0, abs(float(fd_z)))
