@@ -233,9 +233,14 @@ def track_measurements(x: Tensor, uv_px: Tensor, ages: Tensor, mask: Tensor, cam
         Hf = proj.H_point * maskf[..., None, None]
         res = (uv_px - proj.pixel) * maskf.unsqueeze(-1)
         normal = torch.einsum("rmvia,rmvib->rmab", Hf, Hf) + 1e-12 * eye3
-        # explicit 3 x 3 inverses: batched torch.linalg.solve is ten times slower on the CPU
-        step = (torch.linalg.inv(normal) @ torch.einsum("rmvia,rmvi->rma", Hf, res).unsqueeze(-1)).squeeze(-1)
-        ok = tri.in_front & torch.isfinite(step).all(-1)
+        # explicit 3 x 3 inverses: batched torch.linalg.solve is ten times slower on the CPU. A
+        # track without baseline has a normal matrix of rank 2, singular at rounding level
+        # whatever the 1e-12: where its factorisation fails the point stays where it is, and the
+        # identity stands in for it so that no infinity reaches the gradient
+        invertible = torch.linalg.inv_ex(normal.detach())[1] == 0
+        inverse = torch.linalg.inv(torch.where(invertible[..., None, None], normal, eye3))
+        step = (inverse @ torch.einsum("rmvia,rmvi->rma", Hf, res).unsqueeze(-1)).squeeze(-1)
+        ok = tri.in_front & invertible & torch.isfinite(step).all(-1)
         X = torch.where(ok.unsqueeze(-1), X + torch.where(ok.unsqueeze(-1), step, 0.0), X)
     proj = project(X.unsqueeze(-2), p, q, K, R_ci, centre_b, R_wc=R_wc)
     # validity: a finite point in front of every view, not too close, with parallax
