@@ -90,6 +90,8 @@ class NavigationConfig:
 @dataclass
 class NavigationResult:
     filter: FilterTrack
+    #: the smoothed 26-dim layout (with a window of cloned poses, the clones beyond the first are
+    #: not smoothed: :func:`~flowins.filter.smoother.rts_smooth` with ``marginal``)
     smoother: SmoothedTrack
     frame: LocalTangentPlane | None
     gnss_t_s: Tensor | None
@@ -353,7 +355,7 @@ def _navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig,
     return [
         NavigationResult(
             filter=track,
-            smoother=rts_smooth(track, marginal=STATE_DIM),  # the clones of a window: left out
+            smoother=rts_smooth(track, marginal=STATE_DIM),
             frame=setup.frame,
             gnss_t_s=None if run.gnss is None else run.gnss.t_s,
             gnss_enu_m=setup.gnss_enu_m,
