@@ -301,9 +301,9 @@ def schedule_tracks(t_s: Tensor, track_id: Tensor, uv_px: Tensor, frame_times_s:
     frames = frame_times_s.numpy()
     F = len(frames)
     t_all, ids_all, uv_all = t_s.numpy(), track_id.numpy(), uv_px.numpy()
-    # each row's frame (rows at other times are not used) and its place among its frame's rows
+    # each row's frame (rows at other times are not used)
     k_row = np.searchsorted(frames, t_all).clip(0, max(F - 1, 0))
-    used = (k_row < F) & (frames[k_row] == t_all) if F else np.zeros(len(t_all), bool)
+    used = frames[k_row] == t_all if F else np.zeros(len(t_all), bool)
     rows = np.flatnonzero(used)
     k, ids = k_row[rows], ids_all[rows]
     # segments: a track's rows in consecutive frames, cut every V views
@@ -323,8 +323,9 @@ def schedule_tracks(t_s: Tensor, track_id: Tensor, uv_px: Tensor, frame_times_s:
     reached = length == V
     at = np.where(reached, k1, np.minimum(k1 + 1, F - 1))
     group = np.where(reached, 1, np.where(k1 + 1 <= F - 1, 0, 2))
-    began = np.where(reached, rows[first + length - 1], rows[first])  # a row index orders (frame, row)
-    began = np.where(group == 1, began, k0 * (len(t_all) + 1) + rows[first])
+    # reaching V: the row of the last view (rows of one frame keep their order); the others: the
+    # first view's frame, then its row
+    began = np.where(reached, rows[first + length - 1], k0 * (len(t_all) + 1) + rows[first])
     keep = length >= 2
     sel = np.flatnonzero(keep)
     sel = sel[np.lexsort((began[sel], group[sel], -length[sel], at[sel]))]  # by frame, then longest first
