@@ -288,10 +288,9 @@ def block_information(innovation: Tensor, H: Tensor, noise_cov: Tensor) -> tuple
     ``R⁻¹`` from its Cholesky factor (a batched ``cholesky_solve`` with ``D`` right-hand sides is
     two orders of magnitude slower on the CPU than the ``d x d`` inverse and a product)."""
     Rinv = torch.cholesky_inverse(torch.linalg.cholesky(symmetrize(noise_cov)))
-    *batch, M, d, D = H.shape
-    Rinv_H = (Rinv @ H).reshape(*batch, M * d, D)  # (..., M d, D): the sums over blocks are one product each
-    G = H.reshape(*batch, M * d, D).transpose(-1, -2) @ Rinv_H
-    return G, (Rinv_H.transpose(-1, -2) @ innovation.reshape(*batch, M * d, 1)).squeeze(-1)
+    Rinv_H = (Rinv @ H).flatten(-3, -2)  # (..., M d, D): the sums over blocks are one product each
+    G = H.flatten(-3, -2).transpose(-1, -2) @ Rinv_H
+    return G, (Rinv_H.transpose(-1, -2) @ innovation.flatten(-2).unsqueeze(-1)).squeeze(-1)
 
 
 def block_nis(cov: Tensor, innovation: Tensor, H: Tensor, noise_cov: Tensor) -> Tensor:
@@ -329,8 +328,8 @@ def block_nll(cov: Tensor, innovation: Tensor, H: Tensor, noise_cov: Tensor) -> 
 
 def _block_innovation_cov(cov: Tensor, H: Tensor, noise_cov: Tensor) -> Tensor:
     """``S_i = H_i P H_iᵀ + R_i`` ``(..., M, d, d)`` of each block, symmetrised."""
-    *batch, M, d, D = H.shape
-    HP = (H.reshape(*batch, M * d, D) @ cov).reshape(H.shape)  # one product per covariance, not one per block
+    M, d = H.shape[-3:-1]
+    HP = (H.flatten(-3, -2) @ cov).unflatten(-2, (M, d))  # one product per covariance, not one per block
     return symmetrize(HP @ H.transpose(-1, -2) + noise_cov)
 
 
