@@ -487,3 +487,26 @@ def test_each_block_nll_is_its_marginal_gaussian_density(d):
             density = torch.distributions.MultivariateNormal(torch.zeros(d, dtype=F64), covariance_matrix=S)
             expected = -density.log_prob(v[b, i]) - 0.5 * d * math.log(2 * math.pi)
             torch.testing.assert_close(out.nll[b, i], expected, rtol=1e-11, atol=1e-12)
+
+
+def test_block_nis_and_information_broadcast_over_batch_dimensions_H_lacks():
+    """One set of blocks ``H (M, d, D)`` against a batch of covariances ``(B, D, D)`` (and noise
+    with a batch of its own): each batch entry's NIS and information equal the entry alone."""
+    from flowins.filter.ekf import block_information, block_nis
+
+    gen = torch.Generator().manual_seed(3)
+    B, M, d, D = 3, 4, 2, 5
+    P = torch.stack([random_spd(gen, D) for _ in range(B)])
+    H = torch.randn(M, d, D, generator=gen, dtype=F64)
+    R = torch.stack([torch.stack([random_spd(gen, d, scale=0.5) for _ in range(M)]) for _ in range(B)])
+    v = torch.randn(M, d, generator=gen, dtype=F64)
+    nis = block_nis(P, v, H, R)
+    G, b = block_information(v, H, R)
+    assert nis.shape == (B, M) and G.shape == (B, D, D) and b.shape == (B, D)
+    for i in range(B):
+        S = H @ P[i] @ H.transpose(-1, -2) + R[i]
+        want = torch.stack([v[m] @ torch.linalg.solve(S[m], v[m]) for m in range(M)])
+        torch.testing.assert_close(nis[i], want, rtol=1e-12, atol=0)
+        Rinv = torch.linalg.inv(R[i])
+        torch.testing.assert_close(G[i], sum(H[m].T @ Rinv[m] @ H[m] for m in range(M)), rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(b[i], sum(H[m].T @ Rinv[m] @ v[m] for m in range(M)), rtol=1e-12, atol=1e-12)
