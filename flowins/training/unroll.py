@@ -180,7 +180,8 @@ def run_windows(
                 flow = flow.at_dropout_rate(dropout_p)
         has_camera = flow is not None or tracks is not None
         setup = prepare_navigation(NavigationRun(imu, gnss, flow=flow, tracks=tracks,
-                                                 camera=seq.camera if has_camera else None, streams=seq.streams),
+                                                 camera=seq.camera if has_camera else None, streams=seq.streams,
+                                                 truth=seq.truth),  # for filter.init.mode=groundtruth
                                    config=config)
         if setup.start.index != 0:
             raise ValueError(f"training starts the filter at the first IMU sample; filter.init.mode={setup.start.mode} "

@@ -182,3 +182,21 @@ def test_one_factor_on_every_noise_level_leaves_the_estimates_unchanged():
     assert loss_b == pytest.approx(loss_a, rel=1e-9)
     _, loss_c = run({"gnss_noise_scale": 0.4}, 1.0)
     assert abs(loss_c - loss_a) > 1e-3 * loss_a
+
+
+def test_a_window_can_start_from_the_ground_truth():
+    """``filter.init.mode=groundtruth`` in training: the first window starts at the truth's
+    position and velocity (the sequence's truth reaches the start)."""
+    import dataclasses
+
+    from flowins.state import STATE
+
+    rec = synthetic_walk_recording(duration_s=12.0, seed=2)
+    seq = TrainingSequence("walk", rec.imu, rec.gnss, rec.truth)
+    base = NavigationConfig(gnss_heading=HeadingAlignment(enabled=False))
+    base = dataclasses.replace(base, start=dataclasses.replace(base.start, mode="groundtruth"))
+    config = FilterParameters(starting_values(base), learn=["acc_noise"]).apply(base, training=True, device="cpu")
+    (result,) = run_windows([seq], "ins", config, [window_bounds(seq.imu.t_s, 6.0)[0]])
+    p0 = result.track.node_mean[0, STATE.p].detach()
+    k = int(torch.argmin((rec.truth.t_s - float(rec.imu.t_s[0])).abs()))
+    assert float((p0 - rec.truth.pos_m[k]).norm()) < 0.05
