@@ -247,7 +247,7 @@ class BatchChain:
                     local = (columns[first:last] - start).to(chunk.device)
                     pieces.append(chunk[b].index_select(0, local))
                 first = last
-            out.append(torch.cat(pieces) if len(pieces) > 1 else pieces[0].clone() if pieces else chunks[0][b, :0].clone())
+            out.append(torch.cat(pieces) if pieces else chunks[0][b, :0].clone())  # cat copies even one piece
         return out
 
 
@@ -399,13 +399,10 @@ class FilterTrack(_NodeOutputs):
         ``marginal``: the first ``marginal`` state entries only (None: all)."""
         D = self.node_mean.shape[-1]
         c = D if marginal is None else marginal
-        if not 1 <= c <= D:
-            raise ValueError(f"FilterTrack.in_final_frame(marginal={marginal}): expected 1 .. {D}, the state's size, or None")
+        changes = marginal_frame_changes(self.frame_changes, c, D, where=f"FilterTrack.in_final_frame(marginal={marginal})")
         mean, cov = self.node_mean[:, :c], self.node_cov[:, :c, :c]
-        if not self.frame_changes:
+        if not changes:
             return NodeTrack(self.t_s, mean, cov)
-        changes = self.frame_changes if c == D else marginal_frame_changes(
-            self.frame_changes, c, where=f"FilterTrack.in_final_frame(marginal={c})")
         mean, cov = to_final_frame(mean, cov, changes)
         return NodeTrack(self.t_s, normalize_quaternions(mean), symmetrize(cov))
 
@@ -419,10 +416,15 @@ class NodeTrack(_NodeOutputs):
     node_cov: Tensor
 
 
-def marginal_frame_changes(frame_changes, dim: int, *, where: str) -> list:
-    """The ``(node, A, b, Q)`` of ``frame_changes`` for the first ``dim`` state entries; a change
-    must not mix the later entries into them (``A[:dim, dim:] = 0``, as a heading alignment's
+def marginal_frame_changes(frame_changes, dim: int, size: int, *, where: str) -> list:
+    """The ``(node, A, b, Q)`` of ``frame_changes`` (of states of ``size`` entries) for the first
+    ``dim`` entries, ``1 <= dim <= size`` (``where`` names the caller in the errors); a change must
+    not mix the later entries into them (``A[:dim, dim:] = 0``, as a heading alignment's
     block-diagonal map does at any pose's boundary)."""
+    if not 1 <= dim <= size:
+        raise ValueError(f"{where}: expected 1 .. {size}, the state's size, or None")
+    if dim == size:
+        return list(frame_changes)
     out = []
     for node, A, b, Q in frame_changes:
         if A.shape[-1] > dim and bool((A[:dim, dim:] != 0).any()):

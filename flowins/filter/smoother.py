@@ -131,9 +131,7 @@ def rts_smooth(track: FilterTrack, *, normalize: bool = True, marginal: int | No
     """
     J, D = track.node_mean.shape[-2:]
     c = D if marginal is None else marginal
-    if not 1 <= c <= D:
-        raise ValueError(f"rts_smooth(marginal={marginal}): expected 1 .. {D}, the state's size, or None")
-    frame_changes = track.frame_changes if c == D else marginal_frame_changes(track.frame_changes, c, where=f"rts_smooth(marginal={c})")
+    frame_changes = marginal_frame_changes(track.frame_changes, c, D, where=f"rts_smooth(marginal={marginal})")
     node_mean, node_cov = track.node_mean, track.node_cov
     if J == 1:
         return SmoothedTrack(track.t_s, node_mean[:, :c].clone(), node_cov[:, :c, :c].clone())
