@@ -24,12 +24,12 @@ from flowins.ins.initialization import InitialUncertainty
 from flowins.ins.mechanization import SCHEMES, STANDARD_GRAVITY_MPS2, ProcessNoise
 from flowins.measurements.flow_update import FlowFrame, FlowUpdate
 from flowins.measurements.gnss import GnssRecovery, correlation_inflation, gnss_fixes, gnss_noise
-from flowins.measurements.gnss_heading import HeadingAlignment
+from flowins.measurements.gnss_heading import HeadingAlignment, aligned_prior_covariance, fit_from_record
 from flowins.measurements.registry import NavigationContext, measurement_kind
 from flowins.measurements.tracks import TrackUpdate, track_frames
 from flowins.measurements.vehicle import VehicleConstraint  # noqa: F401  (registers the kind "vehicle")
 from flowins.measurements.zero_velocity import ZeroVelocity
-from flowins.state import STATE, STATE_DIM
+from flowins.state import STATE, STATE_DIM, window_size
 from flowins.start import Start, StartSettings, choose_start
 
 
@@ -136,7 +136,7 @@ class NavigationResult:
             out["gnss_resets"] = resets
         if self.gnss_before_start:
             out["gnss_before_start"] = self.gnss_before_start
-        heading = [{k: v for k, v in e.items() if k not in ("kind", "name")} for e in self.heading_status]
+        heading = [{k: v for k, v in e.items() if k not in ("kind", "name", "fit")} for e in self.heading_status]
         if heading:
             out["heading_alignment"] = heading  # filter.gnss_heading: when and how the heading was set (or given up)
         return out
@@ -352,10 +352,11 @@ def _navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig,
         inputs.append(FilterInput(run.imu.t_s[first:], run.imu.acc_mps2[first:], run.imu.gyro_rps[first:],
                                   setup.mean0, setup.cov0, setup.events))
     tracks = run_filters(inputs, progress=progress, **config.filter_settings())
+    smoothed = smoother_tracks(inputs, tracks, config)
     return [
         NavigationResult(
             filter=track,
-            smoother=rts_smooth(track, marginal=STATE_DIM),
+            smoother=rts_smooth(again, marginal=STATE_DIM),
             frame=setup.frame,
             gnss_t_s=None if run.gnss is None else run.gnss.t_s,
             gnss_enu_m=setup.gnss_enu_m,
@@ -364,8 +365,53 @@ def _navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig,
             start=setup.start,
             gnss_before_start=setup.gnss_before_start,
         )
-        for run, setup, track in zip(runs, setups, tracks)
+        for run, setup, track, again in zip(runs, setups, tracks, smoothed)
     ]
+
+
+def heading_fit_record(track: FilterTrack) -> dict[str, Any] | None:
+    """The fit of the GNSS heading alignment that set ``track``'s heading (its log entry's
+    ``fit``), or None where no fix set it."""
+    for entry in track.log:
+        if entry.get("kind") == "heading" and entry.get("status") == "aligned" and "fit" in entry:
+            return entry["fit"]
+    return None
+
+
+def smoother_tracks(inputs: Sequence[FilterInput], tracks: Sequence[FilterTrack],
+                    config: NavigationConfig) -> list[FilterTrack]:
+    """The filter tracks the RTS smoother runs on, one per run of ``inputs`` (filtered into
+    ``tracks``): the run's own track, or, for a run whose GNSS fixes set its heading
+    (``filter.gnss_heading.second_pass``), a second filter pass from the same start. The first
+    pass holds the fixes back until they set the heading, and they never update it; the second
+    knows the heading from its first sample and applies every fix, so the smoother uses them all.
+
+    The second pass starts at the first pass's smoothed mean at the start (the smoother carries
+    the alignment back through the held stretch, where the filter's yaw moved while it was
+    unknown, so the fit's rotation alone does not give the start's heading), with the run's own
+    prior covariance aligned by the fit (:func:`~flowins.measurements.gnss_heading.aligned_prior_covariance`),
+    so no measurement counts twice in it. All such runs go as one batch; the start carries no
+    gradient through the first pass.
+    """
+    out = list(tracks)
+    if not config.gnss_heading.second_pass:
+        return out
+    again = [(i, record) for i, record in enumerate(heading_fit_record(t) for t in tracks) if record is not None]
+    if not again:
+        return out
+    rows = []
+    for i, record in again:
+        run = inputs[i]
+        fit = fit_from_record(record, dtype=run.mean0.dtype, device=run.mean0.device)
+        smoothed = rts_smooth(tracks[i], marginal=STATE_DIM).mean[0].detach()
+        clones = window_size(run.mean0.shape[-1])
+        mean0 = with_window(smoothed, run.cov0[:STATE_DIM, :STATE_DIM], clones)[0]
+        cov0 = aligned_prior_covariance(run.mean0, run.cov0, mean0, fit,
+                                        condition_sigma_rad=config.gnss_heading.condition_sigma_rad)
+        rows.append(dataclasses.replace(run, mean0=mean0, cov0=cov0))
+    for (i, _), track in zip(again, run_filters(rows, **config.filter_settings())):
+        out[i] = track
+    return out
 
 
 def flow_statistics(result: NavigationResult, pairs: FlowPairs) -> dict[str, Any]:

@@ -29,6 +29,7 @@ from flowins.geometry import quaternion as quat
 from flowins.measurements.gnss_heading import (
     HeadingAlignment,
     fit_heading,
+    fit_record,
     heading_conditional_covariance,
     heading_jacobian,
     heading_noise,
@@ -286,7 +287,7 @@ class GnssFix:
         Q = heading_noise(A @ chain.mean + b, fit)
         chain.change_frame(A, Q, b, kind="heading", name=self.name, status="aligned", yaw_rad=float(fit.yaw_rad.detach()),
                            sigma_rad=float(fit.sigma_rad.detach()), fixes=int(fit.used.sum()),
-                           outliers=int((~fit.used).sum()))
+                           outliers=int((~fit.used).sum()), fit=fit_record(fit))
         memory["heading"] = "known"
         chain.log.append({"t_s": chain.time_s, "kind": "gnss", "name": self.name, "accepted": 0.0,
                           "status": "set the heading"})

@@ -34,7 +34,7 @@ residual exceeds the χ²₂ gate are left out of the fit one at a time, worst f
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
@@ -42,7 +42,7 @@ from torch import Tensor
 from flowins.filter.ekf import chi2_quantile
 from flowins.geometry import quaternion as quat
 from flowins.geometry.procrustes import planar_rotation, rotation_2d
-from flowins.state import STATE, STATE_DIM, pose_slices, split, window_layout, window_size
+from flowins.state import STATE, STATE_DIM, pose_slices, split, symmetrize, window_layout, window_size
 
 
 @dataclass(frozen=True)
@@ -62,6 +62,10 @@ class HeadingAlignment:
         min_fixes: at least this many fixes in the fit.
         outlier_probability: χ²₂ acceptance of a fix's residual in the fit.
         condition_sigma_rad: σ of the step-1 yaw conditioning.
+        second_pass: the RTS smoother of a run whose heading these fixes set runs on a
+            second filter pass from the start (:func:`flowins.navigation.smoother_tracks`),
+            so that every fix, the held ones too, reaches the smoother; the filter's own
+            estimates stay those of the first, causal pass. Off by default.
     """
 
     enabled: bool = True
@@ -71,6 +75,7 @@ class HeadingAlignment:
     min_fixes: int = 3
     outlier_probability: float = 0.999
     condition_sigma_rad: float = 1e-4
+    second_pass: bool = False
 
     def __post_init__(self) -> None:
         if self.baseline_m < 0 or self.max_sigma_rad <= 0 or self.unknown_yaw_sigma_rad <= 0:
@@ -173,6 +178,42 @@ def heading_transform(fit: HeadingFit, *, dtype: torch.dtype = torch.float64, di
         blocks.append(R3 if start == STATE.v.start else L if start in quaternions else torch.eye(size, **like))
         shifts.append(torch.zeros(size, **like))
     return torch.block_diag(*blocks), torch.cat(shifts)
+
+
+def fit_record(fit: HeadingFit) -> dict[str, Any]:
+    """The fit as plain numbers, for a log entry (:func:`fit_from_record` reads it back)."""
+    return {"yaw_rad": float(fit.yaw_rad.detach()), "sigma_rad": float(fit.sigma_rad.detach()),
+            "centre_filter_m": [float(x) for x in fit.centre_filter_m.detach().reshape(-1)],
+            "centre_fix_m": [float(x) for x in fit.centre_fix_m.detach().reshape(-1)],
+            "centre_var_m2": float(fit.centre_var_m2.detach()), "fixes": int(fit.used.sum()),
+            "outliers": int((~fit.used).sum())}
+
+
+def fit_from_record(record: dict[str, Any], *, dtype: torch.dtype = torch.float64,
+                    device: torch.device | str = "cpu") -> HeadingFit:
+    """The :class:`HeadingFit` of a log entry written with :func:`fit_record` (no gradient)."""
+    like = {"dtype": dtype, "device": device}
+    n = int(record["fixes"]) + int(record["outliers"])
+    used = torch.arange(n, device=device) < int(record["fixes"])
+    return HeadingFit(torch.tensor(record["yaw_rad"], **like), torch.tensor(record["sigma_rad"], **like),
+                      torch.tensor(record["centre_filter_m"], **like), torch.tensor(record["centre_fix_m"], **like),
+                      torch.tensor(record["centre_var_m2"], **like), used)
+
+
+def aligned_prior_covariance(mean: Tensor, cov: Tensor, aligned_mean: Tensor, fit: HeadingFit, *,
+                             condition_sigma_rad: float) -> Tensor:
+    """A prior covariance ``(D, D)`` aligned with ``fit`` as the filter aligns its state (module
+    docstring): ``cov`` conditioned on the heading of ``mean`` with ``condition_sigma_rad``,
+    mapped by :func:`heading_transform`, plus the fit's :func:`heading_noise` at ``aligned_mean``
+    (the prior's mean in the fixes' frame). It starts a second filter pass whose heading is known
+    from its first sample, with no more certainty than the run's own prior and the fit give."""
+    h = heading_jacobian(mean)
+    Ph = cov @ h
+    s = h @ Ph + condition_sigma_rad**2
+    conditioned = symmetrize(cov - torch.outer(Ph, Ph) / s)  # the residual is 0: only the covariance changes
+    A, _ = heading_transform(fit, dtype=mean.dtype, dim=mean.shape[-1])
+    A = A.to(mean.device)
+    return symmetrize(A @ conditioned @ A.T + heading_noise(aligned_mean, fit))
 
 
 def heading_noise(x: Tensor, fit: HeadingFit) -> Tensor:

@@ -8,6 +8,9 @@ import torch
 from flowins.measurements.gnss_heading import (
     HeadingAlignment,
     HeadingFit,
+    aligned_prior_covariance,
+    fit_from_record,
+    fit_record,
     fit_heading,
     heading_jacobian,
     heading_noise,
@@ -118,6 +121,33 @@ def test_heading_noise_is_the_fit_uncertainty_pushed_through_the_transform():
     torch.testing.assert_close(heading_noise(x1, fit), expected, rtol=1e-7, atol=1e-9)
 
 
+def test_aligned_prior_covariance_is_the_prior_conditioned_on_its_heading_then_rotated():
+    """The Joseph-form update of the prior on its own heading, mapped by the fit's transform,
+    plus the fit's noise at the aligned mean; the heading's variance is ``σ_ψ²`` plus what the
+    conditioning left of the prior's (``v σ_c² / (v + σ_c²)``); a fit read back from its log
+    record gives the same."""
+    from flowins.filter.ekf import joseph_update
+
+    gen = torch.Generator().manual_seed(5)
+    x = _random_state(gen)
+    L = torch.randn(26, 26, generator=gen, dtype=F64)
+    P = 0.01 * L @ L.T + 1e-3 * torch.eye(26, dtype=F64)
+    h = heading_jacobian(x)
+    P = P + 3.0 * torch.outer(P @ h, P @ h) / float(h @ P @ h)  # a large yaw variance, correlated with the rest
+    fit, cond = _fit(sigma=0.15, var=2.5), 1e-3
+    aligned = _rotate_state(x, fit)
+    cov = aligned_prior_covariance(x, P, aligned, fit, condition_sigma_rad=cond)
+    _, Pc = joseph_update(x, P, torch.zeros(1, dtype=F64), h.reshape(1, -1), torch.full((1, 1), cond**2, dtype=F64))
+    A, _ = heading_transform(fit)
+    torch.testing.assert_close(cov, A @ Pc @ A.T + heading_noise(aligned, fit), rtol=1e-9, atol=1e-12)
+    v = float(h @ P @ h)
+    h1 = heading_jacobian(aligned)
+    assert float(h1 @ cov @ h1) == pytest.approx(0.15**2 + v * cond**2 / (v + cond**2), rel=1e-6)
+    assert float(torch.linalg.eigvalsh(cov).min()) > -1e-12
+    again = aligned_prior_covariance(x, P, aligned, fit_from_record(fit_record(fit)), condition_sigma_rad=cond)
+    torch.testing.assert_close(again, cov, rtol=0, atol=0)
+
+
 def test_correlation_inflation_is_the_variance_of_the_mean_of_gauss_markov_errors():
     """Exact variance of the mean of n AR(1) samples: σ²/n [1 + 2 Σ_k (1 - k/n) ρ^k]."""
     tau, dt, n = 10.0, 1.0, 20000
@@ -176,6 +206,45 @@ def test_a_filter_started_at_a_wrong_heading_is_aligned_and_its_early_track_re_e
     assert final < 6.0 and smoothed < 6.0, (final, smoothed)
     assert causal > 2.0 * final, (causal, final)
     assert torch.isfinite(result.smoother.node_cov).all()
+
+
+@pytest.mark.parametrize("seed", [2, 4])
+def test_the_smoothers_second_pass_uses_the_held_fixes(seed):
+    """The walk above, the yaw 2 rad off: with ``second_pass`` the smoother runs on a filter
+    started with the heading the held fixes set, which applies those fixes too, so its track
+    before the alignment is nearer the truth than the one-pass smoother's (which only rotates
+    that stretch); the filter's own (causal) estimates are the same either way."""
+    from flowins.data.synthetic import ImuErrors, synthetic_walk_recording
+    from flowins.geometry.geodesy import LocalTangentPlane
+    from flowins.ins.initialization import InitialUncertainty
+    from flowins.ins.mechanization import ProcessNoise
+    from flowins.navigation import NavigationConfig, NavigationRun, navigate
+    from flowins.start import StartSettings
+
+    origin = (60.1699, 24.9384, 20.0)
+    rec = synthetic_walk_recording(duration_s=90.0, seed=seed, origin=origin, imu_errors=ImuErrors(
+        acc_noise=2e-4, gyro_noise=1e-5, acc_bias_std=0.002, gyro_bias_std=2e-5, acc_bias_walk=0.0,
+        gyro_bias_walk=0.0, acc_scale_std=0.0))
+    results = {}
+    for second in (True, False):
+        config = NavigationConfig(noise=ProcessNoise(acc_noise=2e-4, gyro_noise=1e-5),
+                                  initial=InitialUncertainty(acc_bias_mps2=0.005, gyro_bias_rps=1e-4, acc_scale=1e-3),
+                                  start=StartSettings(yaw_rad=2.0),
+                                  gnss_heading=HeadingAlignment(baseline_m=15.0, max_sigma_rad=0.5, second_pass=second))
+        results[second] = navigate(NavigationRun(rec.imu, rec.gnss, frame=LocalTangentPlane(*origin)), config=config)
+    (entry,) = [e for e in results[True].filter.log if e.get("kind") == "heading"]
+    assert entry["status"] == "aligned"
+
+    def early_error(track) -> float:
+        before = track.t < entry["t_s"] - 1.0
+        i = torch.searchsorted(rec.truth.t_s, track.t[before]).clamp(max=rec.truth.t_s.shape[0] - 1)
+        e = track.mean[before][:, STATE.p][:, :2] - rec.truth.pos_m[i][:, :2]
+        return float(e.pow(2).sum(-1).mean().sqrt())
+
+    two, one = early_error(results[True].smoother), early_error(results[False].smoother)
+    assert two < 0.6 * one, (two, one)
+    assert torch.equal(results[True].filter.node_mean, results[False].filter.node_mean)
+    assert torch.isfinite(results[True].smoother.node_cov).all()
 
 
 def test_giving_up_the_heading_applies_the_fix_that_gives_up_and_every_later_one():
