@@ -102,6 +102,9 @@ class NavigationResult:
     start: Start | None = None
     #: GNSS fixes before the filter's start (not used)
     gnss_before_start: int = 0
+    #: what the smoother ran on where a second pass was tried (``filter.gnss_heading.second_pass``,
+    #: :func:`smoother_tracks`): ``{"pass": "second" | "first", "reason": ...}``; None: the one pass
+    smoother_pass: dict[str, Any] | None = None
 
     @property
     def gnss_accepted(self) -> Tensor | None:
@@ -139,6 +142,8 @@ class NavigationResult:
         heading = [{k: v for k, v in e.items() if k not in ("kind", "name", "fit")} for e in self.heading_status]
         if heading:
             out["heading_alignment"] = heading  # filter.gnss_heading: when and how the heading was set (or given up)
+        if self.smoother_pass is not None:
+            out["smoother_pass"] = self.smoother_pass
         return out
 
     @property
@@ -352,11 +357,12 @@ def _navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig,
         inputs.append(FilterInput(run.imu.t_s[first:], run.imu.acc_mps2[first:], run.imu.gyro_rps[first:],
                                   setup.mean0, setup.cov0, setup.events))
     tracks = run_filters(inputs, progress=progress, **config.filter_settings())
-    smoothed = smoother_tracks(inputs, tracks, config)
+    smoothed, passes = smoother_tracks(inputs, tracks, config)
     return [
         NavigationResult(
             filter=track,
             smoother=rts_smooth(again, marginal=STATE_DIM),
+            smoother_pass=which,
             frame=setup.frame,
             gnss_t_s=None if run.gnss is None else run.gnss.t_s,
             gnss_enu_m=setup.gnss_enu_m,
@@ -365,7 +371,7 @@ def _navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig,
             start=setup.start,
             gnss_before_start=setup.gnss_before_start,
         )
-        for run, setup, track, again in zip(runs, setups, tracks, smoothed)
+        for run, setup, track, again, which in zip(runs, setups, tracks, smoothed, passes)
     ]
 
 
@@ -379,39 +385,56 @@ def heading_fit_record(track: FilterTrack) -> dict[str, Any] | None:
 
 
 def smoother_tracks(inputs: Sequence[FilterInput], tracks: Sequence[FilterTrack],
-                    config: NavigationConfig) -> list[FilterTrack]:
+                    config: NavigationConfig) -> tuple[list[FilterTrack], list[dict[str, Any] | None]]:
     """The filter tracks the RTS smoother runs on, one per run of ``inputs`` (filtered into
-    ``tracks``): the run's own track, or, for a run whose GNSS fixes set its heading
-    (``filter.gnss_heading.second_pass``), a second filter pass from the same start. The first
-    pass holds the fixes back until they set the heading, and they never update it; the second
-    knows the heading from its first sample and applies every fix, so the smoother uses them all.
+    ``tracks``), and for each run what was chosen (None: nothing to choose). A run's track is its
+    own, or, for a run whose GNSS fixes set its heading (``filter.gnss_heading.second_pass``),
+    a second filter pass from the same start. The first pass holds the fixes back until they set
+    the heading, and they never update it; the second knows the heading from its first sample
+    and applies every fix, so the smoother uses them all.
 
     The second pass starts at the first pass's smoothed mean at the start (the smoother carries
     the alignment back through the held stretch, where the filter's yaw moved while it was
     unknown, so the fit's rotation alone does not give the start's heading), with the run's own
     prior covariance aligned by the fit (:func:`~flowins.measurements.gnss_heading.aligned_prior_covariance`),
-    so no measurement counts twice in it. All such runs go as one batch; the start carries no
-    gradient through the first pass.
+    so no measurement counts twice in it. A second pass that had to reset to the fixes more
+    often than the first (``filter.gnss_recovery``: it drifted off them) is not used: the
+    smoother runs on the first. All such runs go as one batch; the start carries no gradient
+    through the first pass.
     """
-    out = list(tracks)
+    out, which = list(tracks), [None] * len(tracks)
     if not config.gnss_heading.second_pass:
-        return out
+        return out, which
     again = [(i, record) for i, record in enumerate(heading_fit_record(t) for t in tracks) if record is not None]
     if not again:
-        return out
+        return out, which
     rows = []
     for i, record in again:
         run = inputs[i]
         fit = fit_from_record(record, dtype=run.mean0.dtype, device=run.mean0.device)
         smoothed = rts_smooth(tracks[i], marginal=STATE_DIM).mean[0].detach()
-        clones = window_size(run.mean0.shape[-1])
-        mean0 = with_window(smoothed, run.cov0[:STATE_DIM, :STATE_DIM], clones)[0]
+        mean0 = with_window(smoothed, run.cov0[:STATE_DIM, :STATE_DIM], window_size(run.mean0.shape[-1]))[0]
         cov0 = aligned_prior_covariance(run.mean0, run.cov0, mean0, fit,
                                         condition_sigma_rad=config.gnss_heading.condition_sigma_rad)
         rows.append(dataclasses.replace(run, mean0=mean0, cov0=cov0))
     for (i, _), track in zip(again, run_filters(rows, **config.filter_settings())):
-        out[i] = track
-    return out
+        first, second = _resets(tracks[i]), _resets(track)
+        if second > first:
+            which[i] = {"pass": "first", "reason": f"the second pass reset to the fixes {_times(second)}, the first "
+                        f"{_times(first)} (filter.gnss_recovery)"}
+        else:
+            out[i] = track
+            which[i] = {"pass": "second", "reason": "the held fixes set the heading; the smoother's pass knows it "
+                        "from the start and applies every fix"}
+    return out, which
+
+
+def _times(n: int) -> str:
+    return {0: "never", 1: "once", 2: "twice"}.get(n, f"{n} times")
+
+
+def _resets(track: FilterTrack) -> int:
+    return sum(1 for e in track.log if e.get("kind") == "gnss_reset")
 
 
 def flow_statistics(result: NavigationResult, pairs: FlowPairs) -> dict[str, Any]:

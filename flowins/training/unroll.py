@@ -38,7 +38,7 @@ from flowins.filter.runner import FilterInput, run_filters
 from flowins.filter.smoother import rts_smooth
 from flowins.flow.pairs import FlowPairs
 from flowins.measurements.flow import FlowCamera
-from flowins.navigation import NavigationConfig, NavigationRun, prepare_navigation
+from flowins.navigation import NavigationConfig, NavigationRun, prepare_navigation, smoother_tracks
 from flowins.state import STATE, STATE_DIM
 
 #: the rows of Table I as (GNSS, sparse, dense) sources
@@ -156,7 +156,8 @@ def run_windows(
     """:func:`run_window` of one window of each sequence, ``seqs[i]`` from ``bounds[i][0]`` to
     ``bounds[i][1]`` starting at ``starts[i]``, all in one batched filter pass
     (:func:`~flowins.filter.runner.run_filters`); ``smooth``: each with its RTS smoother
-    (:attr:`WindowResult.smoothed`). ``method``: one for every row, or one per row (a
+    (:attr:`WindowResult.smoothed`; on a second filter pass where the GNSS heading alignment
+    calls for one, :func:`~flowins.navigation.smoother_tracks`). ``method``: one for every row, or one per row (a
     sequence may appear once per method). ``dropout_p`` applies to the rows whose flow
     pairs carry dropout moments."""
     starts = [None] * len(seqs) if starts is None else starts
@@ -192,9 +193,10 @@ def run_windows(
         inputs.append(FilterInput(imu.t_s[i_a : i_b + 1], imu.acc_mps2[i_a : i_b + 1], imu.gyro_rps[i_a : i_b + 1],
                                   mean0, cov0, events))
     tracks = run_filters(inputs, **config.filter_settings(), likelihood=likelihood)
+    smoothed = smoother_tracks(inputs, tracks, config)[0] if smooth else tracks  # a second pass where one applies
     return [WindowResult(track.in_final_frame(marginal=STATE_DIM), track.node_mean[-1], track.node_cov[-1], track.nll, track.nll_count,
-                         rts_smooth(track, marginal=STATE_DIM) if smooth else None)
-            for track in tracks]
+                         rts_smooth(again, marginal=STATE_DIM) if smooth else None)
+            for track, again in zip(tracks, smoothed)]
 
 
 class WindowLoss(NamedTuple):
