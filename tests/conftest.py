@@ -167,3 +167,30 @@ def fake_device():
     that met a tensor on the fake device and a CPU one, where, and the CPU tensors' shapes;
     ``mode.place(*modules)`` puts modules' parameters and buffers on the device."""
     return FakeDevice
+
+
+@pytest.fixture
+def wrong_heading_walk():
+    """A factory ``(seed, duration_s, second_pass) -> (recording, run, config)``: INS + GNSS on a
+    synthetic walk with a good IMU, the filter's yaw 2 rad off with σ = π, so the held GNSS
+    fixes set its heading (``baseline_m=15``, ``max_sigma_rad=0.5``)."""
+    from flowins.data.synthetic import ImuErrors, synthetic_walk_recording
+    from flowins.geometry.geodesy import LocalTangentPlane
+    from flowins.ins.initialization import InitialUncertainty
+    from flowins.ins.mechanization import ProcessNoise
+    from flowins.measurements.gnss_heading import HeadingAlignment
+    from flowins.navigation import NavigationConfig, NavigationRun
+    from flowins.start import StartSettings
+
+    def make(seed: int, duration_s: float = 90.0, second_pass: bool = False):
+        origin = (60.1699, 24.9384, 20.0)
+        rec = synthetic_walk_recording(duration_s=duration_s, seed=seed, origin=origin, imu_errors=ImuErrors(
+            acc_noise=2e-4, gyro_noise=1e-5, acc_bias_std=0.002, gyro_bias_std=2e-5, acc_bias_walk=0.0,
+            gyro_bias_walk=0.0, acc_scale_std=0.0))
+        config = NavigationConfig(noise=ProcessNoise(acc_noise=2e-4, gyro_noise=1e-5),
+                                  initial=InitialUncertainty(acc_bias_mps2=0.005, gyro_bias_rps=1e-4, acc_scale=1e-3),
+                                  start=StartSettings(yaw_rad=2.0),
+                                  gnss_heading=HeadingAlignment(baseline_m=15.0, max_sigma_rad=0.5, second_pass=second_pass))
+        return rec, NavigationRun(rec.imu, rec.gnss, frame=LocalTangentPlane(*origin)), config
+
+    return make

@@ -109,25 +109,13 @@ def test_the_navigation_on_another_device_is_the_cpu_run_and_leaves_no_tensor_be
     assert torch.equal(moved.smoother.node_cov, cpu.smoother.node_cov)
 
 
-def test_a_second_pass_that_resets_more_often_than_the_first_is_not_smoothed(monkeypatch):
+def test_a_second_pass_that_resets_more_often_than_the_first_is_not_smoothed(monkeypatch, wrong_heading_walk):
     """``smoother_tracks``: the smoother takes the second pass unless that pass reset to the
     fixes more often than the first (each reset counted from the tracks' logs); the run's
     summary says which pass it took."""
     import flowins.navigation as nav
-    from flowins.ins.initialization import InitialUncertainty
-    from flowins.ins.mechanization import ProcessNoise
-    from flowins.data.synthetic import ImuErrors
-    from flowins.geometry.geodesy import LocalTangentPlane
-    from flowins.start import StartSettings
 
-    origin = (60.1699, 24.9384, 20.0)
-    rec = synthetic_walk_recording(duration_s=60.0, seed=2, origin=origin, imu_errors=ImuErrors(
-        acc_noise=2e-4, gyro_noise=1e-5, acc_bias_std=0.002, gyro_bias_std=2e-5, acc_bias_walk=0.0,
-        gyro_bias_walk=0.0, acc_scale_std=0.0))
-    config = NavigationConfig(noise=ProcessNoise(acc_noise=2e-4, gyro_noise=1e-5),
-                              initial=InitialUncertainty(acc_bias_mps2=0.005, gyro_bias_rps=1e-4, acc_scale=1e-3),
-                              start=StartSettings(yaw_rad=2.0), gnss_heading=HeadingAlignment(baseline_m=15.0, max_sigma_rad=0.5))
-    run = NavigationRun(rec.imu, rec.gnss, frame=LocalTangentPlane(*origin))
+    rec, run, config = wrong_heading_walk(2, duration_s=60.0, second_pass=True)
     setup = nav.prepare_navigation(run, config=config)
     inputs = [nav.FilterInput(rec.imu.t_s, rec.imu.acc_mps2, rec.imu.gyro_rps, setup.mean0, setup.cov0, setup.events)]
     (first,) = nav.run_filters(inputs, **config.filter_settings())
@@ -143,6 +131,6 @@ def test_a_second_pass_that_resets_more_often_than_the_first_is_not_smoothed(mon
     monkeypatch.setattr(nav, "run_filters", real)
     result = navigate(run, config=config)
     assert result.summary()["smoother_pass"]["pass"] == "second"
-    off = navigate(run, config=dataclasses.replace(config, gnss_heading=HeadingAlignment(baseline_m=15.0, max_sigma_rad=0.5, second_pass=False)))
+    off = navigate(run, config=dataclasses.replace(config, gnss_heading=dataclasses.replace(config.gnss_heading, second_pass=False)))
     assert "smoother_pass" not in off.summary()
     torch.testing.assert_close(off.filter.node_mean, result.filter.node_mean, rtol=0, atol=0)

@@ -65,7 +65,8 @@ class HeadingAlignment:
         second_pass: the RTS smoother of a run whose heading these fixes set runs on a
             second filter pass from the start (:func:`flowins.navigation.smoother_tracks`),
             so that every fix, the held ones too, reaches the smoother; the filter's own
-            estimates stay those of the first, causal pass.
+            estimates stay those of the first, causal pass. Off by default: it costs one
+            more filter pass per such run.
     """
 
     enabled: bool = True
@@ -75,7 +76,7 @@ class HeadingAlignment:
     min_fixes: int = 3
     outlier_probability: float = 0.999
     condition_sigma_rad: float = 1e-4
-    second_pass: bool = True
+    second_pass: bool = False
 
     def __post_init__(self) -> None:
         if self.baseline_m < 0 or self.max_sigma_rad <= 0 or self.unknown_yaw_sigma_rad <= 0:

@@ -170,78 +170,50 @@ def test_heading_alignment_config_rejects_nonsense():
         HeadingAlignment(baseline_m=-1.0)
 
 
-def test_a_filter_started_at_a_wrong_heading_is_aligned_and_its_early_track_re_expressed():
+def _early_error(rec, entry, track) -> float:
+    """Horizontal RMS error of ``track`` against ``rec``'s truth before the heading was set."""
+    before = track.t < entry["t_s"] - 1.0
+    i = torch.searchsorted(rec.truth.t_s, track.t[before]).clamp(max=rec.truth.t_s.shape[0] - 1)
+    e = track.mean[before][:, STATE.p][:, :2] - rec.truth.pos_m[i][:, :2]
+    return float(e.pow(2).sum(-1).mean().sqrt())
+
+
+def test_a_filter_started_at_a_wrong_heading_is_aligned_and_its_early_track_re_expressed(wrong_heading_walk):
     """INS + GNSS on a synthetic walk, a good IMU, the filter's yaw 2 rad off with σ = π:
     the held fixes set the heading; the filter's early nodes, re-expressed in the aligned
     frame, and the smoother's are metres from the truth, the causal ones are not."""
-    from flowins.data.synthetic import ImuErrors, synthetic_walk_recording
-    from flowins.geometry.geodesy import LocalTangentPlane
-    from flowins.ins.initialization import InitialUncertainty
-    from flowins.ins.mechanization import ProcessNoise
-    from flowins.navigation import NavigationConfig, NavigationRun, navigate
-    from flowins.start import StartSettings
+    from flowins.navigation import navigate
 
-    origin = (60.1699, 24.9384, 20.0)
-    rec = synthetic_walk_recording(duration_s=90.0, seed=4, origin=origin, imu_errors=ImuErrors(
-        acc_noise=2e-4, gyro_noise=1e-5, acc_bias_std=0.002, gyro_bias_std=2e-5, acc_bias_walk=0.0,
-        gyro_bias_walk=0.0, acc_scale_std=0.0))
-    config = NavigationConfig(noise=ProcessNoise(acc_noise=2e-4, gyro_noise=1e-5),
-                              initial=InitialUncertainty(acc_bias_mps2=0.005, gyro_bias_rps=1e-4, acc_scale=1e-3),
-                              start=StartSettings(yaw_rad=2.0), gnss_heading=HeadingAlignment(enabled=True, baseline_m=15.0, max_sigma_rad=0.5))
-    result = navigate(NavigationRun(rec.imu, rec.gnss, frame=LocalTangentPlane(*origin)), config=config)
+    rec, run, config = wrong_heading_walk(4)
+    result = navigate(run, config=config)
     (entry,) = [e for e in result.filter.log if e.get("kind") == "heading"]
     assert entry["status"] == "aligned"
     held = [e for e in result.filter.log if e.get("status") == "held for heading"]
     (last,) = [e for e in result.filter.log if e.get("status") == "set the heading"]
     assert last["t_s"] == entry["t_s"]
     assert len(held) + 1 == entry["fixes"] + entry["outliers"]
-
-    def early_error(track) -> float:
-        before = track.t < entry["t_s"] - 1.0
-        i = torch.searchsorted(rec.truth.t_s, track.t[before]).clamp(max=rec.truth.t_s.shape[0] - 1)
-        e = track.mean[before][:, STATE.p][:, :2] - rec.truth.pos_m[i][:, :2]
-        return float(e.pow(2).sum(-1).mean().sqrt())
-
-    final, causal, smoothed = early_error(result.filter.in_final_frame()), early_error(result.filter), early_error(result.smoother)
+    final = _early_error(rec, entry, result.filter.in_final_frame())
+    causal, smoothed = _early_error(rec, entry, result.filter), _early_error(rec, entry, result.smoother)
     assert final < 6.0 and smoothed < 6.0, (final, smoothed)
     assert causal > 2.0 * final, (causal, final)
     assert torch.isfinite(result.smoother.node_cov).all()
 
 
 @pytest.mark.parametrize("seed", [2, 4])
-def test_the_smoothers_second_pass_uses_the_held_fixes(seed):
+def test_the_smoothers_second_pass_uses_the_held_fixes(seed, wrong_heading_walk):
     """The walk above, the yaw 2 rad off: with ``second_pass`` the smoother runs on a filter
     started with the heading the held fixes set, which applies those fixes too, so its track
     before the alignment is nearer the truth than the one-pass smoother's (which only rotates
     that stretch); the filter's own (causal) estimates are the same either way."""
-    from flowins.data.synthetic import ImuErrors, synthetic_walk_recording
-    from flowins.geometry.geodesy import LocalTangentPlane
-    from flowins.ins.initialization import InitialUncertainty
-    from flowins.ins.mechanization import ProcessNoise
-    from flowins.navigation import NavigationConfig, NavigationRun, navigate
-    from flowins.start import StartSettings
+    from flowins.navigation import navigate
 
-    origin = (60.1699, 24.9384, 20.0)
-    rec = synthetic_walk_recording(duration_s=90.0, seed=seed, origin=origin, imu_errors=ImuErrors(
-        acc_noise=2e-4, gyro_noise=1e-5, acc_bias_std=0.002, gyro_bias_std=2e-5, acc_bias_walk=0.0,
-        gyro_bias_walk=0.0, acc_scale_std=0.0))
     results = {}
     for second in (True, False):
-        config = NavigationConfig(noise=ProcessNoise(acc_noise=2e-4, gyro_noise=1e-5),
-                                  initial=InitialUncertainty(acc_bias_mps2=0.005, gyro_bias_rps=1e-4, acc_scale=1e-3),
-                                  start=StartSettings(yaw_rad=2.0),
-                                  gnss_heading=HeadingAlignment(baseline_m=15.0, max_sigma_rad=0.5, second_pass=second))
-        results[second] = navigate(NavigationRun(rec.imu, rec.gnss, frame=LocalTangentPlane(*origin)), config=config)
+        rec, run, config = wrong_heading_walk(seed, second_pass=second)
+        results[second] = navigate(run, config=config)
     (entry,) = [e for e in results[True].filter.log if e.get("kind") == "heading"]
     assert entry["status"] == "aligned"
-
-    def early_error(track) -> float:
-        before = track.t < entry["t_s"] - 1.0
-        i = torch.searchsorted(rec.truth.t_s, track.t[before]).clamp(max=rec.truth.t_s.shape[0] - 1)
-        e = track.mean[before][:, STATE.p][:, :2] - rec.truth.pos_m[i][:, :2]
-        return float(e.pow(2).sum(-1).mean().sqrt())
-
-    two, one = early_error(results[True].smoother), early_error(results[False].smoother)
+    two, one = _early_error(rec, entry, results[True].smoother), _early_error(rec, entry, results[False].smoother)
     assert two < 0.6 * one, (two, one)
     assert torch.equal(results[True].filter.node_mean, results[False].filter.node_mean)
     assert torch.isfinite(results[True].smoother.node_cov).all()
