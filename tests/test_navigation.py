@@ -90,23 +90,30 @@ def test_the_whole_navigation_in_float32_stays_float32_and_agrees_with_float64(m
     assert float((tracks[torch.float32] - tracks[torch.float64]).norm(dim=-1).max()) < 0.05
 
 
-def test_the_navigation_on_another_device_is_the_cpu_run_and_leaves_no_tensor_behind(fake_device):
+@pytest.mark.parametrize("second_pass", [False, True])
+def test_the_navigation_on_another_device_is_the_cpu_run_and_leaves_no_tensor_behind(fake_device, second_pass,
+                                                                                    wrong_heading_walk):
     """``NavigationConfig.device``: the start, the GNSS heading alignment and fixes, the
-    zero-velocity updates, the vehicle constraint and the smoother run on the fake device of
-    ``conftest.FakeDevice`` (a GPU's stand-in) with no op meeting a CPU tensor there, and give
-    the CPU run's numbers exactly."""
+    zero-velocity updates, the vehicle constraint and the smoother (and, on a walk whose fixes
+    set the heading, its second pass) run on the fake device of ``conftest.FakeDevice`` (a
+    GPU's stand-in) with no op meeting a CPU tensor there, and give the CPU run's numbers exactly."""
     from flowins.measurements.vehicle import VehicleSettings
 
-    rec = synthetic_walk_recording(duration_s=30.0, seed=1)
-    config = NavigationConfig(measurements={"vehicle": VehicleSettings(mode="on")})
-    cpu = navigate(NavigationRun(rec.imu, rec.gnss), config=config)
+    if second_pass:
+        rec, run, config = wrong_heading_walk(2, duration_s=60.0, second_pass=True)
+    else:
+        rec = synthetic_walk_recording(duration_s=30.0, seed=1)
+        run, config = NavigationRun(rec.imu, rec.gnss), NavigationConfig()
+    config = dataclasses.replace(config, measurements={"vehicle": VehicleSettings(mode="on")})
+    cpu = navigate(run, config=config)
     with fake_device() as mode:
-        moved = navigate(NavigationRun(rec.imu, rec.gnss), config=dataclasses.replace(config, device="meta"))
+        moved = navigate(run, config=dataclasses.replace(config, device="meta"))
         assert moved.filter.node_mean.device == torch.device("meta") and moved.smoother.node_cov.device.type == "meta"
     assert mode.slips == {}, mode.slips
     assert {"zero_velocity", "gnss", "vehicle", "heading"} <= {e.get("kind") for e in moved.filter.log}
     assert torch.equal(moved.filter.node_mean, cpu.filter.node_mean)
     assert torch.equal(moved.smoother.node_cov, cpu.smoother.node_cov)
+    assert (moved.smoother_pass is not None) == second_pass
 
 
 def test_a_second_pass_that_resets_more_often_than_the_first_is_not_smoothed(monkeypatch, wrong_heading_walk):
