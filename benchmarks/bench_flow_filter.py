@@ -22,7 +22,7 @@ The last line is ``RESULT single=<x>x batched=<x>x batch=<B> device=<device>``.
 
     python benchmarks/bench_flow_filter.py [--points 256] [--batch 8] [--reference-s 20] [--repeats 3]
                                            [--breakdown-s 60] [--count-ops-s 20] [--profile-s 0]
-                                           [--device cpu|cuda] [--quick]
+                                           [--device cpu|cuda] [--quick] [KEY=VALUE ...]
 """
 from __future__ import annotations
 
@@ -226,10 +226,13 @@ def main() -> None:
     parser.add_argument("--device", default="cpu",
                         help="where the filter and the smoother run, and the flow if it is not cached: cpu | cuda | cuda:N")
     parser.add_argument("--quick", action="store_true", help="the 60 s walk instead of the 300 s one")
+    parser.add_argument("overrides", nargs="*", help="evaluate.py's KEY=VALUE overrides of the filter, e.g. "
+                        "filter.gnss_heading.second_pass=true")
     args = parser.parse_args()
     with initialize_config_dir(config_dir=CONFIGS, version_base=None):
         cfg = OmegaConf.to_container(compose("evaluate", overrides=[f"filter.flow.n_points={args.points}",
-                                                                    f"flow.device={args.device}"]), resolve=False)
+                                                                    f"flow.device={args.device}", *args.overrides]),
+                                     resolve=False)
     rec = load_recording(cfg["sequence"], quick=args.quick, progress=True)
     pairs = load_flow("dense", rec, cfg, progress=True)
     config = dataclasses.replace(filter_setup(cfg, [rec], recorded=False).navigation,
