@@ -357,7 +357,7 @@ def _navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig,
         inputs.append(FilterInput(run.imu.t_s[first:], run.imu.acc_mps2[first:], run.imu.gyro_rps[first:],
                                   setup.mean0, setup.cov0, setup.events))
     tracks = run_filters(inputs, progress=progress, **config.filter_settings())
-    smoothed, passes = smoother_tracks(inputs, tracks, config)
+    smoothed, passes = smoother_tracks(inputs, tracks, config, progress=progress)
     return [
         NavigationResult(
             filter=track,
@@ -384,8 +384,8 @@ def heading_fit_record(track: FilterTrack) -> dict[str, Any] | None:
     return None
 
 
-def smoother_tracks(inputs: Sequence[FilterInput], tracks: Sequence[FilterTrack],
-                    config: NavigationConfig) -> tuple[list[FilterTrack], list[dict[str, Any] | None]]:
+def smoother_tracks(inputs: Sequence[FilterInput], tracks: Sequence[FilterTrack], config: NavigationConfig, *,
+                    progress: bool = False) -> tuple[list[FilterTrack], list[dict[str, Any] | None]]:
     """The filter tracks the RTS smoother runs on, one per run of ``inputs`` (filtered into
     ``tracks``), and for each run what was chosen (None: nothing to choose). A run's track is its
     own, or, for a run whose GNSS fixes set its heading (``filter.gnss_heading.second_pass``),
@@ -400,7 +400,7 @@ def smoother_tracks(inputs: Sequence[FilterInput], tracks: Sequence[FilterTrack]
     so no measurement counts twice in it. A second pass that had to reset to the fixes more
     often than the first (``filter.gnss_recovery``: it drifted off them) is not used: the
     smoother runs on the first. All such runs go as one batch; the start carries no gradient
-    through the first pass.
+    through the first pass. ``progress``: report the second pass's progress.
     """
     out, which = list(tracks), [None] * len(tracks)
     if not config.gnss_heading.second_pass:
@@ -417,7 +417,8 @@ def smoother_tracks(inputs: Sequence[FilterInput], tracks: Sequence[FilterTrack]
         cov0 = aligned_prior_covariance(run.mean0, run.cov0, mean0, fit,
                                         condition_sigma_rad=config.gnss_heading.condition_sigma_rad)
         rows.append(dataclasses.replace(run, mean0=mean0, cov0=cov0))
-    for (i, _), track in zip(again, run_filters(rows, **config.filter_settings())):
+    second = run_filters(rows, **config.filter_settings(), progress=progress, description="smoother's second pass")
+    for (i, _), track in zip(again, second):
         first, second = _resets(tracks[i]), _resets(track)
         if second > first:
             which[i] = {"pass": "first", "reason": f"the second pass reset to the fixes {_times(second)}, the first "

@@ -141,3 +141,20 @@ def test_a_second_pass_that_resets_more_often_than_the_first_is_not_smoothed(mon
     off = navigate(run, config=dataclasses.replace(config, gnss_heading=dataclasses.replace(config.gnss_heading, second_pass=False)))
     assert "smoother_pass" not in off.summary()
     torch.testing.assert_close(off.filter.node_mean, result.filter.node_mean, rtol=0, atol=0)
+
+
+def test_the_second_pass_reports_its_progress_under_its_own_name(monkeypatch, wrong_heading_walk):
+    """With ``progress`` the job reports the first pass as ``filter`` and the smoother's second
+    pass under its own name, each enabled."""
+    import flowins.filter.runner as runner
+
+    seen = []
+
+    def record(items, **kw):
+        seen.append((kw["description"], kw["enabled"]))
+        return items
+
+    monkeypatch.setattr(runner, "track_progress", record)
+    _, run, config = wrong_heading_walk(2, duration_s=60.0, second_pass=True)
+    navigate(run, config=config, progress=True)
+    assert seen == [("filter", True), ("smoother's second pass", True)]

@@ -107,6 +107,7 @@ def run_filters(
     scheme: str = "midpoint",
     progress: bool = False,
     likelihood: bool = False,
+    description: str = "filter",
 ) -> list[FilterTrack]:
     """Run ``B`` filters in one batched pass: each run as :func:`run_filter` runs it alone.
 
@@ -125,6 +126,7 @@ def run_filters(
         noise: the process noise of the runs without their own.
         output_every, gravity_mps2, jacobians, scheme, likelihood: as for :func:`run_filter`, for
             all runs.
+        progress, description: report the pass's progress under this name.
     """
     if jacobians not in ("analytic", "autodiff"):
         raise ValueError(f"jacobians must be 'analytic' or 'autodiff', got {jacobians!r}")
@@ -161,7 +163,7 @@ def run_filters(
                                  for name, zero in (("acc", like.new_zeros(1, 3)), ("gyro", like.new_zeros(1, 3)),
                                                     ("dt", like.new_zeros(1)), ("variances", like.new_zeros(1, NOISE_DIM)))]
     count = max(len(plan.segments) for plan in plans)
-    for k in track_progress(range(count), total=count, description="filter", unit="update", enabled=progress):
+    for k in track_progress(range(count), total=count, description=description, unit="update", enabled=progress):
         segments = [plan.segments[k] if k < len(plan.segments) else None for plan in plans]
         L = max(last - first + 1 for first, last, *_ in filter(None, segments))
         if B == 1:
