@@ -396,8 +396,9 @@ def smoother_tracks(inputs: Sequence[FilterInput], tracks: Sequence[FilterTrack]
     The second pass starts at the first pass's smoothed mean at the start (the smoother carries
     the alignment back through the held stretch, where the filter's yaw moved while it was
     unknown, so the fit's rotation alone does not give the start's heading), with the run's own
-    prior covariance aligned by the fit (:func:`~flowins.measurements.gnss_heading.aligned_prior_covariance`),
-    so no measurement counts twice in it. A second pass that had to reset to the fixes more
+    prior covariance aligned by the fit (:func:`~flowins.measurements.gnss_heading.aligned_prior_covariance`):
+    it claims no more certainty than the prior and the fit (the smoothed covariance would count
+    every measurement twice). A second pass that had to reset to the fixes more
     often than the first (``filter.gnss_recovery``: it drifted off them) is not used: the
     smoother runs on the first. All such runs go as one batch; the start carries no gradient
     through the first pass. ``progress``: report the second pass's progress.
