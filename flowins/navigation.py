@@ -418,12 +418,12 @@ def smoother_tracks(inputs: Sequence[FilterInput], tracks: Sequence[FilterTrack]
         cov0 = aligned_prior_covariance(run.mean0, run.cov0, mean0, fit,
                                         condition_sigma_rad=config.gnss_heading.condition_sigma_rad)
         rows.append(dataclasses.replace(run, mean0=mean0, cov0=cov0))
-    second = run_filters(rows, **config.filter_settings(), progress=progress, description="smoother's second pass")
-    for (i, _), track in zip(again, second):
-        first, second = _resets(tracks[i]), _resets(track)
-        if second > first:
-            which[i] = {"pass": "first", "reason": f"the second pass reset to the fixes {_times(second)}, the first "
-                        f"{_times(first)} (filter.gnss_recovery)"}
+    passes = run_filters(rows, **config.filter_settings(), progress=progress, description="smoother's second pass")
+    for (i, _), track in zip(again, passes):
+        resets_first, resets_second = _resets(tracks[i]), _resets(track)
+        if resets_second > resets_first:
+            which[i] = {"pass": "first", "reason": f"the second pass reset to the fixes {_times(resets_second)}, the "
+                        f"first {_times(resets_first)} (filter.gnss_recovery)"}
         else:
             out[i] = track
             which[i] = {"pass": "second", "reason": "the held fixes set the heading; the smoother's pass knows it "

@@ -285,9 +285,9 @@ class GnssFix:
         update(chain, H=h, residual=mean.new_zeros(1, 1), noise_cov=(sigma_c**2).reshape(1, 1, 1), likelihood=False)
         A, b = heading_transform(fit, dtype=mean.dtype, dim=mean.shape[-1])
         Q = heading_noise(A @ chain.mean + b, fit)
-        chain.change_frame(A, Q, b, kind="heading", name=self.name, status="aligned", yaw_rad=float(fit.yaw_rad.detach()),
-                           sigma_rad=float(fit.sigma_rad.detach()), fixes=int(fit.used.sum()),
-                           outliers=int((~fit.used).sum()), fit=fit_record(fit))
+        record = fit_record(fit)
+        chain.change_frame(A, Q, b, kind="heading", name=self.name, status="aligned",
+                           **{k: record[k] for k in ("yaw_rad", "sigma_rad", "fixes", "outliers")}, fit=record)
         memory["heading"] = "known"
         chain.log.append({"t_s": chain.time_s, "kind": "gnss", "name": self.name, "accepted": 0.0,
                           "status": "set the heading"})

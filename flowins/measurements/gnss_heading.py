@@ -100,12 +100,13 @@ def heading_jacobian(x: Tensor) -> Tensor:
     return H
 
 
-def heading_conditional_covariance(x: Tensor, P: Tensor, sl: slice) -> Tensor:
+def heading_conditional_covariance(x: Tensor, P: Tensor, sl: slice, *, noise_var: float = 0.0) -> Tensor:
     """Covariance ``(k, k)`` of the block ``sl`` of ``P (D, D)`` given the heading of ``q``
-    (its rotation about the vertical, :func:`heading_jacobian`)."""
+    (its rotation about the vertical, :func:`heading_jacobian`), observed exactly or, with
+    ``noise_var``, with that variance."""
     h = heading_jacobian(x)
     Ph = P @ h
-    s = (h @ Ph).clamp_min(torch.finfo(P.dtype).tiny)
+    s = (h @ Ph + noise_var).clamp_min(torch.finfo(P.dtype).tiny)
     return P[sl, sl] - torch.outer(Ph[sl], Ph[sl]) / s
 
 
@@ -208,10 +209,8 @@ def aligned_prior_covariance(mean: Tensor, cov: Tensor, aligned_mean: Tensor, fi
     mapped by :func:`heading_transform`, plus the fit's :func:`heading_noise` at ``aligned_mean``
     (the prior's mean in the fixes' frame). It starts a second filter pass whose heading is known
     from its first sample, with no more certainty than the run's own prior and the fit give."""
-    h = heading_jacobian(mean)
-    Ph = cov @ h
-    s = h @ Ph + condition_sigma_rad**2
-    conditioned = symmetrize(cov - torch.outer(Ph, Ph) / s)  # the residual is 0: only the covariance changes
+    # the residual is 0: only the covariance changes
+    conditioned = symmetrize(heading_conditional_covariance(mean, cov, slice(None), noise_var=condition_sigma_rad**2))
     A, _ = heading_transform(fit, dtype=mean.dtype, dim=mean.shape[-1])
     A = A.to(mean.device)
     return symmetrize(A @ conditioned @ A.T + heading_noise(aligned_mean, fit))
