@@ -75,7 +75,7 @@ s1() {
 s2() {
   section "2. the 300 s walk simulated and its sparse flow computed, once (CPU; cached in $cache)"
   python evaluate.py "${quick[@]}" progress=false plots=false 'combinations=[ins,ins_sparse]' \
-    hydra.run.dir="$out/simulate" | grep -E "sequence:|flow:|error" || return
+    hydra.run.dir="$out/simulate" | grep --line-buffered -E "sequence:|flow:|error" || return
   rm -f "$cache"/flow/dense-*.npz
 }
 
@@ -91,7 +91,7 @@ s3() {
 s4() {
   section "4. bench_flow_filter.py --device cuda --batch 256 (cached flow; target >= 2000x in all)"
   capped "${GPU_SH_BENCH_S:-0}" python benchmarks/bench_flow_filter.py "${bench_quick[@]}" --device "$device" \
-    --batch "$batch" --repeats 1 --reference-s 0 --breakdown-s 0 --count-ops-s 0 2>&1 | grep -v "^filter:"
+    --batch "$batch" --repeats 1 --reference-s 0 --breakdown-s 0 --count-ops-s 0 2>&1 | grep --line-buffered -v "^filter:"
 }
 
 trainer=gpu
@@ -108,7 +108,7 @@ s6() {
   # without the three 300 s selection walks, as the CPU's reference time was taken
   capped "${GPU_SH_TRAIN_S:-0}" python train.py experiment=mistuned 'data.select=[]' trainer="$trainer" "${epochs[@]}" \
     flow.device="$device" progress=false hydra.run.dir="$out/train" 2>&1 \
-    | grep -v "read from the cache" || return  # a line per validation as it ends
+    | grep --line-buffered -v "read from the cache" || return  # a line per validation as it ends (grep flushes each line: a capped run still shows them)
   echo "train.py on the GPU: $((SECONDS - t0)) s"
 }
 
