@@ -109,7 +109,7 @@ STAGES = (
     ("flowins.measurements.flow_update", "select_points"),
     ("flowins.filter.updater", "ekf_update"),
     ("flowins.measurements.flow_update", "epipolar_update"),
-    ("flowins.navigation", "rts_smooth"),
+    ("flowins.navigation", "rts_smooth_batch"),
 )
 
 

@@ -17,7 +17,7 @@ from flowins.filter.augmentation import with_window
 from flowins.filter.ekf import Gate
 from flowins.filter.chain import FilterTrack
 from flowins.filter.runner import FilterInput, run_filters
-from flowins.filter.smoother import SmoothedTrack, rts_smooth
+from flowins.filter.smoother import SmoothedTrack, rts_smooth_batch
 from flowins.flow.pairs import FlowPairs
 from flowins.geometry.geodesy import LocalTangentPlane
 from flowins.ins.initialization import InitialUncertainty
@@ -357,11 +357,12 @@ def _navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig,
         inputs.append(FilterInput(run.imu.t_s[first:], run.imu.acc_mps2[first:], run.imu.gyro_rps[first:],
                                   setup.mean0, setup.cov0, setup.events))
     tracks = run_filters(inputs, progress=progress, **config.filter_settings())
-    smoothed, passes = smoother_tracks(inputs, tracks, config, progress=progress)
+    again, passes = smoother_tracks(inputs, tracks, config, progress=progress)
+    smoothed = rts_smooth_batch(again, marginal=STATE_DIM)
     return [
         NavigationResult(
             filter=track,
-            smoother=rts_smooth(again, marginal=STATE_DIM),
+            smoother=smoother,
             smoother_pass=which,
             frame=setup.frame,
             gnss_t_s=None if run.gnss is None else run.gnss.t_s,
@@ -371,7 +372,7 @@ def _navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig,
             start=setup.start,
             gnss_before_start=setup.gnss_before_start,
         )
-        for run, setup, track, again, which in zip(runs, setups, tracks, smoothed, passes)
+        for run, setup, track, smoother, which in zip(runs, setups, tracks, smoothed, passes)
     ]
 
 
@@ -410,10 +411,11 @@ def smoother_tracks(inputs: Sequence[FilterInput], tracks: Sequence[FilterTrack]
     if not again:
         return out, which
     rows = []
-    for i, record in again:
+    first = rts_smooth_batch([tracks[i] for i, _ in again], marginal=STATE_DIM)
+    for (i, record), smoothed in zip(again, first):
         run = inputs[i]
         fit = fit_from_record(record, dtype=run.mean0.dtype, device=run.mean0.device)
-        smoothed = rts_smooth(tracks[i], marginal=STATE_DIM).mean[0].detach()
+        smoothed = smoothed.mean[0].detach()
         mean0 = with_window(smoothed, run.cov0[:STATE_DIM, :STATE_DIM], window_size(run.mean0.shape[-1]))[0]
         cov0 = aligned_prior_covariance(run.mean0, run.cov0, mean0, fit,
                                         condition_sigma_rad=config.gnss_heading.condition_sigma_rad)

@@ -14,6 +14,9 @@ forgetting and augmentation step the filter recorded.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import NamedTuple
+
 import torch
 from torch import Tensor
 
@@ -106,6 +109,92 @@ def _node_blocks(keys: Tensor, J: int, D: int) -> list[tuple[int, int]]:
     return blocks
 
 
+class _Prepared(NamedTuple):
+    """One track's gains and key nodes, ready for the backward pass over its keys."""
+
+    keys: Tensor  # (K,) the key nodes
+    slot: Tensor  # (J-1,) each node's next key (an index into keys)
+    blocks: list[tuple[int, int]]
+    gains: list[Tensor]  # per block: 𝒢_j[:c] (nodes, c, D)
+    key_gains: Tensor  # (K-1, D, D) the key nodes' whole gains
+
+
+def _prepare(track: FilterTrack, c: int) -> _Prepared:
+    """The gains of every node of ``track`` (``J > 1`` nodes) to its next key node."""
+    J, D = track.node_mean.shape[-2:]
+    node_cov = track.node_cov
+    keys = torch.nonzero(_key_nodes(track)).squeeze(-1)
+    slot = torch.searchsorted(keys, torch.arange(J - 1, device=keys.device), right=True)  # each node's next key
+    LU, pivots = _factor_predicted(symmetrize(track.pred_cov[keys]), track.t_s[keys.to(track.t_s.device)])
+    # the nodes in blocks of whole runs (each ends at a key node), so that the (nodes, D, D)
+    # products below stay small
+    blocks = _node_blocks(keys, J, D)
+    # 𝒢_jᵀ[:, :c] = (P⁻_k)⁻¹ Φ_{j→k} P_j[:, :c] for every node; the key nodes' whole gains
+    gains, key_gains = [], []
+    for a, b in blocks:
+        nodes = slice(a, b)
+        to_key = _transitions_to_next_key(track.transition[a : b + 1], keys[slot[nodes]] - a)
+        gains.append(torch.linalg.lu_solve(LU[slot[nodes]], pivots[slot[nodes]],
+                                           to_key @ node_cov[nodes, :, :c]).transpose(-1, -2))
+        inner = keys[(keys >= a) & (keys < b)]
+        if c == D:
+            key_gains.append(gains[-1][inner - a])
+        else:
+            key_slot = slot[inner]
+            key_gains.append(torch.linalg.lu_solve(LU[key_slot], pivots[key_slot],
+                                                   to_key[inner - a] @ node_cov[inner]).transpose(-1, -2))
+    return _Prepared(keys, slot, blocks, gains, torch.cat(key_gains))
+
+
+#: the most bytes of one (tracks, keys, D, D) tensor the batched backward pass forms at a time
+_BACKWARD_BYTES = 256 << 20
+
+
+def _backward(tracks: Sequence[FilterTrack], prepared: Sequence[_Prepared]) -> list[tuple[Tensor, Tensor]]:
+    """The residuals ``r_k = mˢ_k - m⁻_k`` ``(K, D)``, ``R_k = Pˢ_k - P⁻_k`` ``(K, D, D)`` at every
+    key node of each track, by the backward recursion over the key nodes. The tracks go
+    together, their keys aligned at their last one (a track with fewer keys is padded in
+    front with zeros, which stay zero), in groups of about :data:`_BACKWARD_BYTES`."""
+    out: list[tuple[Tensor, Tensor]] = []
+    D = tracks[0].node_mean.shape[-1] if tracks else 0
+    group: list[int] = []
+    for i in range(len(tracks)):
+        longest = max([prepared[j].keys.shape[0] for j in group + [i]])
+        if group and (len(group) + 1) * longest * D * D * 8 > _BACKWARD_BYTES:
+            out += _backward_group([tracks[j] for j in group], [prepared[j] for j in group])
+            group = []
+        group.append(i)
+    if group:
+        out += _backward_group([tracks[j] for j in group], [prepared[j] for j in group])
+    return out
+
+
+def _backward_group(tracks: Sequence[FilterTrack], prepared: Sequence[_Prepared]) -> list[tuple[Tensor, Tensor]]:
+    counts = [p.keys.shape[0] for p in prepared]
+    K = max(counts)
+
+    def aligned(parts: list[Tensor]) -> Tensor:  # (R, K, ...), each part right-aligned
+        return torch.stack([part if part.shape[0] == K else torch.cat((part.new_zeros(K - part.shape[0], *part.shape[1:]),
+                                                                      part)) for part in parts])
+
+    node_mean = aligned([t.node_mean[p.keys] for t, p in zip(tracks, prepared)])
+    node_cov = aligned([t.node_cov[p.keys] for t, p in zip(tracks, prepared)])
+    pred_mean = aligned([t.pred_mean[p.keys] for t, p in zip(tracks, prepared)])
+    pred_cov = aligned([t.pred_cov[p.keys] for t, p in zip(tracks, prepared)])
+    gains = aligned([torch.cat((p.key_gains, p.key_gains.new_zeros(1, *p.key_gains.shape[1:]))) for p in prepared])
+    residual_mean: list[Tensor] = [node_mean[:, -1] - pred_mean[:, -1]]
+    residual_cov: list[Tensor] = [node_cov[:, -1] - pred_cov[:, -1]]
+    for i in range(K - 2, -1, -1):
+        G = gains[:, i]
+        m_k = node_mean[:, i] + (G @ residual_mean[-1].unsqueeze(-1)).squeeze(-1)
+        P_k = node_cov[:, i] + G @ residual_cov[-1] @ G.transpose(-1, -2)
+        residual_mean.append(m_k - pred_mean[:, i])
+        residual_cov.append(P_k - pred_cov[:, i])
+    r_m = torch.stack(residual_mean[::-1], 1)
+    r_P = torch.stack(residual_cov[::-1], 1)
+    return [(r_m[i, K - n:], r_P[i, K - n:]) for i, n in enumerate(counts)]
+
+
 def rts_smooth(track: FilterTrack, *, normalize: bool = True, marginal: int | None = None) -> SmoothedTrack:
     """Smoothed means and covariances at every node of ``track``.
 
@@ -129,58 +218,43 @@ def rts_smooth(track: FilterTrack, *, normalize: bool = True, marginal: int | No
     ``normalize`` re-normalises the quaternions of the smoothed means (the
     covariances are left as the recursion gives them).
     """
-    J, D = track.node_mean.shape[-2:]
-    c = D if marginal is None else marginal
-    frame_changes = marginal_frame_changes(track.frame_changes, c, D, where=f"rts_smooth(marginal={marginal})")
-    node_mean, node_cov = track.node_mean, track.node_cov
-    if J == 1:
-        return SmoothedTrack(track.t_s, node_mean[:, :c].clone(), node_cov[:, :c, :c].clone())
-    keys = torch.nonzero(_key_nodes(track)).squeeze(-1)
-    slot = torch.searchsorted(keys, torch.arange(J - 1, device=keys.device), right=True)  # each node's next key
-    LU, pivots = _factor_predicted(symmetrize(track.pred_cov[keys]), track.t_s[keys.to(track.t_s.device)])
-    # the nodes in blocks of whole runs (each ends at a key node), so that the (nodes, D, D)
-    # products below stay small
-    blocks = _node_blocks(keys, J, D)
-    # 𝒢_jᵀ[:, :c] = (P⁻_k)⁻¹ Φ_{j→k} P_j[:, :c] for every node; the key nodes' whole gains
-    gains, key_gains = [], []
-    for a, b in blocks:
-        nodes = slice(a, b)
-        to_key = _transitions_to_next_key(track.transition[a : b + 1], keys[slot[nodes]] - a)
-        gains.append(torch.linalg.lu_solve(LU[slot[nodes]], pivots[slot[nodes]],
-                                           to_key @ node_cov[nodes, :, :c]).transpose(-1, -2))
-        inner = keys[(keys >= a) & (keys < b)]
-        if c == D:
-            key_gains.append(gains[-1][inner - a])
-        else:
-            key_slot = slot[inner]
-            key_gains.append(torch.linalg.lu_solve(LU[key_slot], pivots[key_slot],
-                                                   to_key[inner - a] @ node_cov[inner]).transpose(-1, -2))
-    key_gains = torch.cat(key_gains)
+    return rts_smooth_batch([track], normalize=normalize, marginal=marginal)[0]
 
-    # backward over the key nodes only: r_k = mˢ_k - m⁻_k, R_k = Pˢ_k - P⁻_k
-    key_list = keys.tolist()
-    residual_mean: list[Tensor] = [node_mean[key_list[-1]] - track.pred_mean[key_list[-1]]]
-    residual_cov: list[Tensor] = [node_cov[key_list[-1]] - track.pred_cov[key_list[-1]]]
-    for i in range(len(key_list) - 2, -1, -1):
-        k, G = key_list[i], key_gains[i]
-        m_k = node_mean[k] + G @ residual_mean[-1]
-        P_k = node_cov[k] + G @ residual_cov[-1] @ G.T
-        residual_mean.append(m_k - track.pred_mean[k])
-        residual_cov.append(P_k - track.pred_cov[k])
-    r_m = torch.stack(residual_mean[::-1])
-    r_P = torch.stack(residual_cov[::-1])
-    # every node j < J-1 from its next key's residuals, batched by block
-    means, covs = [], []
-    for (a, b), G in zip(blocks, gains):
-        nodes = slice(a, b)
-        means.append(node_mean[nodes, :c] + (G @ r_m[slot[nodes]].unsqueeze(-1)).squeeze(-1))
-        covs.append(node_cov[nodes, :c, :c] + G @ r_P[slot[nodes]] @ G.transpose(-1, -2))
-    mean = torch.cat((*means, node_mean[-1:, :c]))
-    cov = torch.cat((*covs, node_cov[-1:, :c, :c]))
-    mean, cov = to_final_frame(mean, cov, frame_changes)
-    if normalize:
-        mean = normalize_quaternions(mean)
-    return SmoothedTrack(track.t_s, mean, symmetrize(cov))
+
+def rts_smooth_batch(tracks: Sequence[FilterTrack], *, normalize: bool = True,
+                     marginal: int | None = None) -> list[SmoothedTrack]:
+    """:func:`rts_smooth` of each of ``tracks`` (of one state size), their backward recursions
+    over the key nodes run together: one batched step per key of the longest track instead of
+    one per key of every track (what a GPU waits on: each step is a few small kernels)."""
+    sizes = {t.node_mean.shape[-1] for t in tracks}
+    if len(sizes) > 1:
+        raise ValueError(f"rts_smooth_batch: the tracks' states differ in size ({sorted(sizes)}); smooth them apart")
+    out: list[SmoothedTrack | None] = [None] * len(tracks)
+    long = [i for i, t in enumerate(tracks) if t.node_mean.shape[-2] > 1]
+    D = sizes.pop() if sizes else 0
+    c = D if marginal is None else marginal
+    changes = [marginal_frame_changes(t.frame_changes, c, D, where=f"rts_smooth(marginal={marginal})") for t in tracks]
+    for i, t in enumerate(tracks):
+        if i not in long:
+            out[i] = SmoothedTrack(t.t_s, t.node_mean[:, :c].clone(), t.node_cov[:, :c, :c].clone())
+    prepared = [_prepare(tracks[i], c) for i in long]
+    residuals = _backward([tracks[i] for i in long], prepared)
+    for i, p, (r_m, r_P) in zip(long, prepared, residuals):
+        track = tracks[i]
+        node_mean, node_cov = track.node_mean, track.node_cov
+        # every node j < J-1 from its next key's residuals, batched by block
+        means, covs = [], []
+        for (a, b), G in zip(p.blocks, p.gains):
+            nodes = slice(a, b)
+            means.append(node_mean[nodes, :c] + (G @ r_m[p.slot[nodes]].unsqueeze(-1)).squeeze(-1))
+            covs.append(node_cov[nodes, :c, :c] + G @ r_P[p.slot[nodes]] @ G.transpose(-1, -2))
+        mean = torch.cat((*means, node_mean[-1:, :c]))
+        cov = torch.cat((*covs, node_cov[-1:, :c, :c]))
+        mean, cov = to_final_frame(mean, cov, changes[i])
+        if normalize:
+            mean = normalize_quaternions(mean)
+        out[i] = SmoothedTrack(track.t_s, mean, symmetrize(cov))
+    return out
 
 
 def rts_smooth_sequential(track: FilterTrack, *, normalize: bool = True) -> SmoothedTrack:

@@ -16,19 +16,22 @@ filter then draws the information the fixes really hold (``τ = 0``: no change).
 """
 from __future__ import annotations
 
+import math
+from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
 from torch.func import jacrev, vmap
 
-from flowins.filter.chain import ChainBuilder
+from flowins.filter.chain import BatchChain, ChainBuilder
 from flowins.filter.ekf import Gate, chi2_quantile
-from flowins.filter.updater import update
+from flowins.filter.updater import update, update_rows
 from flowins.geometry import quaternion as quat
 from flowins.measurements.gnss_heading import (
     HeadingAlignment,
-    fit_heading,
+    HeadingFit,
+    fit_heading_batch,
     fit_record,
     heading_conditional_covariance,
     heading_jacobian,
@@ -192,18 +195,24 @@ class GnssFix:
     heading: HeadingAlignment | None = None
     recovery: GnssRecovery | None = None
 
+    def batch_key(self) -> Hashable:
+        """Fixes with the same gate, heading alignment, recovery and lever arm act together (a
+        run's fixes share them, as do the runs of one navigation config)."""
+        return (GnssFix, id(self.gate), id(self.heading), id(self.recovery), id(self.lever_arm_m))
+
     def apply(self, chain: ChainBuilder) -> None:
-        if self.heading is not None and self.heading.enabled and self._held_for_heading(chain):
-            return
-        mean = chain.mean
-        lever = None if self.lever_arm_m is None else self.lever_arm_m.to(mean)
-        H = gnss_jacobian_analytic(mean, lever)
-        predicted = mean[STATE.p] if lever is None else gnss_position(mean, lever)
-        innovation = self.position_m.to(mean) - predicted
-        update(chain, H=H.reshape(1, 3, -1), residual=innovation.reshape(1, 3),
-               noise_cov=self.noise_cov.to(mean).reshape(1, 3, 3), gate=self.gate, kind="gnss", name=self.name)
-        entry = chain.log[-1]
-        self._recover(chain, rejected=entry["accepted"] < 0.5, nis=entry["nis"])
+        type(self).apply_batch(chain.batch, [chain.row], [self])
+
+    @classmethod
+    def apply_batch(cls, chain: BatchChain, rows: Sequence[int], fixes: Sequence[GnssFix]) -> None:
+        """The fixes ``fixes[i]`` (one gate, heading alignment, recovery) on the rows ``rows[i]``:
+        those held for the heading are held (:func:`_hold_for_heading`), the others update as one."""
+        heading = fixes[0].heading
+        applied = list(range(len(rows)))
+        if heading is not None and heading.enabled:
+            applied = _hold_for_heading(chain, rows, fixes, heading)
+        if applied:
+            _update_rows(chain, [rows[i] for i in applied], [fixes[i] for i in applied])
 
     def _recover(self, chain: ChainBuilder, *, rejected: bool, nis: float) -> None:
         """Reset after ``after_rejections`` consecutive rejections, or when the last
@@ -211,7 +220,7 @@ class GnssFix:
         r = self.recovery
         if r is None:
             return
-        fix = (self.time_s, self.position_m.to(chain.mean), self.noise_cov.to(chain.mean))
+        fix = (self.time_s, self.position_m, self.noise_cov)  # moved to the filter's device at a reset
         run = chain.memory.setdefault("gnss_rejected", [])
         recent = chain.memory.setdefault("gnss_recent", [])
         run[:] = run + [fix] if rejected else []
@@ -229,69 +238,132 @@ class GnssFix:
         recent.clear()
 
     def _reset(self, chain: ChainBuilder, fixes: list, *, why: str, **facts) -> None:
-        offset = float(torch.linalg.vector_norm(fixes[-1][1] - chain.mean[STATE.p]).detach())
-        A, b, Q, with_velocity = reset_matrices(chain.mean, fixes, self.recovery)
+        mean = chain.mean
+        fixes = [(t, z.to(mean), R.to(mean)) for t, z, R in fixes]
+        offset = float(torch.linalg.vector_norm(fixes[-1][1] - mean[STATE.p]).detach())
+        A, b, Q, with_velocity = reset_matrices(mean, fixes, self.recovery)
         chain.linear_predict(A, Q, b, kind="gnss_reset", name=self.name, why=why, offset_m=offset,
                              velocity=with_velocity, **facts)
 
-    def _held_for_heading(self, chain: ChainBuilder) -> bool:
-        """Hold this fix while the yaw is unknown; align when the held fixes allow (True: held).
 
-        The filter's track is worth waiting for only while it drifts less than a fix is
-        off: once its position variance (given its yaw) has grown since the first held
-        fix by more than this fix's variance, it aligns with what it holds or, if that
-        cannot set the heading, gives up and applies fixes as they come from then on.
-        """
-        memory = chain.memory
-        if memory.get("heading") in ("known", "given up"):
-            return False
-        a = self.heading
-        mean, cov = chain.mean, chain.cov
+def _update_rows(chain: BatchChain, rows: list[int], fixes: list[GnssFix]) -> None:
+    """The position updates of ``fixes[i]`` on the rows ``rows[i]`` as one update, then each
+    row's recovery (:class:`GnssRecovery`) from its fix's NIS and gate."""
+    first = fixes[0]
+    mean, _ = chain.newest(rows)
+    lever = None if first.lever_arm_m is None else first.lever_arm_m.to(mean)
+    H = gnss_jacobian_analytic(mean, lever)
+    predicted = mean[:, STATE.p] if lever is None else gnss_position(mean, lever)
+    z = torch.stack([fix.position_m for fix in fixes]).to(mean)
+    R = torch.stack([fix.noise_cov for fix in fixes]).to(mean)
+    update_rows(chain, rows, H=H.unsqueeze(1), residual=(z - predicted).unsqueeze(1), noise_cov=R.unsqueeze(1),
+                gate=first.gate, infos=[{"kind": "gnss", "name": fix.name} for fix in fixes])
+    for row, fix in zip(rows, fixes):
+        entry = chain.logs[row][-1]
+        fix._recover(chain.row(row), rejected=entry["accepted"] < 0.5, nis=entry["nis"])
+
+
+def _hold_for_heading(chain: BatchChain, rows: Sequence[int], fixes: Sequence[GnssFix],
+                      a: HeadingAlignment) -> list[int]:
+    """Hold each fix while its row's yaw is unknown; align a row when its held fixes allow.
+    Returns the indices ``i`` whose fix is applied as a position update.
+
+    The filter's track is worth waiting for only while it drifts less than a fix is
+    off: once its position variance (given its yaw) has grown since the first held
+    fix by more than this fix's variance, it aligns with what it holds or, if that
+    cannot set the heading, gives up and applies fixes as they come from then on. The
+    rows' variances, and the fits of the rows that may align, are computed together.
+    """
+    applied, waiting = [], []
+    for i, row in enumerate(rows):
+        (applied if chain.memories[row].get("heading") in ("known", "given up") else waiting).append(i)
+    if not waiting:
+        return applied
+    mean, cov = chain.newest([rows[i] for i in waiting])
+    xy = slice(STATE.p.start, STATE.p.start + 2)
+    h = heading_jacobian(mean)
+    yaw_var = (h * (cov @ h.unsqueeze(-1)).squeeze(-1)).sum(-1)
+    filter_var = torch.diagonal(heading_conditional_covariance(mean, cov, xy), dim1=-2, dim2=-1).mean(-1)
+    noise = torch.stack([fixes[i].noise_cov for i in waiting]).to(mean)
+    fix_var = torch.diagonal(noise[:, :2, :2], dim1=-2, dim2=-1).mean(-1)
+    values = torch.stack((yaw_var, filter_var, fix_var), -1).detach().tolist()
+    holding, drifted = [], {}
+    for k, i in enumerate(waiting):
+        memory, fix = chain.memories[rows[i]], fixes[i]
         held = memory.setdefault("heading_fixes", [])
+        yaw, f_var, x_var = values[k]
+        if not held and yaw <= a.unknown_yaw_sigma_rad**2:
+            memory["heading"] = "known"
+            applied.append(i)
+            continue
+        x, y = fix.position_m[:2].tolist()
         if not held:
-            h = heading_jacobian(mean)
-            if float((h @ cov @ h).detach()) <= a.unknown_yaw_sigma_rad**2:
-                memory["heading"] = "known"
-                return False
-        xy = slice(STATE.p.start, STATE.p.start + 2)
-        filter_var = torch.diagonal(heading_conditional_covariance(mean, cov, xy)).mean()
-        fix_var = torch.diagonal(self.noise_cov.to(mean)[:2, :2]).mean()
-        drift_var = (filter_var - held[0][2]).clamp_min(0.0) if held else filter_var.new_zeros(())
-        held.append((mean[xy], self.position_m.to(mean)[:2], filter_var, filter_var + fix_var))
-        drifted = bool((drift_var > fix_var).detach())
-        fixes = torch.stack([f for _, f, _, _ in held])
-        fit = None
-        if len(held) >= a.min_fixes and float((fixes - fixes[0]).norm(dim=-1).max().detach()) >= a.baseline_m:
-            fit = fit_heading(torch.stack([p for p, _, _, _ in held]), fixes, torch.stack([v for *_, v in held]),
-                              outlier_probability=a.outlier_probability)
-            if not float(fit.sigma_rad.detach()) <= a.max_sigma_rad:
-                fit = None
-        if fit is None:
-            if drifted:
-                # the fixes held so far are in the past and are not applied; this one and
-                # every later one are, as they come
-                memory["heading"] = "given up"
-                chain.log.append({"t_s": chain.time_s, "kind": "heading", "name": self.name, "status": "given up",
-                                  "fixes": len(held) - 1, "reason": "the track drifted more than a fix before the "
-                                  "held fixes could set the heading; they are left out, this fix and the later ones "
-                                  "are applied as they come"})
-                return False
-            chain.log.append({"t_s": chain.time_s, "kind": "gnss", "name": self.name, "accepted": 0.0,
-                              "status": "held for heading"})
-            return True
-        # 1. condition on the filter's own heading; 2. rotate into the fixes' frame
-        h = heading_jacobian(mean).reshape(1, 1, -1)
-        sigma_c = torch.as_tensor(a.condition_sigma_rad, dtype=mean.dtype, device=mean.device)
-        update(chain, H=h, residual=mean.new_zeros(1, 1), noise_cov=(sigma_c**2).reshape(1, 1, 1), likelihood=False)
-        A, b = heading_transform(fit, dtype=mean.dtype, dim=mean.shape[-1])
-        Q = heading_noise(A @ chain.mean + b, fit)
-        record = fit_record(fit)
-        chain.change_frame(A, Q, b, kind="heading", name=self.name, status="aligned",
-                           **{k: record[k] for k in ("yaw_rad", "sigma_rad", "fixes", "outliers")}, fit=record)
-        memory["heading"] = "known"
-        chain.log.append({"t_s": chain.time_s, "kind": "gnss", "name": self.name, "accepted": 0.0,
-                          "status": "set the heading"})
-        return True
+            memory["heading_first"] = (f_var, x, y)
+            memory["heading_baseline_m"] = 0.0
+        first_var, x0, y0 = memory["heading_first"]
+        drifted[i] = max(f_var - first_var, 0.0) > x_var
+        memory["heading_baseline_m"] = max(memory["heading_baseline_m"], math.hypot(x - x0, y - y0))
+        held.append((mean[k, xy], fix.position_m[:2], filter_var[k], fix_var[k]))  # the fix where it is
+        holding.append(i)
+    fits = _fit_held(chain, rows, [i for i in holding if len(chain.memories[rows[i]]["heading_fixes"]) >= a.min_fixes
+                                   and chain.memories[rows[i]]["heading_baseline_m"] >= a.baseline_m], a)
+    for i in holding:
+        chain_row, fix = chain.row(rows[i]), fixes[i]
+        fit = fits.get(i)
+        if fit is not None:
+            _align(chain_row, fit, fix, a)
+        elif drifted[i]:
+            # the fixes held so far are in the past and are not applied; this one and
+            # every later one are, as they come
+            chain_row.memory["heading"] = "given up"
+            chain_row.log.append({"t_s": chain_row.time_s, "kind": "heading", "name": fix.name, "status": "given up",
+                                  "fixes": len(chain_row.memory["heading_fixes"]) - 1, "reason": "the track drifted "
+                                  "more than a fix before the held fixes could set the heading; they are left out, "
+                                  "this fix and the later ones are applied as they come"})
+            applied.append(i)
+        else:
+            chain_row.log.append({"t_s": chain_row.time_s, "kind": "gnss", "name": fix.name, "accepted": 0.0,
+                                  "status": "held for heading"})
+    return sorted(applied)
+
+
+def _fit_held(chain: BatchChain, rows: Sequence[int], which: list[int], a: HeadingAlignment) -> dict[int, HeadingFit]:
+    """The heading fits of the held fixes of the rows ``rows[i]``, ``i`` in ``which``, fitted
+    together; only those whose σ_ψ is at most ``max_sigma_rad`` are returned."""
+    if not which:
+        return {}
+    held = [chain.memories[rows[i]]["heading_fixes"] for i in which]
+    counts = [len(h) for h in held]
+    N = max(counts)
+
+    def padded(parts: list[Tensor]) -> Tensor:
+        x = torch.stack(parts)
+        return x if x.shape[0] == N else torch.cat((x, x.new_ones(N - x.shape[0], *x.shape[1:])))
+
+    filter_xy = torch.stack([padded([p for p, _, _, _ in h]) for h in held])
+    fix_xy = torch.stack([padded([f for _, f, _, _ in h]) for h in held]).to(filter_xy)
+    var = torch.stack([padded([fv for _, _, fv, _ in h]) + padded([xv for *_, xv in h]) for h in held])
+    fit = fit_heading_batch(filter_xy, fix_xy, var, counts, outlier_probability=a.outlier_probability)
+    sigma = fit.sigma_rad.detach().tolist()
+    return {i: HeadingFit(*(part[k] for part in fit[:-1]), fit.used[k, : counts[k]])
+            for k, i in enumerate(which) if sigma[k] <= a.max_sigma_rad}
+
+
+def _align(chain: ChainBuilder, fit: HeadingFit, fix: GnssFix, a: HeadingAlignment) -> None:
+    """Set the row's heading from ``fit``: 1. condition on the filter's own heading; 2. rotate
+    into the fixes' frame (:mod:`flowins.measurements.gnss_heading`)."""
+    mean = chain.mean
+    h = heading_jacobian(mean).reshape(1, 1, -1)
+    sigma_c = torch.as_tensor(a.condition_sigma_rad, dtype=mean.dtype, device=mean.device)
+    update(chain, H=h, residual=mean.new_zeros(1, 1), noise_cov=(sigma_c**2).reshape(1, 1, 1), likelihood=False)
+    A, b = heading_transform(fit, dtype=mean.dtype, dim=mean.shape[-1])
+    Q = heading_noise(A @ chain.mean + b, fit)
+    record = fit_record(fit)
+    chain.change_frame(A, Q, b, kind="heading", name=fix.name, status="aligned",
+                       **{k: record[k] for k in ("yaw_rad", "sigma_rad", "fixes", "outliers")}, fit=record)
+    chain.memory["heading"] = "known"
+    chain.log.append({"t_s": chain.time_s, "kind": "gnss", "name": fix.name, "accepted": 0.0,
+                      "status": "set the heading"})
 
 
 def gnss_fixes(

@@ -33,6 +33,7 @@ residual exceeds the χ²₂ gate are left out of the fit one at a time, worst f
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -101,13 +102,13 @@ def heading_jacobian(x: Tensor) -> Tensor:
 
 
 def heading_conditional_covariance(x: Tensor, P: Tensor, sl: slice, *, noise_var: float = 0.0) -> Tensor:
-    """Covariance ``(k, k)`` of the block ``sl`` of ``P (D, D)`` given the heading of ``q``
-    (its rotation about the vertical, :func:`heading_jacobian`), observed exactly or, with
-    ``noise_var``, with that variance."""
+    """Covariance ``(..., k, k)`` of the block ``sl`` of ``P (..., D, D)`` given the heading of ``q``
+    (its rotation about the vertical, :func:`heading_jacobian`) of ``x (..., D)``, observed
+    exactly or, with ``noise_var``, with that variance."""
     h = heading_jacobian(x)
-    Ph = P @ h
-    s = (h @ Ph + noise_var).clamp_min(torch.finfo(P.dtype).tiny)
-    return P[sl, sl] - torch.outer(Ph[sl], Ph[sl]) / s
+    Ph = (P @ h.unsqueeze(-1)).squeeze(-1)
+    s = ((h * Ph).sum(-1) + noise_var).clamp_min(torch.finfo(P.dtype).tiny)
+    return P[..., sl, sl] - Ph[..., sl].unsqueeze(-1) * Ph[..., sl].unsqueeze(-2) / s[..., None, None]
 
 
 class HeadingFit(NamedTuple):
@@ -135,20 +136,39 @@ def fit_heading(filter_xy_m: Tensor, fix_xy_m: Tensor, var_m2: Tensor, *, outlie
     if fix_xy_m.shape != (n, 2) or filter_xy_m.shape != (n, 2) or var_m2.shape != (n,):
         raise ValueError(f"fit_heading expects (n, 2), (n, 2), (n,); got {tuple(filter_xy_m.shape)}, "
                          f"{tuple(fix_xy_m.shape)}, {tuple(var_m2.shape)}")
-    if n < 2:
-        raise ValueError(f"fit_heading needs at least 2 fixes, got {n}")
-    w = 1.0 / var_m2
-    used = torch.ones(n, dtype=torch.bool, device=w.device)
+    fit = fit_heading_batch(filter_xy_m.unsqueeze(0), fix_xy_m.unsqueeze(0), var_m2.unsqueeze(0), [n],
+                            outlier_probability=outlier_probability)
+    return HeadingFit(*(part[0] for part in fit))
+
+
+def fit_heading_batch(filter_xy_m: Tensor, fix_xy_m: Tensor, var_m2: Tensor, counts: Sequence[int], *,
+                      outlier_probability: float = 0.999) -> HeadingFit:
+    """:func:`fit_heading` of ``r`` sets of fixes at once: ``filter_xy_m``, ``fix_xy_m`` ``(r, N, 2)``,
+    ``var_m2`` ``(r, N)``, set ``i`` the first ``counts[i]`` of its ``N`` rows (the rest is
+    padding, of any finite value). The fields of the result have ``r`` first; ``used`` is
+    ``(r, N)``, False on the padding. Each set leaves out its own outliers, as alone: a fix
+    left out weighs zero in the sums."""
+    r, N = var_m2.shape
+    if len(counts) != r or min(counts, default=2) < 2 or max(counts, default=0) > N:
+        raise ValueError(f"fit_heading needs at least 2 fixes per set, at most N = {N}; got {list(counts)}")
+    valid = torch.arange(N, device=var_m2.device) < torch.tensor(list(counts), device=var_m2.device).unsqueeze(-1)
+    w = torch.where(valid, 1.0 / torch.where(valid, var_m2, torch.ones_like(var_m2)), torch.zeros_like(var_m2))
+    used = valid
     threshold = chi2_quantile(outlier_probability, 2)
+    floors = [max(2, n - n // 5) for n in counts]
     while True:
-        psi, c_p, c_g, info, W = planar_rotation(filter_xy_m[used], fix_xy_m[used], w[used])
-        resid = fix_xy_m - c_g - (rotation_2d(psi) @ (filter_xy_m - c_p).unsqueeze(-1)).squeeze(-1)
+        psi, c_p, c_g, info, W = planar_rotation(filter_xy_m, fix_xy_m, w * used)
+        moved = (rotation_2d(psi).unsqueeze(-3) @ (filter_xy_m - c_p.unsqueeze(-2)).unsqueeze(-1)).squeeze(-1)
+        resid = fix_xy_m - c_g.unsqueeze(-2) - moved
         score = torch.where(used, (w * (resid * resid).sum(-1)).detach(), torch.zeros_like(w))
-        worst = int(score.argmax())
-        if float(score[worst]) <= threshold or int(used.sum()) <= max(2, n - n // 5):
+        worst_score, worst = score.max(-1)
+        facts = torch.stack((worst_score, worst.to(score.dtype), used.sum(-1).to(score.dtype)), -1).tolist()
+        drop = [i for i, (s, _, kept) in enumerate(facts) if s > threshold and kept > floors[i]]
+        if not drop:
             break
         used = used.clone()
-        used[worst] = False  # the worst fix only: one outlier drags every residual of the first fit
+        for i in drop:
+            used[i, int(facts[i][1])] = False  # the worst fix only: one outlier drags every residual of the first fit
     sigma = torch.where(info > 0, info.clamp_min(torch.finfo(info.dtype).tiny).rsqrt(), torch.full_like(info, torch.inf))
     return HeadingFit(psi, sigma, c_p, c_g, 1.0 / W, used)
 

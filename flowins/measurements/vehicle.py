@@ -16,13 +16,14 @@ recording whose metadata names ``platform: vehicle``).
 """
 from __future__ import annotations
 
+from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from flowins.filter.chain import ChainBuilder
-from flowins.filter.updater import update
+from flowins.filter.chain import BatchChain, ChainBuilder
+from flowins.filter.updater import update_rows
 from flowins.geometry import quaternion as quat
 from flowins.measurements.registry import MeasurementKind, NavigationContext, register
 from flowins.state import STATE
@@ -101,18 +102,30 @@ class VehicleUpdate:
     settings: VehicleSettings
     name: str = "vehicle constraint"
 
+    def batch_key(self) -> Hashable:
+        """Updates with the same settings (one run's, or one config's for a batch) act together."""
+        return (VehicleUpdate, id(self.settings))
+
     def apply(self, chain: ChainBuilder) -> None:
-        mean = chain.mean
+        type(self).apply_batch(chain.batch, [chain.row], [self])
+
+    @classmethod
+    def apply_batch(cls, chain: BatchChain, rows: Sequence[int], events: Sequence[VehicleUpdate]) -> None:
+        """The pseudo-measurements ``events[i]`` (one settings) on the rows ``rows[i]``, as one update."""
+        settings = events[0].settings
+        mean, _ = chain.newest(rows)
+        r, D = mean.shape
         like = {"dtype": mean.dtype, "device": mean.device}
-        E = self.settings.rows().to(**like)
-        v_b, d_v, d_q = body_velocity_jacobians(mean[STATE.q], mean[STATE.v])
-        H = torch.zeros(1, 2, mean.shape[-1], **like)
-        H[0, :, STATE.v] = E @ d_v
-        H[0, :, STATE.q] = E @ d_q
-        sigma = torch.stack([torch.as_tensor(s, **like) for s in (self.settings.lateral_sigma_mps,
-                                                                  self.settings.vertical_sigma_mps)])
-        update(chain, H=H, residual=-(E @ v_b).reshape(1, 2), noise_cov=torch.diag_embed(sigma**2).reshape(1, 2, 2),
-               likelihood=False, kind="vehicle", name=self.name)
+        E = settings.rows().to(**like)
+        v_b, d_v, d_q = body_velocity_jacobians(mean[:, STATE.q], mean[:, STATE.v])
+        H = mean.new_zeros(r, 1, 2, D)
+        H[:, 0, :, STATE.v] = E @ d_v
+        H[:, 0, :, STATE.q] = E @ d_q
+        sigma = torch.stack([torch.as_tensor(s, **like) for s in (settings.lateral_sigma_mps,
+                                                                  settings.vertical_sigma_mps)])
+        update_rows(chain, rows, H=H, residual=-(v_b @ E.T).unsqueeze(1),
+                    noise_cov=torch.diag_embed(sigma**2).expand(r, 1, 2, 2), likelihood=False,
+                    infos=[{"kind": "vehicle", "name": e.name} for e in events])
 
 
 def vehicle_events(stream: VehicleConstraint, settings: VehicleSettings, context: NavigationContext) -> list:

@@ -1,13 +1,14 @@
 """The zero-velocity pseudo-measurement of a still device, as a filter event."""
 from __future__ import annotations
 
+from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from flowins.filter.chain import ChainBuilder
-from flowins.filter.updater import update
+from flowins.filter.chain import BatchChain, ChainBuilder
+from flowins.filter.updater import update_rows
 from flowins.state import STATE
 
 
@@ -19,11 +20,23 @@ class ZeroVelocity:
     sigma_mps: float | Tensor = 0.01
     name: str = "zero velocity"
 
+    def batch_key(self) -> Hashable:
+        """Zero velocities with the same σ (the same tensor, or the same number) act together."""
+        s = self.sigma_mps
+        return (ZeroVelocity, ("tensor", id(s)) if isinstance(s, Tensor) else float(s))
+
     def apply(self, chain: ChainBuilder) -> None:
-        mean = chain.mean
-        H = torch.zeros(1, 3, mean.shape[-1], dtype=mean.dtype, device=mean.device)
-        H[0, :, STATE.v] = torch.eye(3, dtype=mean.dtype, device=mean.device)
-        sigma = torch.as_tensor(self.sigma_mps, dtype=mean.dtype, device=mean.device)
-        update(chain, H=H, residual=-mean[STATE.v].reshape(1, 3),
-               noise_cov=(sigma**2 * torch.eye(3, dtype=mean.dtype, device=mean.device)).reshape(1, 3, 3),
-               likelihood=False, kind="zero_velocity", name=self.name)
+        type(self).apply_batch(chain.batch, [chain.row], [self])
+
+    @classmethod
+    def apply_batch(cls, chain: BatchChain, rows: Sequence[int], events: Sequence[ZeroVelocity]) -> None:
+        """The pseudo-measurements ``events[i]`` (one σ) on the rows ``rows[i]``, as one update."""
+        mean, _ = chain.newest(rows)
+        r, D = mean.shape
+        eye = torch.eye(3, dtype=mean.dtype, device=mean.device)
+        H = mean.new_zeros(r, 1, 3, D)
+        H[..., STATE.v] = eye
+        sigma = torch.as_tensor(events[0].sigma_mps, dtype=mean.dtype, device=mean.device)
+        update_rows(chain, rows, H=H, residual=-mean[:, STATE.v].unsqueeze(1),
+                    noise_cov=(sigma**2 * eye).expand(r, 1, 3, 3), likelihood=False,
+                    infos=[{"kind": "zero_velocity", "name": e.name} for e in events])

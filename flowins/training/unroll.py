@@ -35,7 +35,7 @@ from flowins.evaluation.metrics import (
 )
 from flowins.filter.chain import NodeTrack
 from flowins.filter.runner import FilterInput, run_filters
-from flowins.filter.smoother import rts_smooth
+from flowins.filter.smoother import rts_smooth_batch
 from flowins.flow.pairs import FlowPairs
 from flowins.measurements.flow import FlowCamera
 from flowins.navigation import NavigationConfig, NavigationRun, prepare_navigation, smoother_tracks
@@ -193,10 +193,10 @@ def run_windows(
         inputs.append(FilterInput(imu.t_s[i_a : i_b + 1], imu.acc_mps2[i_a : i_b + 1], imu.gyro_rps[i_a : i_b + 1],
                                   mean0, cov0, events))
     tracks = run_filters(inputs, **config.filter_settings(), likelihood=likelihood)
-    smoothed = smoother_tracks(inputs, tracks, config)[0] if smooth else tracks  # a second pass where one applies
+    smoothed = rts_smooth_batch(smoother_tracks(inputs, tracks, config)[0], marginal=STATE_DIM) if smooth else None
     return [WindowResult(track.in_final_frame(marginal=STATE_DIM), track.node_mean[-1], track.node_cov[-1], track.nll, track.nll_count,
-                         rts_smooth(again, marginal=STATE_DIM) if smooth else None)
-            for track, again in zip(tracks, smoothed)]
+                         None if smoothed is None else smoothed[i])
+            for i, track in enumerate(tracks)]
 
 
 class WindowLoss(NamedTuple):

@@ -462,3 +462,39 @@ def test_smoother_gradient_equals_finite_differences_through_runs_and_blocks(mon
     fd_z = (smoothed(q.detach(), z.detach() + e) - smoothed(q.detach(), z.detach() - e)) / (2 * h)
     assert abs(float(g_q) - float(fd_q)) <= 1e-6 * max(1.0, abs(float(fd_q)))
     assert abs(float(g_z[1]) - float(fd_z)) <= 1e-6 * max(1.0, abs(float(fd_z)))
+
+
+@pytest.mark.parametrize("groups", ["one", "several"])
+def test_tracks_smoothed_together_equal_each_chains_batch_posterior(groups, monkeypatch):
+    """``rts_smooth_batch``: chains of different lengths, key counts, one node only and a change of
+    frame, smoothed together, each equal to its own dense batch posterior (and, taken apart in
+    groups of at most two tracks' keys, the same)."""
+    from flowins.filter import smoother
+    from flowins.filter.smoother import rts_smooth_batch
+
+    gen = torch.Generator().manual_seed(23)
+    D = 4
+    chains = []
+    for runs in ((2, 0, 5), (0,), (1, 1, 1, 1, 1, 1, 1), (9,)):
+        lc = LinearChain(torch.randn(D, generator=gen, dtype=F64), random_spd(gen, D))
+        for run_length in runs:
+            for _ in range(run_length):
+                lc.predict(torch.eye(D, dtype=F64) + 0.1 * torch.randn(D, D, generator=gen, dtype=F64),
+                           random_spd(gen, D, scale=0.02))
+            H = torch.randn(2, D, generator=gen, dtype=F64)
+            lc.measure(H, torch.randn(2, generator=gen, dtype=F64), random_spd(gen, 2, scale=0.2))
+        chains.append(lc)
+    tracks = [lc.chain.finish() for lc in chains]
+    assert sorted(int(smoother._key_nodes(t).sum()) for t in tracks) == [1, 1, 2, 7]  # unequal key counts (one track of one node)
+    if groups == "several":
+        monkeypatch.setattr(smoother, "_BACKWARD_BYTES", 2 * 8 * D * D * 8)
+    smoothed = rts_smooth_batch(tracks, normalize=False)
+    for lc, track, got in zip(chains, tracks, smoothed):
+        mean_true, cov_true, _, _ = lc.batch_posterior()
+        assert got.node_mean.shape == (lc.J, D)
+        assert_close_scaled(got.node_mean, mean_true, 1e-8)
+        assert_close_scaled(got.node_cov, cov_true, 1e-8)
+        alone = rts_smooth(track, normalize=False)
+        assert_close_scaled(got.node_cov, alone.node_cov, 1e-12)
+    with pytest.raises(ValueError, match="differ in size"):
+        rts_smooth_batch([tracks[0], LinearChain(torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64)).chain.finish()])

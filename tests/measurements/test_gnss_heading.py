@@ -12,6 +12,7 @@ from flowins.measurements.gnss_heading import (
     fit_from_record,
     fit_record,
     fit_heading,
+    fit_heading_batch,
     heading_jacobian,
     heading_noise,
     heading_transform,
@@ -76,6 +77,36 @@ def test_fit_heading_leaves_out_a_multipath_fix_and_a_still_track_has_no_heading
     assert math.isinf(float(still.sigma_rad))
     with pytest.raises(ValueError, match="at least 2"):
         fit_heading(track[:1], fixes[:1], torch.ones(1, dtype=F64))
+
+
+def test_sets_of_fixes_fitted_together_are_each_fitted_as_alone():
+    """``fit_heading_batch``: sets of 20, 6 and 5 fixes (one with a multipath fix, one a still
+    track), padded to 20 with far-off rows, give each set's own fit, its outlier left out, as
+    :func:`fit_heading` on that set alone; the padding is never used."""
+    gen = torch.Generator().manual_seed(9)
+    track = torch.cumsum(torch.full((20, 2), 1.0, dtype=F64) + torch.randn(20, 2, generator=gen, dtype=F64), 0)
+    fixes = (rotation_2d(torch.tensor(0.4, dtype=F64)) @ track.unsqueeze(-1)).squeeze(-1)
+    fixes = fixes + 0.5 * torch.randn(20, 2, generator=gen, dtype=F64)
+    fixes[3] += torch.tensor([0.0, 30.0], dtype=F64)
+    var = 0.25 + torch.rand(20, generator=gen, dtype=F64)
+    sets = [(track, fixes, var), (track[8:14], fixes[8:14], var[8:14]),
+            (torch.zeros(5, 2, dtype=F64), fixes[:5], var[:5])]
+    far = lambda x, n: torch.cat((x, torch.full((20 - n, *x.shape[1:]), 1e6, dtype=F64)))
+    batch = fit_heading_batch(torch.stack([far(t, len(t)) for t, _, _ in sets]),
+                              torch.stack([far(f, len(f)) for _, f, _ in sets]),
+                              torch.stack([far(v, len(v)) for *_, v in sets]), [len(t) for t, _, _ in sets])
+    for k, (t, f, v) in enumerate(sets):
+        alone = fit_heading(t, f, v)
+        n = len(t)
+        assert torch.equal(batch.used[k, :n], alone.used) and not bool(batch.used[k, n:].any())
+        for got, want in zip(batch[:-1], alone[:-1]):
+            if torch.isinf(want).all():
+                assert torch.isinf(got[k]).all()
+            else:
+                torch.testing.assert_close(got[k], want, rtol=1e-12, atol=1e-12)
+    assert not bool(batch.used[0, 3]) and math.isinf(float(batch.sigma_rad[2]))
+    with pytest.raises(ValueError, match="at least 2"):
+        fit_heading_batch(track[None, :1], fixes[None, :1], var[None, :1], [1])
 
 
 def _fit(psi=0.7, c_p=(1.0, 2.0), c_g=(-3.0, 5.0), sigma=0.1, var=4.0) -> HeadingFit:
@@ -217,6 +248,34 @@ def test_the_smoothers_second_pass_uses_the_held_fixes(seed, wrong_heading_walk)
     assert two < 0.6 * one, (two, one)
     assert torch.equal(results[True].filter.node_mean, results[False].filter.node_mean)
     assert torch.isfinite(results[True].smoother.node_cov).all()
+
+
+def test_runs_aligned_in_one_batch_equal_each_run_alone(wrong_heading_walk, monkeypatch):
+    """Two walks of different lengths, the yaw 2 rad off, in one batched pass: their held fixes
+    are held, fitted (together) and set each run's heading as when the run is alone (the same
+    log, the same alignment), and the filter and smoother tracks agree to rounding."""
+    from flowins.measurements import gnss
+    from flowins.navigation import navigate, navigate_batch
+
+    fitted = []
+
+    def spy(filter_xy, *args, **kwargs):
+        fitted.append(filter_xy.shape[0])
+        return fit_heading_batch(filter_xy, *args, **kwargs)
+
+    monkeypatch.setattr(gnss, "fit_heading_batch", spy)
+    made = [wrong_heading_walk(2, 90.0), wrong_heading_walk(4, 75.0)]
+    config = made[0][2]
+    together = navigate_batch([run for _, run, _ in made], config=config)
+    assert max(fitted) == 2  # both runs' held fixes in one fit
+    for (_, run, _), got in zip(made, together):
+        alone = navigate(run, config=config)
+        kinds = [(e["t_s"], e.get("kind"), e.get("status")) for e in alone.filter.log]
+        assert [(e["t_s"], e.get("kind"), e.get("status")) for e in got.filter.log] == kinds
+        assert any(e.get("status") == "aligned" for e in alone.filter.log)
+        for name in ("node_mean", "node_cov"):
+            torch.testing.assert_close(getattr(got.filter, name), getattr(alone.filter, name), rtol=1e-9, atol=1e-8)
+        torch.testing.assert_close(got.smoother.node_mean, alone.smoother.node_mean, rtol=0, atol=1e-6)
 
 
 def test_giving_up_the_heading_applies_the_fix_that_gives_up_and_every_later_one():

@@ -14,6 +14,7 @@ from flowins.ins.mechanization import ProcessNoise
 from flowins.measurements.vehicle import (
     VehicleConstraint,
     VehicleSettings,
+    VehicleUpdate,
     body_velocity_jacobians,
     platform_streams,
     vehicle_events,
@@ -94,6 +95,44 @@ def test_the_constraint_keeps_a_car_on_its_road_through_a_gnss_outage():
     assert outage_error(by_platform) == pytest.approx(outage_error(held), rel=1e-9)
     none = navigate(NavigationRun(seq.imu, seq.gnss), config=auto)
     assert not [x for x in none.filter.log if x.get("kind") == "vehicle"]
+
+
+def test_cars_constrained_in_one_batch_equal_each_car_alone():
+    """The drive cut to 120 s and 80 s in one batched pass: the constraint's updates act on both
+    rows at once, and each row's log and track are the run's alone (to rounding)."""
+    from flowins.data.streams import GnssStream, ImuStream
+    from flowins.navigation import navigate_batch
+
+    e = AUTOMOTIVE_IMU
+    config = NavigationConfig(noise=ProcessNoise(acc_noise=e.acc_noise, gyro_noise=e.gyro_noise),
+                              measurements={"vehicle": VehicleSettings(mode="on")})
+    seq = drive()
+    runs = []
+    for end_s in (120.0, 80.0):
+        i, g = seq.imu.t_s <= end_s, seq.gnss.t_s <= end_s
+        imu = ImuStream(seq.imu.t_s[i], seq.imu.acc_mps2[i], seq.imu.gyro_rps[i], name=seq.imu.name)
+        gnss = GnssStream(seq.gnss.t_s[g], seq.gnss.lat_deg[g], seq.gnss.lon_deg[g], seq.gnss.alt_m[g],
+                          seq.gnss.h_acc_m[g], seq.gnss.v_acc_m[g], name=seq.gnss.name)
+        runs.append(NavigationRun(imu, gnss))
+    sizes = []
+    batch_update = VehicleUpdate.apply_batch.__func__
+
+    def spy(cls, chain, rows, events):
+        sizes.append(len(rows))
+        return batch_update(cls, chain, rows, events)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(VehicleUpdate, "apply_batch", classmethod(spy))
+        together = navigate_batch(runs, config=config)
+    assert max(sizes) == 2
+    for run, got in zip(runs, together):
+        alone = navigate(run, config=config)
+        assert [(x["t_s"], x.get("kind")) for x in got.filter.log] == [(x["t_s"], x.get("kind")) for x in alone.filter.log]
+        vehicle = [x for x in alone.filter.log if x.get("kind") == "vehicle"]
+        assert len(vehicle) > 100
+        got_vehicle = [x for x in got.filter.log if x.get("kind") == "vehicle"]
+        assert [x["nis"] for x in got_vehicle] == pytest.approx([x["nis"] for x in vehicle], rel=1e-6, abs=1e-9)
+        torch.testing.assert_close(got.filter.node_mean, alone.filter.node_mean, rtol=1e-9, atol=1e-8)
 
 
 def test_the_gradient_reaches_the_constraint_sigmas_as_finite_differences_say():
