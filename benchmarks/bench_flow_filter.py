@@ -168,9 +168,11 @@ def makes_view(func, args, out) -> bool:
     return result.untyped_storage().data_ptr() == source.untyped_storage().data_ptr()
 
 
-def count_ops(imu, gnss, pairs, camera, config) -> None:
+def count_ops(imu, gnss, pairs, camera, config, runs=None) -> None:
     """PyTorch operations per flow frame (dispatcher calls, views apart: :func:`makes_view`), in
-    all and per stage (the innermost stage running): what the per-operation overhead multiplies."""
+    all and per stage (the innermost stage running): what the per-operation overhead multiplies.
+    With ``runs`` (a batch over the same frames) also the batch's operations per frame: on a GPU
+    each is a kernel launch, so what a batch adds per run is what a batch costs per run there."""
     from torch.utils._python_dispatch import TorchDispatchMode
 
     stack: list[str] = []
@@ -191,6 +193,13 @@ def count_ops(imu, gnss, pairs, camera, config) -> None:
     for name in [name for _, name in STAGES] + ["the rest"]:
         c = counts.get(name, {"operations": 0, "views": 0})
         print(f"  {name:18s} {c['operations'] / n:5.0f} operations {c['views'] / n:5.0f} views")
+    if runs:
+        counts.clear()
+        with stages_wrapped(stack, {}), Count(), torch.inference_mode():
+            navigate_batch(runs, config=config)
+        batch_ops = sum(c["operations"] for c in counts.values())
+        print(f"a batch of {len(runs)} over the same frames: {batch_ops / n:.0f} operations per frame, "
+              f"{(batch_ops - ops) / n / max(1, len(runs) - 1):.1f} more per frame for each run after the first")
 
 
 def profile(imu, gnss, pairs, camera, config, runs=None) -> None:
@@ -275,7 +284,9 @@ def main() -> None:
     if args.breakdown_s > 0:
         breakdown(*crop(rec, pairs, args.breakdown_s), FlowCamera.from_sequence(rec.sequence), config)
     if args.count_ops_s > 0:
-        count_ops(*crop(rec, pairs, args.count_ops_s), FlowCamera.from_sequence(rec.sequence), config)
+        camera = FlowCamera.from_sequence(rec.sequence)
+        same = batch_runs(rec, pairs, camera, args.batch, end_s=args.count_ops_s, step_s=0.0) if args.batch > 1 else None
+        count_ops(*crop(rec, pairs, args.count_ops_s), camera, config, same)
     if args.profile_s > 0:
         camera = FlowCamera.from_sequence(rec.sequence)
         short = batch_runs(rec, pairs, camera, args.batch, end_s=args.profile_s, step_s=2.0) if args.batch else None
