@@ -173,23 +173,23 @@ def _backward_group(tracks: Sequence[FilterTrack], prepared: Sequence[_Prepared]
     counts = [p.keys.shape[0] for p in prepared]
     K = max(counts)
 
-    def aligned(parts: list[Tensor]) -> Tensor:  # (R, K, ...), each part right-aligned
-        return torch.stack([part if part.shape[0] == K else torch.cat((part.new_zeros(K - part.shape[0], *part.shape[1:]),
-                                                                      part)) for part in parts])
+    def aligned(parts: list[Tensor], length: int) -> Tensor:  # (R, length, ...), each part right-aligned
+        if len(parts) == 1 and parts[0].shape[0] == length:
+            return parts[0].unsqueeze(0)  # one track: no copy
+        return torch.stack([part if part.shape[0] == length else
+                            torch.cat((part.new_zeros(length - part.shape[0], *part.shape[1:]), part)) for part in parts])
 
-    node_mean = aligned([t.node_mean[p.keys] for t, p in zip(tracks, prepared)])
-    node_cov = aligned([t.node_cov[p.keys] for t, p in zip(tracks, prepared)])
-    pred_mean = aligned([t.pred_mean[p.keys] for t, p in zip(tracks, prepared)])
-    pred_cov = aligned([t.pred_cov[p.keys] for t, p in zip(tracks, prepared)])
-    gains = aligned([torch.cat((p.key_gains, p.key_gains.new_zeros(1, *p.key_gains.shape[1:]))) for p in prepared])
-    residual_mean: list[Tensor] = [node_mean[:, -1] - pred_mean[:, -1]]
-    residual_cov: list[Tensor] = [node_cov[:, -1] - pred_cov[:, -1]]
+    # what each key's update changed, m_k - m⁻_k and P_k - P⁻_k: the residuals follow
+    # r_k = (m_k - m⁻_k) + G_k r_next, R_k = (P_k - P⁻_k) + G_k R_next G_kᵀ
+    jump_mean = aligned([t.node_mean[p.keys] - t.pred_mean[p.keys] for t, p in zip(tracks, prepared)], K)
+    jump_cov = aligned([t.node_cov[p.keys] - t.pred_cov[p.keys] for t, p in zip(tracks, prepared)], K)
+    gains = aligned([p.key_gains for p in prepared], K - 1)  # key k's gain at k (the last key has none)
+    residual_mean: list[Tensor] = [jump_mean[:, -1]]
+    residual_cov: list[Tensor] = [jump_cov[:, -1]]
     for i in range(K - 2, -1, -1):
         G = gains[:, i]
-        m_k = node_mean[:, i] + (G @ residual_mean[-1].unsqueeze(-1)).squeeze(-1)
-        P_k = node_cov[:, i] + G @ residual_cov[-1] @ G.transpose(-1, -2)
-        residual_mean.append(m_k - pred_mean[:, i])
-        residual_cov.append(P_k - pred_cov[:, i])
+        residual_mean.append(jump_mean[:, i] + (G @ residual_mean[-1].unsqueeze(-1)).squeeze(-1))
+        residual_cov.append(jump_cov[:, i] + G @ residual_cov[-1] @ G.transpose(-1, -2))
     r_m = torch.stack(residual_mean[::-1], 1)
     r_P = torch.stack(residual_cov[::-1], 1)
     return [(r_m[i, K - n:], r_P[i, K - n:]) for i, n in enumerate(counts)]
