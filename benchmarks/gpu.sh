@@ -15,7 +15,9 @@
 # side by side on an H200 machine's 16 cores finished neither simulation in 590 s, where
 # section 2's alone takes 97 s.
 # GPU_SH_TRAIN_S=N and GPU_SH_BENCH_S=N stop section 6 and section 4 after N s (they print
-# what they measured up to then: section 6 a line per epoch). A section that fails is
+# what they measured up to then: section 6 a line per epoch). GPU_SH_PROFILE_S=N: section 4
+# also prints torch.profiler's table (CPU and CUDA time per operation) of one run and of the
+# batch over the walk's first N s. A section that fails is
 # reported and the others still run; the script then exits with 1, naming the failed sections.
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -91,7 +93,8 @@ s3() {
 s4() {
   section "4. bench_flow_filter.py --device cuda --batch 256 (cached flow; target >= 2000x in all)"
   capped "${GPU_SH_BENCH_S:-0}" python benchmarks/bench_flow_filter.py "${bench_quick[@]}" --device "$device" \
-    --batch "$batch" --repeats 1 --reference-s 0 --breakdown-s 0 --count-ops-s 0 2>&1 | grep --line-buffered -v "^filter:"
+    --batch "$batch" --repeats 1 --reference-s 0 --breakdown-s 0 --count-ops-s 0 --profile-s "${GPU_SH_PROFILE_S:-0}" \
+    2>&1 | grep --line-buffered -v "^filter:"
 }
 
 trainer=gpu
