@@ -147,20 +147,31 @@ def _prepare(track: FilterTrack, c: int) -> _Prepared:
 
 
 #: the most bytes of one (tracks, keys, D, D) tensor the batched backward pass forms at a time
+#: on a CPU; on a GPU a sixteenth of its memory (the pass holds about three such tensors, and
+#: there each step of the recursion waits on kernel launches, so fewer, wider groups pay)
 _BACKWARD_BYTES = 256 << 20
+
+
+def _backward_bytes(device: torch.device) -> int:
+    if device.type == "cuda":
+        return torch.cuda.get_device_properties(device).total_memory // 16
+    return _BACKWARD_BYTES
 
 
 def _backward(tracks: Sequence[FilterTrack], prepared: Sequence[_Prepared]) -> list[tuple[Tensor, Tensor]]:
     """The residuals ``r_k = mˢ_k - m⁻_k`` ``(K, D)``, ``R_k = Pˢ_k - P⁻_k`` ``(K, D, D)`` at every
     key node of each track, by the backward recursion over the key nodes. The tracks go
     together, their keys aligned at their last one (a track with fewer keys is padded in
-    front with zeros, which stay zero), in groups of about :data:`_BACKWARD_BYTES`."""
+    front with zeros, which stay zero), in groups of about :func:`_backward_bytes`."""
     out: list[tuple[Tensor, Tensor]] = []
-    D = tracks[0].node_mean.shape[-1] if tracks else 0
+    if not tracks:
+        return out
+    D = tracks[0].node_mean.shape[-1]
+    budget = _backward_bytes(tracks[0].node_mean.device)
     group: list[int] = []
     for i in range(len(tracks)):
         longest = max([prepared[j].keys.shape[0] for j in group + [i]])
-        if group and (len(group) + 1) * longest * D * D * 8 > _BACKWARD_BYTES:
+        if group and (len(group) + 1) * longest * D * D * 8 > budget:
             out += _backward_group([tracks[j] for j in group], [prepared[j] for j in group])
             group = []
         group.append(i)
