@@ -1,0 +1,104 @@
+"""PyTorch operations of one training step, forward and backward: what a GPU launches per step.
+
+One training step on a window of a simulated walk (seed 1, as ``bench_train_memory.py``: the
+training config's settings, 128 points per frame, soft gates, SpyNet in closed-form dropout,
+its flow cached), counted with a dispatch mode (views apart, as ``bench_flow_filter.py
+--count-ops-s`` counts them), then timed without the count; and the same for the filter alone
+without gradients (what ``navigate`` runs for evaluation) over the same window.
+
+On a GPU each counted operation is a kernel launch. Where the rows of a step are few (a
+training step runs one sequence's windows: ``data.batch_size=1``), a step there costs its
+operations times the GPU's time per operation, whatever the rows' size; this script prints
+the count per frame so that it can be set against that time (``bench_flow_filter.py --device
+cuda`` gives one run's seconds and operations per frame).
+
+    python benchmarks/bench_train_ops.py [--window 20] [--points 128] [--method ins_dense]
+"""
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import hydra
+import torch
+from omegaconf import OmegaConf
+from torch.utils._python_dispatch import TorchDispatchMode
+
+from bench_flow_filter import makes_view
+from flowins.settings import flow_config, training_setup
+from flowins.training.data import load_training_sequence
+from flowins.training.parameters import FilterParameters
+from flowins.training.unroll import run_window, window_loss
+
+CONFIGS = str(Path(__file__).resolve().parents[1] / "configs")
+
+
+class Count(TorchDispatchMode):
+    """Operations (not views) per phase."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.phase = "forward"
+        self.counts = {"forward": 0, "backward": 0}
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        out = func(*args, **(kwargs or {}))
+        if not makes_view(func, args, out):
+            self.counts[self.phase] += 1
+        return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--window", type=float, default=20.0, help="seconds of the walk (20: the first epochs' windows)")
+    parser.add_argument("--points", type=int, default=128)
+    parser.add_argument("--method", default="ins_dense")
+    args = parser.parse_args()
+    with hydra.initialize_config_dir(config_dir=CONFIGS, version_base="1.3"):
+        cfg = OmegaConf.to_container(hydra.compose("train", overrides=["output_dir=/tmp"]), resolve=True)
+    seq = load_training_sequence({"seed": 1, "duration_s": 60.0}, {**cfg, "flow": flow_config(cfg, moments=True)},
+                                 methods=[args.method])
+    cfg["filter"]["flow"]["n_points"] = args.points
+    setup = training_setup(cfg, [seq], recorded=False)
+    _, start, learn = setup.parameters
+    params = FilterParameters(start, learn, bounds=setup.parameters.bounds)
+    t = seq.imu.t_s
+    i_b = min(int(torch.searchsorted(t, t[0] + args.window)), len(t) - 1)
+    pairs = seq.dense if seq.dense is not None else seq.sparse
+    frames = int((pairs.t2_s <= t[i_b]).sum()) if pairs is not None else 0
+    if frames == 0:
+        raise SystemExit(f"error: --method {args.method}: no flow frames in the window (a flow method is needed)")
+
+    def step(count: Count | None, *, grad: bool) -> float:
+        t0 = time.perf_counter()
+        with torch.set_grad_enabled(grad):
+            config = params.apply(setup.filter.navigation, training=True)  # the parameters' graph, per step
+            result = run_window(seq, args.method, config, (0, i_b), dropout_p=params.value("dropout_p"))
+            loss = window_loss(result.track, seq.truth).loss
+            if grad:
+                if count is not None:
+                    count.phase = "backward"
+                loss.backward()
+        return time.perf_counter() - t0
+
+    rows = {}
+    for name, grad in (("training step", True), ("filter alone", False)):
+        count = Count()
+        with count:
+            step(count, grad=grad)
+        rows[name] = (count.counts, step(None, grad=grad))
+    print(f"{args.method}, a {args.window:.0f} s window ({frames:.0f} frames, {args.points} points each), the CPU with "
+          f"{torch.get_num_threads()} threads")
+    for name, (counts, seconds) in rows.items():
+        total = counts["forward"] + counts["backward"]
+        print(f"{name:14s} {counts['forward'] / frames:6.0f} forward + {counts['backward'] / frames:5.0f} backward "
+              f"operations per frame ({total} in all); {seconds:.2f} s here, {1e6 * seconds / max(1, total):.1f} µs "
+              "per operation")
+    ratio = sum(rows["training step"][0].values()) / max(1, sum(rows["filter alone"][0].values()))
+    print(f"RESULT training_ops_per_frame={sum(rows['training step'][0].values()) / frames:.0f} "
+          f"filter_ops_per_frame={sum(rows['filter alone'][0].values()) / frames:.0f} ratio={ratio:.1f}")
+
+
+if __name__ == "__main__":
+    main()
