@@ -58,7 +58,9 @@ class BatchChain:
     column holds the newest node of every row whose run goes on, so an update replaces
     it without touching the rest. When an event's prediction acts on some rows only, the
     others' newest node moves to the new column (a copy, the old one becomes padding), so
-    that stays true.
+    that stays true. A node's predicted covariance differs from its filtered one only where
+    an update acted: the tracks :meth:`finish` hands over keep it at those nodes alone
+    (:attr:`FilterTrack.updated_pred_cov`), a third less memory than every node's.
     """
 
     def __init__(self, rows: int, *, likelihood: bool = False) -> None:
@@ -79,6 +81,9 @@ class BatchChain:
         self._transition: list[Tensor] = []  # chunks (B, n, 26, 26)
         self._pred_mean: list[Tensor] = []  # chunks (B, n, 26)
         self._pred_cov: list[Tensor] = []
+        #: per row: its columns whose filtered Gaussian an update replaced, each with a view of
+        #: its predicted covariance (elsewhere the prediction is the filtered Gaussian itself)
+        self._updated: list[dict[int, Tensor]] = [{} for _ in range(rows)]
         self._mean: list[Tensor] = []  # chunks; the last is (B, 1, 26)
         self._cov: list[Tensor] = []
         self._finished = False
@@ -146,6 +151,9 @@ class BatchChain:
         """Replace the newest filtered Gaussian of the rows ``rows`` by ``mean`` ``(r, 26)``,
         ``cov`` ``(r, 26, 26)``; ``infos[i]`` (when not empty) goes to row ``rows[i]``'s log."""
         self._check_current(rows)
+        column, predicted = self._count - 1, self._pred_cov[-1]
+        for i, b in enumerate(rows):
+            self._updated[b].setdefault(column, predicted[b, -1])
         if list(rows) == list(range(self.rows)):
             self._mean[-1], self._cov[-1] = mean.unsqueeze(1), cov.unsqueeze(1)
         else:
@@ -198,7 +206,10 @@ class BatchChain:
                 self._columns[row].append(column)
                 self.t_s[row].append(self.t_s[row][-1])
             elif self._current[row]:
+                old = self._columns[row][-1]
                 self._columns[row][-1] = column
+                if old in self._updated[row]:  # the updated node moves, with its prediction
+                    self._updated[row][column] = self._updated[row].pop(old)
         self._append(*(c.unsqueeze(1) for c in columns))
         self.log_rows(rows, infos)
 
@@ -210,20 +221,36 @@ class BatchChain:
         if self._finished:
             raise RuntimeError("BatchChain.finish: the chain is finished already (it hands its nodes over once)")
         self._finished = True
+        # the predicted covariances of the updated nodes only (a copy: the chunks they view go)
+        updated = []
+        for b in range(self.rows):
+            columns = sorted(self._updated[b])
+            mask = torch.zeros(len(self._columns[b]), dtype=torch.bool)
+            if columns:
+                own, wanted = torch.tensor(self._columns[b]), torch.tensor(columns)
+                where = torch.searchsorted(own, wanted)
+                if not torch.equal(own[where.clamp(max=own.shape[0] - 1)], wanted):
+                    raise RuntimeError(f"BatchChain.finish: row {b} has updated columns that are not its nodes")
+                mask[where] = True
+            covs = [self._updated[b][c] for c in columns]
+            updated.append((mask, torch.stack(covs) if covs else self._cov[-1][b, :0].clone()))
+            self._updated[b] = {}
+        self._pred_cov = self._pred_cov[-1:]  # the rest is held by no one now
         own = []
-        for name in ("_transition", "_pred_mean", "_pred_cov", "_mean", "_cov"):
+        for name in ("_transition", "_pred_mean", "_mean", "_cov"):
             chunks = getattr(self, name)
             own.append(self._own_columns(chunks))
             setattr(self, name, chunks[-1:])
         tracks = []
         for b in range(self.rows):
-            transition, pred_mean, pred_cov, mean, cov = (part[b] for part in own)
+            transition, pred_mean, mean, cov = (part[b] for part in own)
+            mask, updated_pred_cov = updated[b]
             nll = (torch.stack(self._nll[b]).sum() if self._nll[b] else mean.new_zeros(())) if self.likelihood else None
             count = float(torch.stack(self._nll_count[b]).sum()) if self._nll_count[b] else 0.0
             tracks.append(FilterTrack(t_s=torch.tensor(self.t_s[b], dtype=torch.float64), transition=transition,
-                                      pred_mean=pred_mean, pred_cov=pred_cov, node_mean=mean, node_cov=cov,
-                                      log=self.logs[b], frame_changes=self.frame_changes[b], nll=nll,
-                                      nll_count=count))
+                                      pred_mean=pred_mean, updated=mask.to(mean.device), updated_pred_cov=updated_pred_cov,
+                                      node_mean=mean, node_cov=cov, log=self.logs[b],
+                                      frame_changes=self.frame_changes[b], nll=nll, nll_count=count))
         return tracks
 
     def _own_columns(self, chunks: list[Tensor]) -> list[Tensor]:
@@ -379,7 +406,10 @@ class FilterTrack(_NodeOutputs):
     t_s: Tensor  # (J,) float64
     transition: Tensor  # (J, 26, 26) Φ_j from node j-1 (identity for j = 0)
     pred_mean: Tensor  # (J, 26)
-    pred_cov: Tensor  # (J, 26, 26)
+    #: ``(J,)`` bool: the nodes whose filtered Gaussian an update replaced; at every other node
+    #: the prediction is the filtered Gaussian
+    updated: Tensor
+    updated_pred_cov: Tensor  # (U, 26, 26) the predicted covariances of the U updated nodes, in order
     node_mean: Tensor  # (J, 26) filtered
     node_cov: Tensor  # (J, 26, 26) filtered
     log: list[dict[str, Any]]
@@ -391,6 +421,26 @@ class FilterTrack(_NodeOutputs):
     #: measurements; None unless the run asked for it (``run_filters(likelihood=True)``)
     nll: Tensor | None = None
     nll_count: float = 0.0
+
+    @property
+    def pred_cov(self) -> Tensor:
+        """Predicted covariances ``(J, 26, 26)``: the filtered ones, but the prediction where an
+        update acted (built on each call: the chain keeps only those)."""
+        index = torch.nonzero(self.updated).squeeze(-1)
+        return self.node_cov.index_copy(0, index, self.updated_pred_cov) if index.numel() else self.node_cov.clone()
+
+    def key_nodes(self) -> Tensor:
+        """``(J,)`` bool: the updated nodes and the last, where the RTS smoother's recursion runs
+        (:func:`~flowins.filter.smoother.rts_smooth`)."""
+        keys = self.updated.clone()
+        keys[-1] = True
+        return keys
+
+    def key_pred_cov(self) -> Tensor:
+        """``pred_cov`` at :meth:`key_nodes` ``(K, 26, 26)``, without forming ``pred_cov``."""
+        if bool(self.updated[-1]):
+            return self.updated_pred_cov
+        return torch.cat((self.updated_pred_cov, self.node_cov[-1:]))
 
     def in_final_frame(self, *, marginal: int | None = None) -> NodeTrack:
         """The filtered nodes with those before each change of frame re-expressed after it

@@ -37,13 +37,6 @@ def rts_gains(track: FilterTrack) -> Tensor:
     return torch.linalg.solve(P_pred, cross).transpose(-1, -2)
 
 
-def _key_nodes(track: FilterTrack) -> Tensor:
-    """Nodes whose filtered Gaussian differs from their prediction (an update acted), and the last."""
-    changed = (track.node_mean != track.pred_mean).any(-1) | (track.node_cov != track.pred_cov).flatten(1).any(-1)
-    changed[-1] = True
-    return changed
-
-
 def _transitions_to_next_key(transition: Tensor, next_key: Tensor) -> Tensor:
     """``Φ_{j→k(j)}`` ``(J-1, D, D)``: for each node ``j < J-1`` the transition to the first key
     node ``k(j) > j`` (``next_key`` ``(J-1,)``), the product ``Φ_k ⋯ Φ_{j+1}``.
@@ -113,6 +106,7 @@ class _Prepared(NamedTuple):
     """One track's gains and key nodes, ready for the backward pass over its keys."""
 
     keys: Tensor  # (K,) the key nodes
+    key_pred_cov: Tensor  # (K, D, D) their predicted covariances
     slot: Tensor  # (J-1,) each node's next key (an index into keys)
     blocks: list[tuple[int, int]]
     gains: list[Tensor]  # per block: 𝒢_j[:c] (nodes, c, D)
@@ -123,9 +117,10 @@ def _prepare(track: FilterTrack, c: int) -> _Prepared:
     """The gains of every node of ``track`` (``J > 1`` nodes) to its next key node."""
     J, D = track.node_mean.shape[-2:]
     node_cov = track.node_cov
-    keys = torch.nonzero(_key_nodes(track)).squeeze(-1)
+    keys = torch.nonzero(track.key_nodes()).squeeze(-1)
     slot = torch.searchsorted(keys, torch.arange(J - 1, device=keys.device), right=True)  # each node's next key
-    LU, pivots = _factor_predicted(symmetrize(track.pred_cov[keys]), track.t_s[keys.to(track.t_s.device)])
+    key_pred_cov = track.key_pred_cov()
+    LU, pivots = _factor_predicted(symmetrize(key_pred_cov), track.t_s[keys.to(track.t_s.device)])
     # the nodes in blocks of whole runs (each ends at a key node), so that the (nodes, D, D)
     # products below stay small
     blocks = _node_blocks(keys, J, D)
@@ -143,7 +138,7 @@ def _prepare(track: FilterTrack, c: int) -> _Prepared:
             key_slot = slot[inner]
             key_gains.append(torch.linalg.lu_solve(LU[key_slot], pivots[key_slot],
                                                    to_key[inner - a] @ node_cov[inner]).transpose(-1, -2))
-    return _Prepared(keys, slot, blocks, gains, torch.cat(key_gains))
+    return _Prepared(keys, key_pred_cov, slot, blocks, gains, torch.cat(key_gains))
 
 
 #: the most bytes of one (tracks, keys, D, D) tensor the batched backward pass forms at a time
@@ -193,7 +188,7 @@ def _backward_group(tracks: Sequence[FilterTrack], prepared: Sequence[_Prepared]
     # what each key's update changed, m_k - m⁻_k and P_k - P⁻_k: the residuals follow
     # r_k = (m_k - m⁻_k) + G_k r_next, R_k = (P_k - P⁻_k) + G_k R_next G_kᵀ
     jump_mean = aligned([t.node_mean[p.keys] - t.pred_mean[p.keys] for t, p in zip(tracks, prepared)], K)
-    jump_cov = aligned([t.node_cov[p.keys] - t.pred_cov[p.keys] for t, p in zip(tracks, prepared)], K)
+    jump_cov = aligned([t.node_cov[p.keys] - p.key_pred_cov for t, p in zip(tracks, prepared)], K)
     gains = aligned([p.key_gains for p in prepared], K - 1)  # key k's gain at k (the last key has none)
     residual_mean: list[Tensor] = [jump_mean[:, -1]]
     residual_cov: list[Tensor] = [jump_cov[:, -1]]

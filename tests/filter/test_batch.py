@@ -42,6 +42,13 @@ def _run(seed: int, duration_s: float, rate_hz: float, gnss_every_s: float, *, a
 
 def _assert_same(batched, alone):
     assert torch.equal(batched.t_s, alone.t_s)
+    assert torch.equal(batched.updated, alone.updated)
+    # the chain keeps predictions only where an update acted: everywhere else the filtered
+    # mean is the predicted one, exactly (a node an update moved is flagged, wherever it moves)
+    for track in (batched, alone):
+        kept = ~track.updated
+        assert torch.equal(track.node_mean[kept], track.pred_mean[kept])
+        assert int(track.updated.sum()) == track.updated_pred_cov.shape[0]
     assert len(batched.log) == len(alone.log)
     for a, b in zip(batched.log, alone.log):
         assert a.keys() == b.keys() and a["t_s"] == b["t_s"]

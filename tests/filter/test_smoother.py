@@ -485,7 +485,7 @@ def test_tracks_smoothed_together_equal_each_chains_batch_posterior(groups, monk
             lc.measure(H, torch.randn(2, generator=gen, dtype=F64), random_spd(gen, 2, scale=0.2))
         chains.append(lc)
     tracks = [lc.chain.finish() for lc in chains]
-    assert sorted(int(smoother._key_nodes(t).sum()) for t in tracks) == [1, 1, 2, 7]  # unequal key counts (one track of one node)
+    assert sorted(int(t.key_nodes().sum()) for t in tracks) == [1, 1, 2, 7]  # unequal key counts (one track of one node)
     if groups == "several":
         monkeypatch.setattr(smoother, "_BACKWARD_BYTES", 2 * 8 * D * D * 8)
     smoothed = rts_smooth_batch(tracks, normalize=False)
