@@ -17,7 +17,9 @@
 # GPU_SH_TRAIN_S=N and GPU_SH_BENCH_S=N stop section 6 and section 4 after N s (they print
 # what they measured up to then: section 6 a line per epoch). GPU_SH_PROFILE_S=N: section 4
 # also prints torch.profiler's table (CPU and CUDA time per operation) of one run and of the
-# batch over the walk's first N s. A section that fails is
+# batch over the walk's first N s. GPU_SH_BENCH_QUICK=1: section 4 on the 60 s walk. One
+# 10-minute call of a 15-minute lease fits GPU_SH_SECTIONS="4 5 6" GPU_SH_BENCH_QUICK=1
+# GPU_SH_PROFILE_S=10 GPU_SH_BENCH_S=120 GPU_SH_TRAIN_S=240 (section 5 took 144 s on an H200). A section that fails is
 # reported and the others still run; the script then exits with 1, naming the failed sections.
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -30,6 +32,9 @@ quick=()
 bench_quick=()
 batch=256
 epochs=()
+# the benchmark on the 60 s walk: its simulation, flow and warm-up took about 35 s on an H200,
+# where the 300 s walk's simulation alone takes 97 s
+[ "${GPU_SH_BENCH_QUICK:-0}" = 1 ] && bench_quick=(--quick)
 if [ "${GPU_SH_QUICK:-0}" = 1 ]; then
   quick=(quick=true)
   bench_quick=(--quick)

@@ -58,3 +58,14 @@ def test_an_unknown_section_is_refused_before_any_work(tmp_path):
     assert done.returncode == 1
     assert "error: GPU_SH_SECTIONS: no section 9 (1 to 6)" in done.stdout
     assert calls == []  # not even the machine's check
+
+
+def test_the_benchmark_alone_on_the_short_walk_with_its_profile(tmp_path):
+    """``GPU_SH_BENCH_QUICK=1`` runs section 4 on the 60 s walk, ``GPU_SH_PROFILE_S`` hands the
+    profile's seconds to it; without them, the 300 s walk and no profile."""
+    _, calls = _run(tmp_path, "4", GPU_SH_BENCH_QUICK="1", GPU_SH_PROFILE_S="10")
+    (bench,) = [c for c in calls if "bench_flow_filter.py" in c]
+    assert " --quick " in f"{bench} " and "--profile-s 10" in bench, bench
+    _, calls = _run(tmp_path, "4")
+    (bench,) = [c for c in calls if "bench_flow_filter.py" in c]
+    assert "--quick" not in bench and "--profile-s 0" in bench, bench
