@@ -10,7 +10,10 @@ Lucas-Kanade with ids kept across frames; ``tracks``: the simulator's ``tracks.c
 two-view flow pairs are read from the cache that ``python evaluate.py`` fills (computed here
 if missing). The last line is ``RESULT window=<N> two_view=<s> multi_view=<s> ratio=<x>``.
 
-    python benchmarks/bench_walk_tracks.py [--window 10] [--sparse lk|tracks] [--repeats 3] [--quick]
+``--stages`` also prints, per update, the median seconds of each pass spent handing the chain's
+nodes over (``BatchChain.finish``) and in the smoother (``rts_smooth_batch``).
+
+    python benchmarks/bench_walk_tracks.py [--window 10] [--sparse lk|tracks] [--repeats 3] [--quick] [--stages]
 """
 from __future__ import annotations
 
@@ -23,7 +26,9 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
+import flowins.navigation as navigation
 from flowins.data.load import load_recording
+from flowins.filter.chain import BatchChain
 from flowins.evaluation.metrics import trajectory_errors
 from flowins.flow.load import load_flow, load_tracks
 from flowins.jobs.evaluate import _runs
@@ -58,13 +63,32 @@ def rmse(rec, results) -> str:
     return " / ".join(out[:2]) + " m, " + " / ".join(out[2:]) + " m"
 
 
+def timed(owner, name: str, spent: dict[str, float]) -> None:
+    """Wrap ``owner.name`` (where its callers look it up) so that its wall time adds to ``spent[name]``."""
+    original = getattr(owner, name)
+
+    def wrapped(*args, **kwargs):
+        t0 = time.perf_counter()
+        try:
+            return original(*args, **kwargs)
+        finally:
+            spent[name] = spent.get(name, 0.0) + time.perf_counter() - t0
+
+    setattr(owner, name, wrapped)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--window", type=int, default=10, help="cloned poses of the multi-view update (>= 1)")
     parser.add_argument("--sparse", choices=["lk", "tracks"], default="lk")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--quick", action="store_true", help="the 60 s walk instead of the 300 s one")
+    parser.add_argument("--stages", action="store_true", help="time BatchChain.finish and the smoother in each pass")
     args = parser.parse_args()
+    spent: dict[str, float] = {}
+    if args.stages:
+        timed(BatchChain, "finish", spent)
+        timed(navigation, "rts_smooth_batch", spent)
     if args.window < 1:
         raise SystemExit(f"error: --window must be >= 1, got {args.window}")
     variants = {"two-view": setup(0, args.sparse, args.quick), f"window {args.window}": setup(args.window, args.sparse, args.quick)}
@@ -73,18 +97,25 @@ def main() -> None:
     print(f"{rec.name}: {float(rec.imu.t_s[-1] - rec.imu.t_s[0]):.0f} s, {frames} camera frames, sparse={args.sparse}, "
           f"rows {' + '.join(ROWS)} in one batched pass (filter + smoother), the CPU with {torch.get_num_threads()} threads")
     times: dict[str, list[float]] = {name: [] for name in variants}
+    stages: dict[str, dict[str, list[float]]] = {name: {} for name in variants}
     scores = {}
     for _ in range(args.repeats):
         for name, (rec_v, runs, config) in variants.items():
+            spent.clear()
             t0 = time.perf_counter()
             results = navigate_batch(runs, config=config)
             times[name].append(time.perf_counter() - t0)
+            for stage, seconds in spent.items():
+                stages[name].setdefault(stage, []).append(seconds)
             scores[name] = rmse(rec_v, results)
     print(f"{'update':<12} {'wall (median)':>14} {'ms/frame':>9}   filter / smoother RMSE ({ROWS[0]}, {ROWS[1]})")
     median = {name: statistics.median(t) for name, t in times.items()}
     for name in variants:
         print(f"{name:<12} {median[name]:12.2f} s {1e3 * median[name] / max(1, frames):9.2f}   {scores[name]}"
               f"   (runs: {', '.join(f'{t:.1f}' for t in times[name])} s)")
+    for name in variants if args.stages else ():
+        print(f"{name:<12} " + ", ".join(f"{stage} {statistics.median(t):.2f} s (runs: "
+                                         f"{', '.join(f'{x:.2f}' for x in t)})" for stage, t in stages[name].items()))
     ratio = median[f"window {args.window}"] / median["two-view"]
     print(f"window {args.window} / two-view per frame: {ratio:.2f}x (target <= 2x)")
     print(f"RESULT window={args.window} two_view={median['two-view']:.2f} multi_view={median[f'window {args.window}']:.2f} "
