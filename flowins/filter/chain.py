@@ -152,7 +152,7 @@ class BatchChain:
         ``cov`` ``(r, 26, 26)``; ``infos[i]`` (when not empty) goes to row ``rows[i]``'s log."""
         self._check_current(rows)
         column, predicted = self._count - 1, self._pred_cov[-1]
-        for i, b in enumerate(rows):
+        for b in rows:
             self._updated[b].setdefault(column, predicted[b, -1])
         if list(rows) == list(range(self.rows)):
             self._mean[-1], self._cov[-1] = mean.unsqueeze(1), cov.unsqueeze(1)

@@ -162,12 +162,14 @@ def _backward(tracks: Sequence[FilterTrack], prepared: Sequence[_Prepared]) -> l
     D = tracks[0].node_mean.shape[-1]
     budget = _backward_bytes(tracks[0].node_mean.device)
     group: list[int] = []
+    longest = 0  # the most keys of a track in the group
     for i in range(len(tracks)):
-        longest = max([prepared[j].keys.shape[0] for j in group + [i]])
-        if group and (len(group) + 1) * longest * D * D * 8 > budget:
+        keys = prepared[i].keys.shape[0]
+        if group and (len(group) + 1) * max(longest, keys) * D * D * 8 > budget:
             out += _backward_group([tracks[j] for j in group], [prepared[j] for j in group])
-            group = []
+            group, longest = [], 0
         group.append(i)
+        longest = max(longest, keys)
     if group:
         out += _backward_group([tracks[j] for j in group], [prepared[j] for j in group])
     return out
