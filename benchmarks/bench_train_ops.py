@@ -12,7 +12,12 @@ operations times the GPU's time per operation, whatever the rows' size; this scr
 the count per frame so that it can be set against that time (``bench_flow_filter.py --device
 cuda`` gives one run's seconds and operations per frame).
 
+``--device cuda`` runs the steps on the GPU, and ``--rows 2,8,32`` also times a step whose
+batched filter runs that many rows (the window repeated, as ``data.batch_size`` sequences times the
+methods make rows): the time per row says how much a larger batch would gain there.
+
     python benchmarks/bench_train_ops.py [--window 20] [--points 128] [--method ins_dense]
+                                         [--device cpu|cuda] [--rows 2,8,32]
 """
 from __future__ import annotations
 
@@ -29,7 +34,8 @@ from bench_flow_filter import makes_view
 from flowins.settings import flow_config, training_setup
 from flowins.training.data import load_training_sequence
 from flowins.training.parameters import FilterParameters
-from flowins.training.unroll import run_window, window_loss
+from flowins.config import check_device
+from flowins.training.unroll import run_window, run_windows, window_loss
 
 CONFIGS = str(Path(__file__).resolve().parents[1] / "configs")
 
@@ -54,7 +60,16 @@ def main() -> None:
     parser.add_argument("--window", type=float, default=20.0, help="seconds of the walk (20: the first epochs' windows)")
     parser.add_argument("--points", type=int, default=128)
     parser.add_argument("--method", default="ins_dense")
+    parser.add_argument("--device", default="cpu", help="where the filter's unroll runs: cpu | cuda | cuda:N")
+    parser.add_argument("--rows", default="", help="comma-separated row counts whose batched step is also timed")
     args = parser.parse_args()
+    device = check_device(args.device, "--device")
+    try:
+        row_counts = [int(r) for r in args.rows.split(",") if r.strip()]
+    except ValueError:
+        raise SystemExit(f"error: --rows {args.rows!r}: expected comma-separated integers, e.g. 2,8,32") from None
+    if any(r < 1 for r in row_counts):
+        raise SystemExit(f"error: --rows {args.rows!r}: each count must be >= 1")
     with hydra.initialize_config_dir(config_dir=CONFIGS, version_base="1.3"):
         cfg = OmegaConf.to_container(hydra.compose("train", overrides=["output_dir=/tmp"]), resolve=True)
     seq = load_training_sequence({"seed": 1, "duration_s": 60.0}, {**cfg, "flow": flow_config(cfg, moments=True)},
@@ -62,7 +77,7 @@ def main() -> None:
     cfg["filter"]["flow"]["n_points"] = args.points
     setup = training_setup(cfg, [seq], recorded=False)
     _, start, learn = setup.parameters
-    params = FilterParameters(start, learn, bounds=setup.parameters.bounds)
+    params = FilterParameters(start, learn, bounds=setup.parameters.bounds).to(device)
     t = seq.imu.t_s
     i_b = min(int(torch.searchsorted(t, t[0] + args.window)), len(t) - 1)
     pairs = seq.dense if seq.dense is not None else seq.sparse
@@ -70,16 +85,34 @@ def main() -> None:
     if frames == 0:
         raise SystemExit(f"error: --method {args.method}: no flow frames in the window (a flow method is needed)")
 
+    def synchronize() -> None:
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+
     def step(count: Count | None, *, grad: bool) -> float:
+        synchronize()
         t0 = time.perf_counter()
         with torch.set_grad_enabled(grad):
-            config = params.apply(setup.filter.navigation, training=True)  # the parameters' graph, per step
+            config = params.apply(setup.filter.navigation, training=True, device=device)  # the parameters' graph, per step
             result = run_window(seq, args.method, config, (0, i_b), dropout_p=params.value("dropout_p"))
             loss = window_loss(result.track, seq.truth).loss
             if grad:
                 if count is not None:
                     count.phase = "backward"
                 loss.backward()
+        synchronize()
+        return time.perf_counter() - t0
+
+    def batched_step(count: int) -> float:
+        """One training step whose filter runs ``count`` rows (the window repeated)."""
+        synchronize()
+        t0 = time.perf_counter()
+        config = params.apply(setup.filter.navigation, training=True, device=device)
+        results = run_windows([seq] * count, args.method, config, [(0, i_b)] * count,
+                              dropout_p=params.value("dropout_p"))
+        loss = sum(window_loss(r.track, seq.truth).loss for r in results) / count
+        loss.backward()
+        synchronize()
         return time.perf_counter() - t0
 
     rows = {}
@@ -88,13 +121,19 @@ def main() -> None:
         with count:
             step(count, grad=grad)
         rows[name] = (count.counts, step(None, grad=grad))
-    print(f"{args.method}, a {args.window:.0f} s window ({frames:.0f} frames, {args.points} points each), the CPU with "
-          f"{torch.get_num_threads()} threads")
+    where = (torch.cuda.get_device_name(device) if device.type == "cuda"
+             else f"the CPU with {torch.get_num_threads()} threads")
+    print(f"{args.method}, a {args.window:.0f} s window ({frames:.0f} frames, {args.points} points each), {where}")
     for name, (counts, seconds) in rows.items():
         total = counts["forward"] + counts["backward"]
         print(f"{name:14s} {counts['forward'] / frames:6.0f} forward + {counts['backward'] / frames:5.0f} backward "
               f"operations per frame ({total} in all); {seconds:.2f} s here, {1e6 * seconds / max(1, total):.1f} µs "
               "per operation")
+    for count in row_counts:
+        batched_step(count)  # warm-up (the GPU's kernels and memory for this shape)
+        seconds = batched_step(count)
+        print(f"a step of {count:3d} rows: {seconds:6.2f} s, {seconds / count:6.3f} s per row "
+              f"({seconds / rows['training step'][1]:.2f}x one row's step)")
     ratio = sum(rows["training step"][0].values()) / max(1, sum(rows["filter alone"][0].values()))
     print(f"RESULT training_ops_per_frame={sum(rows['training step'][0].values()) / frames:.0f} "
           f"filter_ops_per_frame={sum(rows['filter alone'][0].values()) / frames:.0f} ratio={ratio:.1f}")

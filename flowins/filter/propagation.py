@@ -21,6 +21,7 @@ import itertools
 from collections.abc import Sequence
 from typing import NamedTuple
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -195,6 +196,8 @@ def plan_nodes(node_steps: Sequence[Sequence[int]], num_steps: int, *, device=No
     identity steps after its own.
     """
     rows = [_check_nodes(steps, num_steps, allow_empty=True) for steps in node_steps]
+    if len(rows) > 4:  # array arithmetic: 0.2 ms for 256 rows where the lists take 5 ms
+        return _plan_arrays(rows, num_steps, device)
     m = max(len(steps) for steps in rows)
     intervals, node_step, real = [], [], []
     for steps in rows:
@@ -209,6 +212,31 @@ def plan_nodes(node_steps: Sequence[Sequence[int]], num_steps: int, *, device=No
     # one tensor for both (each tensor made from Python numbers is two operations)
     both = torch.tensor([[g + [step] for g, step in zip(rows, steps)] for rows, steps in zip(group, node_step)],
                         device=device)
+    return NodePlan(both[..., :L], both[..., L], real)
+
+
+def _plan_arrays(rows: list[list[int]], num_steps: int, device) -> NodePlan:
+    """:func:`plan_nodes` of checked ``rows`` in NumPy array arithmetic (the same plan)."""
+    B = len(rows)
+    counts = np.fromiter((len(steps) for steps in rows), dtype=np.int64, count=B)
+    m = int(counts.max())
+    steps = np.fromiter(itertools.chain.from_iterable(rows), dtype=np.int64, count=int(counts.sum()))
+    row = np.repeat(np.arange(B), counts)  # each node's row
+    ends = np.cumsum(counts)
+    first = np.zeros(steps.shape[0], dtype=bool)  # a row's first node: its interval starts at step 0
+    first[(ends - counts)[counts > 0]] = True
+    starts = np.where(first, 0, np.concatenate(([0], steps[:-1] + 1)))
+    lengths = steps - starts + 1
+    L = max(1, int(lengths.max(initial=0)))
+    slot = (m - counts)[row] + np.arange(steps.shape[0]) - (ends - counts)[row]  # padding nodes first
+    sentinel = B * num_steps
+    both = np.full((B, m, L + 1), sentinel, dtype=np.int64)
+    both[:, :, L] = -1
+    both[row, slot, L] = steps
+    k = np.arange(L)
+    both[row, slot, :L] = np.where(k < lengths[:, None], row[:, None] * num_steps + starts[:, None] + k, sentinel)
+    real = (np.arange(m) >= (m - counts)[:, None]).tolist()
+    both = torch.from_numpy(both).to(device)
     return NodePlan(both[..., :L], both[..., L], real)
 
 

@@ -16,6 +16,7 @@ filter then draws the information the fixes really hold (``τ = 0``: no change).
 """
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, field
@@ -334,15 +335,20 @@ def _fit_held(chain: BatchChain, rows: Sequence[int], which: list[int], a: Headi
         return {}
     held = [chain.memories[rows[i]]["heading_fixes"] for i in which]
     counts = [len(h) for h in held]
-    N = max(counts)
+    N, pad = max(counts), sum(counts)
+    starts = [0, *itertools.accumulate(counts[:-1])]  # each row's first entry in the flat stack
+    index = torch.tensor([[start + j if j < c else pad for j in range(N)] for start, c in zip(starts, counts)])
 
-    def padded(parts: list[Tensor]) -> Tensor:
-        x = torch.stack(parts)
-        return x if x.shape[0] == N else torch.cat((x, x.new_ones(N - x.shape[0], *x.shape[1:])))
+    def padded(part: int) -> Tensor:
+        """Entry ``part`` of every row's held fixes, ``(R, N, ...)``, a row's missing ones set to
+        one: one stack for all rows (not one per row: on a GPU each is a kernel)."""
+        flat = torch.stack([entry[part] for h in held for entry in h])
+        flat = torch.cat((flat, flat.new_ones(1, *flat.shape[1:])))
+        return flat[index.to(flat.device)]
 
-    filter_xy = torch.stack([padded([p for p, _, _, _ in h]) for h in held])
-    fix_xy = torch.stack([padded([f for _, f, _, _ in h]) for h in held]).to(filter_xy)
-    var = torch.stack([padded([fv for _, _, fv, _ in h]) + padded([xv for *_, xv in h]) for h in held])
+    filter_xy = padded(0)
+    fix_xy = padded(1).to(filter_xy)
+    var = padded(2) + padded(3).to(filter_xy)
     fit = fit_heading_batch(filter_xy, fix_xy, var, counts, outlier_probability=a.outlier_probability)
     sigma = fit.sigma_rad.detach().tolist()
     return {i: HeadingFit(*(part[k] for part in fit[:-1]), fit.used[k, : counts[k]])

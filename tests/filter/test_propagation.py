@@ -43,3 +43,29 @@ def test_bad_node_steps_are_refused(nodes, message):
     with pytest.raises(ValueError, match=message):
         propagate_batched(x0, P0, acc, gyro, dt, torch.tensor(nodes, dtype=torch.long), noise=ProcessNoise(),
                           gravity_mps2=STANDARD_GRAVITY_MPS2)
+
+
+def _naive_plan(node_steps, K):
+    """The plan from its definition: padding nodes first, each interval's steps, then sentinels."""
+    B, m = len(node_steps), max(len(s) for s in node_steps)
+    intervals = [[[]] * (m - len(s)) + [list(range(a, b + 1)) for a, b in zip([0] + [x + 1 for x in s[:-1]], s)]
+                 for s in node_steps]
+    L = max(1, max(len(i) for row in intervals for i in row))
+    group = [[[b * K + k for k in i] + [B * K] * (L - len(i)) for i in row] for b, row in enumerate(intervals)]
+    node_step = [[-1] * (m - len(s)) + list(s) for s in node_steps]
+    real = [[False] * (m - len(s)) + [True] * len(s) for s in node_steps]
+    return torch.tensor(group), torch.tensor(node_step), real
+
+
+@pytest.mark.parametrize("rows", [3, 9, 40])
+def test_node_plans_of_few_and_many_rows_follow_the_definition(rows):
+    from flowins.filter.propagation import plan_nodes
+    gen = torch.Generator().manual_seed(rows)
+    K = 13
+    node_steps = []
+    for b in range(rows):
+        picked = sorted(torch.randperm(K - 1, generator=gen)[: int(torch.randint(0, 4, (1,), generator=gen))].tolist())
+        node_steps.append([] if b % 4 == 1 else picked + [K - 1])  # some rows report nothing
+    group, node_step, real = _naive_plan(node_steps, K)
+    plan = plan_nodes(node_steps, K)
+    assert torch.equal(plan.group, group) and torch.equal(plan.node_step, node_step) and plan.real == real
