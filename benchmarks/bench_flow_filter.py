@@ -207,19 +207,43 @@ def profile(imu, gnss, pairs, camera, config, runs=None) -> None:
     and the batch ``runs`` when given."""
     from torch.profiler import ProfilerActivity, profile as torch_profile
 
+    import cProfile
+    import io
+    import pstats
+
     one = NavigationRun(imu, gnss, flow=pairs, camera=camera)
     for label, call in (("one recording", lambda: navigate(one, config=config)),
                         (f"batch of {len(runs or [])}", lambda: navigate_batch(runs, config=config))):
         if label.startswith("batch") and not runs:
             continue
         call()  # warm-up
+        synchronize(config)
+        start = time.perf_counter()
+        call()
+        synchronize(config)
+        wall = time.perf_counter() - start
         gpu = [ProfilerActivity.CUDA] if config.device.type == "cuda" else []
         with torch_profile(activities=[ProfilerActivity.CPU, *gpu]) as prof:
             call()
-        print(f"profile, {label}:")
+            synchronize(config)
+        averages = prof.key_averages()
+        busy = sum(getattr(e, "self_device_time_total", 0.0) for e in averages) / 1e6
+        print(f"profile, {label}: {wall:.2f} s unprofiled; " + (
+            f"the GPU busy {busy:.2f} s of it (kernels' own time): the rest the host's Python, dispatch and "
+            "launches, and waits on the GPU" if gpu else f"{torch.get_num_threads()} CPU threads"))
         # on a GPU the kernels' own time: what a batch waits on once launches are few
         key = "self_device_time_total" if gpu else "self_cpu_time_total"
-        print(prof.key_averages().table(sort_by=key, row_limit=15 if gpu else 8))
+        print(averages.table(sort_by=key, row_limit=15 if gpu else 8))
+        # the host's side: Python functions by their own time (a long builtin call on a GPU is a wait)
+        host = cProfile.Profile()
+        host.enable()
+        call()
+        synchronize(config)
+        host.disable()
+        text = io.StringIO()
+        pstats.Stats(host, stream=text).sort_stats("tottime").print_stats(20)
+        print(f"profile, {label}, the host's Python by own time:")
+        print(text.getvalue().split("\n\n", 1)[-1].strip() + "\n")
 
 
 def main() -> None:

@@ -72,6 +72,7 @@ def main() -> None:
         raise SystemExit(f"error: --rows {args.rows!r}: each count must be >= 1")
     with hydra.initialize_config_dir(config_dir=CONFIGS, version_base="1.3"):
         cfg = OmegaConf.to_container(hydra.compose("train", overrides=["output_dir=/tmp"]), resolve=True)
+    cfg["flow"]["device"] = str(device)  # the walk's flow on the same device (cached for both)
     seq = load_training_sequence({"seed": 1, "duration_s": 60.0}, {**cfg, "flow": flow_config(cfg, moments=True)},
                                  methods=[args.method])
     cfg["filter"]["flow"]["n_points"] = args.points

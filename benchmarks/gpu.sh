@@ -10,7 +10,7 @@
 # A check of the script itself on a CPU: GPU_SH_DEVICE=cpu GPU_SH_QUICK=1 bash benchmarks/gpu.sh
 # (every section on the CPU, the 60 s walk, a batch of 4, one training epoch; the device
 # tests are skipped there). Its figures mean nothing.
-# GPU_SH_SECTIONS="2 5 3 4 6 1" runs only those sections, in that order (default: all six, in
+# GPU_SH_SECTIONS="2 5 3 4 6 1" runs only those sections, in that order (default: all seven, in
 # order; 3 and 4 need 2's cache, 6 needs 5's). The sections run one at a time: sections 2 and 5
 # side by side on an H200 machine's 16 cores finished neither simulation in 590 s, where
 # section 2's alone takes 97 s.
@@ -19,7 +19,10 @@
 # also prints torch.profiler's table (CPU and CUDA time per operation) of one run and of the
 # batch over the walk's first N s. GPU_SH_BENCH_QUICK=1: section 4 on the 60 s walk. One
 # 10-minute call of a 15-minute lease fits GPU_SH_SECTIONS="4 5 6" GPU_SH_BENCH_QUICK=1
-# GPU_SH_PROFILE_S=10 GPU_SH_BENCH_S=120 GPU_SH_TRAIN_S=240 (section 5 took 144 s on an H200). A section that fails is
+# GPU_SH_PROFILE_S=10 GPU_SH_BENCH_S=120 GPU_SH_TRAIN_S=240 (section 5 took 144 s on an H200). Section 7
+# times one training step of a 20 s window on the GPU with GPU_SH_TRAIN_ROWS rows (default 2,8,32; the
+# default training's step has 2: one sequence, two methods), what a larger data.batch_size would cost
+# per step. A section that fails is
 # reported and the others still run; the script then exits with 1, naming the failed sections.
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -44,9 +47,9 @@ fi
 reference=${1:-benchmarks/table1_cpu.json}
 out=$(mktemp -d)
 started=$SECONDS
-sections=${GPU_SH_SECTIONS:-1 2 3 4 5 6}
+sections=${GPU_SH_SECTIONS:-1 2 3 4 5 6 7}
 for n in $sections; do
-  [[ " 1 2 3 4 5 6 " == *" $n "* ]] || { echo "error: GPU_SH_SECTIONS: no section $n (1 to 6)"; exit 1; }
+  [[ " 1 2 3 4 5 6 7 " == *" $n "* ]] || { echo "error: GPU_SH_SECTIONS: no section $n (1 to 7)"; exit 1; }
 done
 failed=()
 section() { echo; echo "== [$((SECONDS - started)) s] $*"; }
@@ -118,6 +121,12 @@ s6() {
     flow.device="$device" progress=false hydra.run.dir="$out/train" 2>&1 \
     | grep --line-buffered -v "read from the cache" || return  # a line per validation as it ends (grep flushes each line: a capped run still shows them)
   echo "train.py on the GPU: $((SECONDS - t0)) s"
+}
+
+s7() {
+  section "7. a training step as its rows grow (bench_train_ops.py: one 20 s window, repeated as a larger data.batch_size would)"
+  python benchmarks/bench_train_ops.py --device "$device" --rows "${GPU_SH_TRAIN_ROWS:-2,8,32}" 2>&1 \
+    | grep --line-buffered -v "read from the cache"
 }
 
 for n in $sections; do

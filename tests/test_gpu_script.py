@@ -56,7 +56,7 @@ def test_a_capped_training_stops_at_its_limit_and_is_no_failure(tmp_path):
 def test_an_unknown_section_is_refused_before_any_work(tmp_path):
     done, calls = _run(tmp_path, "2 9")
     assert done.returncode == 1
-    assert "error: GPU_SH_SECTIONS: no section 9 (1 to 6)" in done.stdout
+    assert "error: GPU_SH_SECTIONS: no section 9 (1 to 7)" in done.stdout
     assert calls == []  # not even the machine's check
 
 
