@@ -211,6 +211,7 @@ def profile(imu, gnss, pairs, camera, config, runs=None) -> None:
     import io
     import pstats
 
+    began = time.perf_counter()
     one = NavigationRun(imu, gnss, flow=pairs, camera=camera)
     for label, call in (("one recording", lambda: navigate(one, config=config)),
                         (f"batch of {len(runs or [])}", lambda: navigate_batch(runs, config=config))):
@@ -228,7 +229,7 @@ def profile(imu, gnss, pairs, camera, config, runs=None) -> None:
             synchronize(config)
         averages = prof.key_averages()
         busy = sum(getattr(e, "self_device_time_total", 0.0) for e in averages) / 1e6
-        print(f"profile, {label}: {wall:.2f} s unprofiled; " + (
+        print(f"profile, {label} ({time.perf_counter() - began:.0f} s into the profiles): {wall:.2f} s unprofiled; " + (
             f"the GPU busy {busy:.2f} s of it (kernels' own time): the rest the host's Python, dispatch and "
             "launches, and waits on the GPU" if gpu else f"{torch.get_num_threads()} CPU threads"))
         # on a GPU the kernels' own time: what a batch waits on once launches are few
@@ -246,12 +247,37 @@ def profile(imu, gnss, pairs, camera, config, runs=None) -> None:
         print(text.getvalue().split("\n\n", 1)[-1].strip() + "\n")
 
 
+def timed(rec, pairs, config, duration: float, args) -> tuple[float, float | None]:
+    """The single run's median time over ``--repeats`` runs and the batch's real-time factor
+    (None without ``--batch``), both printed."""
+    times = []
+    for _ in range(args.repeats):
+        seconds, result = run(rec.imu, rec.gnss, pairs, FlowCamera.from_sequence(rec.sequence), config)
+        times.append(seconds)
+    fast = statistics.median(times)
+    log = result.flow_log
+    used = sum(e["valid"] for e in log) / max(1, len(log))
+    print(f"flowins:       {fast:7.2f} s for {duration:.0f} s  -> {duration / fast:6.1f}x real time "
+          f"(median of {args.repeats}; {used:.0f} valid points per frame)")
+
+    batched = None
+    if args.batch > 0:
+        runs = batch_runs(rec, pairs, FlowCamera.from_sequence(rec.sequence), args.batch)
+        seconds = sum(float(r.imu.t_s[-1] - r.imu.t_s[0]) for r in runs)
+        wall, results = run_batch(runs, config)
+        batched = seconds / wall
+        print(f"batch of {args.batch}: {wall:7.2f} s for {seconds:.0f} s of data -> {batched:6.1f}x real time "
+              f"({batched / (duration / fast):.2f}x the single run's rate)")
+    return fast, batched
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--points", type=int, default=256)
     parser.add_argument("--batch", type=int, default=8, help="recordings in the batched run (0: skip it)")
     parser.add_argument("--reference-s", type=float, default=20.0, help="the paper's way over this many seconds (0: skip)")
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--repeats", type=int, default=3,
+                        help="timed runs of the whole walk (0: none, and no batched run: only what else is asked)")
     parser.add_argument("--breakdown-s", type=float, default=60.0,
                         help="also time each stage over the first this many seconds (0: skip)")
     parser.add_argument("--profile-s", type=float, default=0.0,
@@ -279,24 +305,9 @@ def main() -> None:
           f"{len(rec.gnss)} GNSS fixes, float64, filter {where}")
 
     run(*crop(rec, pairs, 10.0)[:3], FlowCamera.from_sequence(rec.sequence), config)  # warm-up
-    times = []
-    for _ in range(args.repeats):
-        seconds, result = run(rec.imu, rec.gnss, pairs, FlowCamera.from_sequence(rec.sequence), config)
-        times.append(seconds)
-    fast = statistics.median(times)
-    log = result.flow_log
-    used = sum(e["valid"] for e in log) / max(1, len(log))
-    print(f"flowins:       {fast:7.2f} s for {duration:.0f} s  -> {duration / fast:6.1f}x real time "
-          f"(median of {args.repeats}; {used:.0f} valid points per frame)")
-
-    batched = None
-    if args.batch > 0:
-        runs = batch_runs(rec, pairs, FlowCamera.from_sequence(rec.sequence), args.batch)
-        seconds = sum(float(r.imu.t_s[-1] - r.imu.t_s[0]) for r in runs)
-        wall, results = run_batch(runs, config)
-        batched = seconds / wall
-        print(f"batch of {args.batch}: {wall:7.2f} s for {seconds:.0f} s of data -> {batched:6.1f}x real time "
-              f"({batched / (duration / fast):.2f}x the single run's rate)")
+    fast = batched = None
+    if args.repeats > 0:
+        fast, batched = timed(rec, pairs, config, duration, args)
 
     if args.reference_s > 0:
         paper = dataclasses.replace(config, jacobians="autodiff",
@@ -317,7 +328,7 @@ def main() -> None:
         camera = FlowCamera.from_sequence(rec.sequence)
         short = batch_runs(rec, pairs, camera, args.batch, end_s=args.profile_s, step_s=2.0) if args.batch else None
         profile(*crop(rec, pairs, args.profile_s), camera, config, short)
-    print(f"RESULT single={duration / fast:.1f}x batched={'n/a' if batched is None else f'{batched:.1f}x'} "
+    print(f"RESULT single={'n/a' if fast is None else f'{duration / fast:.1f}x'} batched={'n/a' if batched is None else f'{batched:.1f}x'} "
           f"batch={args.batch} device={config.device}")
 
 
