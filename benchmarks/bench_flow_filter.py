@@ -205,6 +205,7 @@ def count_ops(imu, gnss, pairs, camera, config, runs=None) -> None:
 def profile(imu, gnss, pairs, camera, config, runs=None) -> None:
     """``torch.profiler``'s table of the operations that take the most time: one recording,
     and the batch ``runs`` when given."""
+    from torch.autograd import DeviceType
     from torch.profiler import ProfilerActivity, profile as torch_profile
 
     import cProfile
@@ -228,7 +229,8 @@ def profile(imu, gnss, pairs, camera, config, runs=None) -> None:
             call()
             synchronize(config)
         averages = prof.key_averages()
-        busy = sum(getattr(e, "self_device_time_total", 0.0) for e in averages) / 1e6
+        # the kernels' rows only (an operator's row repeats its kernels' time, as the table's total leaves out)
+        busy = sum(e.self_device_time_total for e in averages if e.device_type != DeviceType.CPU) / 1e6
         print(f"profile, {label} ({time.perf_counter() - began:.0f} s into the profiles): {wall:.2f} s unprofiled; " + (
             f"the GPU busy {busy:.2f} s of it (kernels' own time): the rest the host's Python, dispatch and "
             "launches, and waits on the GPU" if gpu else f"{torch.get_num_threads()} CPU threads"))

@@ -300,8 +300,10 @@ def kinematic_fit(t_s: Tensor, position_m: Tensor, sigma_m: Tensor, *, t0_s: flo
         raise ValueError(f"kinematic_fit needs at least 2 fixes, got {tau.shape[0]}")
     A = torch.stack((torch.ones_like(tau), tau, 0.5 * tau**2), -1)  # (G, 3)
     prior = torch.diag(torch.tensor([0.0, 0.0, 1.0 / acceleration_sigma_mps2**2], dtype=torch.float64))
-    info = torch.einsum("gi,gk,gj->kij", A, w, A) + prior  # (3 axes, 3, 3)
-    rhs = torch.einsum("gi,gk,gk->ki", A, w, z)
+    # plain products: a three-operand einsum asks opt_einsum (where installed) for a path on each call
+    wA = w.transpose(0, 1).unsqueeze(-1) * A  # (3 axes, G, 3)
+    info = wA.transpose(-1, -2) @ A + prior  # (3 axes, 3, 3)
+    rhs = (wA.transpose(-1, -2) @ z.transpose(0, 1).unsqueeze(-1)).squeeze(-1)  # (3 axes, 3)
     cov = torch.linalg.inv(info)
     coef = (cov @ rhs.unsqueeze(-1)).squeeze(-1)  # (3 axes, 3 coefficients)
     var = torch.diagonal(cov, dim1=-2, dim2=-1)
