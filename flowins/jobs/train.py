@@ -53,6 +53,9 @@ def run(cfg: Mapping[str, Any]) -> dict[str, Any]:
     with _without_lightning_noise():
         bar = {} if "enable_progress_bar" in cfg["trainer"] else {"enable_progress_bar": bool(cfg.get("progress", True))}
         trainer: pl.Trainer = instantiate(cfg["trainer"], "trainer", logger=logger, enable_checkpointing=False, **bar)
+        note = few_rows_note(trainer.strategy.root_device.type, settings.data.batch_size, len(methods))
+        if note:
+            log.info(note)
         trainer.validate(module, datamodule=data, verbose=False)  # the start: a candidate like every epoch
         trainer.fit(module, datamodule=data)
         trainer.save_checkpoint(checkpoints / "last.ckpt", weights_only=False)
@@ -70,6 +73,25 @@ def run(cfg: Mapping[str, Any]) -> dict[str, Any]:
     log.info(f"skipped windows (non-finite loss or gradient): {module.skipped_windows}; trained: {module.trained_windows}")
     return {"learned": learned, "start": start, "hand-tuned": tuned, "checkpoint": str(best),
             "chosen": chosen["label"], "history": module.history, "skipped_windows": module.skipped_windows}
+
+
+#: filter rows per training step below which a step took longer on one H200 than on the 2-core
+#: CPU (docs/performance.md, "One GPU": 2 rows 3.2x the CPU's time, 8 rows 1.8x, 32 rows 0.78x;
+#: the two cross near 20)
+GPU_ROWS = 20
+
+
+def few_rows_note(device_type: str, batch_size: int, methods: int) -> str | None:
+    """The note a run on a GPU gets when its steps run few filter rows (``batch_size``
+    sequences times ``methods``), or None."""
+    rows = batch_size * methods
+    if device_type != "cuda" or rows >= GPU_ROWS:
+        return None
+    return (f"note: training on a GPU with {rows} filter row{'s' * (rows != 1)} per step (data.batch_size={batch_size} "
+            f"x {methods} method{'s' * (methods != 1)}). A step is thousands of small operations, each a kernel launch, "
+            f"whatever its rows; with fewer than about {GPU_ROWS} rows a step took longer on an H200 than on a "
+            "2-core CPU (docs/performance.md, 'One GPU'). Raise data.batch_size where the data allow, or train on the CPU "
+            "(trainer=cpu).")
 
 
 class _NotTheLitLoggerTip(logging.Filter):

@@ -14,7 +14,7 @@ from omegaconf import OmegaConf
 
 from flowins.ins.imu_model import imu_model
 from flowins.settings import navigation_config
-from flowins.jobs.train import run
+from flowins.jobs.train import GPU_ROWS, few_rows_note, run
 from flowins.settings import flow_config, parameter_sets
 from flowins.training.data import load_training_sequence
 from flowins.training.parameters import NOISE_NAMES, FilterParameters
@@ -254,3 +254,12 @@ def test_a_batch_of_windows_has_the_mean_loss_and_gradient_of_its_sequences_wind
         if name in grads[0]:
             expected = 0.5 * (grads[0][name] + grads[1][name])
             torch.testing.assert_close(p.grad, expected, rtol=1e-7, atol=1e-12)
+
+
+def test_a_gpu_run_with_few_rows_per_step_is_told_and_others_are_not():
+    note = few_rows_note("cuda", 1, 2)
+    assert note is not None and "2 filter rows per step" in note and "data.batch_size=1 x 2 methods" in note
+    assert few_rows_note("cuda", GPU_ROWS, 1) is None  # enough rows
+    assert few_rows_note("cuda", GPU_ROWS // 2, 2) is None  # batch_size times methods
+    assert few_rows_note("cpu", 1, 1) is None  # a CPU run is not told
+    assert "1 filter row per step" in few_rows_note("cuda", 1, 1)
