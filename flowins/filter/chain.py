@@ -239,8 +239,8 @@ class BatchChain:
         own = []
         for name in ("_transition", "_pred_mean", "_mean", "_cov"):
             chunks = getattr(self, name)
-            own.append(self._own_columns(chunks))
             setattr(self, name, chunks[-1:])
+            own.append(self._own_columns(chunks))
         tracks = []
         for b in range(self.rows):
             transition, pred_mean, mean, cov = (part[b] for part in own)
@@ -254,8 +254,26 @@ class BatchChain:
         return tracks
 
     def _own_columns(self, chunks: list[Tensor]) -> list[Tensor]:
-        """Per row, its own columns of ``chunks`` (``(B, n, ...)`` each) in one tensor: one copy,
-        each chunk taken whole where the row owns all of it, else only the columns it owns."""
+        """Per row, its own columns of ``chunks`` (``(B, n, ...)`` each) in one tensor of its own.
+
+        A few rows gather theirs from the chunks (one copy, :meth:`_own_columns_by_row`). Many
+        rows would each gather from every chunk, thousands of small pieces per row (on the
+        CPU a 64-row minute of the walk spent 2.7 s there; on a GPU each piece is a launch), so
+        the chunks are joined once and freed, and each row takes its columns from the join (a
+        second copy) or, where every row owns every column, is a view of it."""
+        if self.rows <= 4 or len(chunks) == 1:
+            return self._own_columns_by_row(chunks)
+        full = torch.cat(chunks, dim=1)
+        chunks.clear()  # the caller's list: its columns are held once, in the join
+        total = full.shape[1]
+        if all(len(columns) == total for columns in self._columns):  # each row owns every column
+            return list(full.unbind(0))  # views that share the join, nothing of it unused
+        return [full[b].index_select(0, torch.tensor(columns, dtype=torch.long, device=full.device))
+                for b, columns in enumerate(self._columns)]
+
+    def _own_columns_by_row(self, chunks: list[Tensor]) -> list[Tensor]:
+        """:meth:`_own_columns` row by row: one copy, each chunk taken whole where the row owns
+        all of it, else only the columns it owns."""
         sizes = torch.tensor([c.shape[1] for c in chunks])
         ends = sizes.cumsum(0)
         starts = (ends - sizes).tolist()

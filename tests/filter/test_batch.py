@@ -59,14 +59,31 @@ def _assert_same(batched, alone):
         torch.testing.assert_close(x, y, rtol=0, atol=1e-10 * scale, msg=name)
 
 
-def test_unequal_runs_in_one_batch_equal_each_run_alone():
-    runs = [
+def _unequal_runs() -> list[FilterInput]:
+    return [
         _run(0, 6.0, 100.0, 1.0, augment_s=0.25),
         _run(1, 3.5, 200.0, 0.7, gate=0.2),  # shorter, faster IMU, other fix times, no augmentation, resets
         _run(2, 5.0, 50.0, 0.45, augment_s=0.4, noise=ProcessNoise(acc_noise=1e-2)),  # its own noise
     ]
+
+
+def _fixes_only(run: FilterInput) -> FilterInput:
+    """``run`` with its GNSS fixes alone: in a batch of such runs every row owns every node column."""
+    fixes = [e for e in run.events if type(e).__name__ == "GnssFix"]
+    return FilterInput(run.t_s, run.acc_mps2, run.gyro_rps, run.mean0, run.cov0, fixes, run.noise)
+
+
+# a few rows gather their nodes row by row; more than four join the chain's parts first, each row
+# then taking its columns (unequal runs) or, where every row owns every column, a view of the join
+@pytest.mark.parametrize("batch", ["three unequal", "six unequal", "five alike"])
+def test_unequal_runs_in_one_batch_equal_each_run_alone(batch):
+    runs = {"three unequal": _unequal_runs,
+            "six unequal": lambda: _unequal_runs() + [_run(3, 3.0, 100.0, 0.5, augment_s=0.3), _run(4, 4.0, 100.0, 0.8),
+                                                      _run(5, 2.0, 100.0, 0.5)],
+            "five alike": lambda: [_fixes_only(_run(3, 3.0, 100.0, 0.5))] * 5}[batch]()
     batched = run_filters(runs, noise=NOISE)
-    assert any(e.get("kind") == "gnss_reset" for e in batched[1].log)  # a prediction on one row only
+    if batch != "five alike":
+        assert any(e.get("kind") == "gnss_reset" for e in batched[1].log)  # a prediction on one row only
     for run, track in zip(runs, batched):
         alone = run_filter(t_s=run.t_s, acc_mps2=run.acc_mps2, gyro_rps=run.gyro_rps, mean0=run.mean0,
                            cov0=run.cov0, noise=run.noise or NOISE, events=run.events)
