@@ -249,6 +249,27 @@ def profile(imu, gnss, pairs, camera, config, runs=None) -> None:
         print(text.getvalue().split("\n\n", 1)[-1].strip() + "\n")
 
 
+@contextlib.contextmanager
+def stage_times(spent: dict[str, float], enabled: bool):
+    """While inside, ``BatchChain.finish`` and the navigation's smoother add their wall time to
+    ``spent`` (when ``enabled``)."""
+    if not enabled:
+        yield
+        return
+    import flowins.navigation as navigation
+    from bench_walk_tracks import timed as add_time
+    from flowins.filter.chain import BatchChain
+
+    saved = [(BatchChain, "finish", BatchChain.finish), (navigation, "rts_smooth_batch", navigation.rts_smooth_batch)]
+    for owner, name, _ in saved:
+        add_time(owner, name, spent)
+    try:
+        yield
+    finally:
+        for owner, name, original in saved:
+            setattr(owner, name, original)
+
+
 def timed(rec, pairs, config, duration: float, args) -> tuple[float, float | None]:
     """The single run's median time over ``--repeats`` runs and the batch's real-time factor
     (None without ``--batch``), both printed."""
@@ -264,12 +285,16 @@ def timed(rec, pairs, config, duration: float, args) -> tuple[float, float | Non
 
     batched = None
     if args.batch > 0:
-        runs = batch_runs(rec, pairs, FlowCamera.from_sequence(rec.sequence), args.batch)
+        runs = batch_runs(rec, pairs, FlowCamera.from_sequence(rec.sequence), args.batch, step_s=args.step_s)
         seconds = sum(float(r.imu.t_s[-1] - r.imu.t_s[0]) for r in runs)
-        wall, results = run_batch(runs, config)
+        spent: dict[str, float] = {}
+        with stage_times(spent, args.stages):
+            wall, results = run_batch(runs, config)
         batched = seconds / wall
         print(f"batch of {args.batch}: {wall:7.2f} s for {seconds:.0f} s of data -> {batched:6.1f}x real time "
               f"({batched / (duration / fast):.2f}x the single run's rate)")
+        if args.stages:
+            print("  of which " + ", ".join(f"{name} {t:.2f} s" for name, t in spent.items()))
     return fast, batched
 
 
@@ -289,6 +314,10 @@ def main() -> None:
     parser.add_argument("--device", default="cpu",
                         help="where the filter and the smoother run, and the flow if it is not cached: cpu | cuda | cuda:N")
     parser.add_argument("--quick", action="store_true", help="the 60 s walk instead of the 300 s one")
+    parser.add_argument("--step-s", type=float, default=7.0,
+                        help="each batched run this much shorter than the one before (0: all the whole walk)")
+    parser.add_argument("--stages", action="store_true",
+                        help="also print the batched run's seconds in BatchChain.finish and in the smoother")
     parser.add_argument("overrides", nargs="*", help="evaluate.py's KEY=VALUE overrides of the filter, e.g. "
                         "filter.gnss_heading.second_pass=true")
     args = parser.parse_args()
