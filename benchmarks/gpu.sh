@@ -18,8 +18,9 @@
 # what they measured up to then: section 6 a line per epoch). GPU_SH_PROFILE_S=N: section 4
 # also prints torch.profiler's table (CPU and CUDA time per operation) of one run and of the
 # batch over the walk's first N s. GPU_SH_BENCH_QUICK=1: section 4 on the 60 s walk. One
-# 10-minute call of a 15-minute lease fits GPU_SH_SECTIONS="4 5 6" GPU_SH_BENCH_QUICK=1
-# GPU_SH_PROFILE_S=10 GPU_SH_BENCH_S=120 GPU_SH_TRAIN_S=240 (section 5 took 144 s on an H200). Section 7
+# 10-minute call of a 15-minute lease fits GPU_SH_SECTIONS="4 7 3" GPU_SH_BENCH_QUICK=1
+# GPU_SH_PROFILE_S=4 GPU_SH_BENCH_S=200 (on an H200: section 4 so, with the profiles, about 200 s;
+# section 7 142 s; section 3 with nothing cached 196 s; section 5 alone 144 s). Section 7
 # times one training step of a 20 s window on the GPU with GPU_SH_TRAIN_ROWS rows (default 2,8,32; the
 # default training's step has 2: one sequence, two methods), what a larger data.batch_size would cost
 # per step. A section that fails is
