@@ -114,6 +114,16 @@ STAGES = (
 
 
 @contextlib.contextmanager
+def restoring(saved: list[tuple[object, str, object]]):
+    """On leaving, put each ``(owner, name, original)`` back where a wrapper replaced it."""
+    try:
+        yield
+    finally:
+        for owner, name, original in saved:
+            setattr(owner, name, original)
+
+
+@contextlib.contextmanager
 def stages_wrapped(stack: list[str], spent: dict[str, float]):
     """Wrap each stage's function where its caller looks it up: while it runs its name is on
     ``stack`` and its wall time adds to ``spent`` (the wrappers add a few microseconds per call)."""
@@ -135,11 +145,8 @@ def stages_wrapped(stack: list[str], spent: dict[str, float]):
                 stack.pop()
 
         setattr(module, name, wrapped)
-    try:
+    with restoring(saved):
         yield
-    finally:
-        for module, name, original in saved:
-            setattr(module, name, original)
 
 
 def breakdown(imu, gnss, pairs, camera, config) -> None:
@@ -263,11 +270,8 @@ def stage_times(spent: dict[str, float], enabled: bool):
     saved = [(BatchChain, "finish", BatchChain.finish), (navigation, "rts_smooth_batch", navigation.rts_smooth_batch)]
     for owner, name, _ in saved:
         add_time(owner, name, spent)
-    try:
+    with restoring(saved):
         yield
-    finally:
-        for owner, name, original in saved:
-            setattr(owner, name, original)
 
 
 def timed(rec, pairs, config, duration: float, args) -> tuple[float, float | None]:
