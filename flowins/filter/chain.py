@@ -257,10 +257,10 @@ class BatchChain:
         """Per row, its own columns of ``chunks`` (``(B, n, ...)`` each) in one tensor of its own.
 
         A few rows gather theirs from the chunks (one copy, :meth:`_own_columns_by_row`). Many
-        rows would each gather from every chunk, thousands of small pieces per row (on the
-        CPU a 64-row minute of the walk spent 2.7 s there; on a GPU each piece is a launch), so
-        the chunks are joined once and freed, and each row takes its columns from the join (a
-        second copy) or, where every row owns every column, is a view of it."""
+        rows would each gather from every chunk, thousands of small pieces per row (on a GPU
+        each piece is a launch), so the chunks are joined once and freed, and each row takes its
+        columns from the join (a second copy) or, where every row owns every column, is a view
+        of it (docs/performance.md times both for 64 runs)."""
         if self.rows <= 4 or len(chunks) == 1:
             return self._own_columns_by_row(chunks)
         full = torch.cat(chunks, dim=1)
