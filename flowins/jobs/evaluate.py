@@ -25,6 +25,7 @@ from flowins.data.load import Recording, load_recording
 from flowins.evaluation import plot_trajectory, trajectory_errors, write_tum
 from flowins.evaluation.gnss_floor import describe_gnss_floor, gnss_floor_metrics
 from flowins.evaluation.metrics import truth_extent_problem
+from flowins.evaluation.motion import vehicle_hint
 from flowins.evaluation.report import Row, format_table
 from flowins.data.sequence import Tracks
 from flowins.flow.load import load_flow, load_tracks, uses_tracks
@@ -32,7 +33,7 @@ from flowins.flow.pairs import FlowPairs, read_frame, run_provider
 from flowins.ins.initialization import forward_axis
 from flowins.jobs.cli import console_logging
 from flowins.measurements.flow import FlowCamera
-from flowins.measurements.vehicle import platform_streams
+from flowins.measurements.vehicle import VehicleSettings, platform_streams
 from flowins.navigation import (NavigationConfig, NavigationResult, NavigationRun, flow_statistics, navigate_batch,
                                 run_warnings, track_statistics)
 from flowins.settings import evaluate_settings, filter_setup
@@ -314,6 +315,13 @@ def _report_starts(rows: list[Row], per_run: dict[str, list[dict[str, Any]]], mo
             log.info(f"\nstart: {', '.join(sorted(modes))} (filter.init.mode={mode}; per row in metrics.json)")
 
 
+def _vehicle_hints(recs: list[Recording], labels: list[str], nav_cfg: NavigationConfig) -> list[str]:
+    """:func:`flowins.evaluation.motion.vehicle_hint` of each recording, labelled."""
+    mode = (nav_cfg.measurements.get("vehicle") or VehicleSettings()).mode
+    hints = [vehicle_hint(rec.gnss, platform_named=rec.platform is not None, mode=mode) for rec in recs]
+    return [label + hint for label, hint in zip(labels, hints) if hint]
+
+
 def _report(rows: list[Row], metrics: dict[str, Any], cfg: Mapping[str, Any], recs: list[Recording],
             nav_cfg: NavigationConfig, unscored: list[str | None], seeds: list[int] | None) -> None:
     """Print the table, how the filter started, the warnings and the GNSS floor (into ``metrics``)."""
@@ -324,6 +332,10 @@ def _report(rows: list[Row], metrics: dict[str, Any], cfg: Mapping[str, Any], re
                if isinstance(m, dict) and m.get("status") != "not applicable"}
     _report_starts(rows, per_run, nav_cfg.start.mode)
     labels = [""] if seeds is None else [f"seed {int(s)}: " for s in seeds]
+    hints = _vehicle_hints(recs, labels, nav_cfg)
+    if hints:
+        metrics["hints"] = hints
+        log.info("\n" + "\n".join(hints))
     warned = [(n, label + w) for n, ms in per_run.items() for label, m in zip(labels, ms) for w in m.get("warnings", [])]
     if warned:
         log.info("\nwarnings:")

@@ -16,7 +16,9 @@ from typing import Any
 import pytorch_lightning as pl
 
 from flowins.config import instantiate
+from flowins.evaluation.motion import vehicle_hint
 from flowins.jobs.cli import console_logging
+from flowins.measurements.vehicle import VehicleSettings
 from flowins.settings import flow_config, train_settings, training_setup
 from flowins.training.data import SequenceDataModule
 from flowins.training.module import FilterLearner, selection_table
@@ -42,6 +44,11 @@ def run(cfg: Mapping[str, Any]) -> dict[str, Any]:
     setup = training_setup(cfg, [*data.sequences["train"], *data.sequences["val"], *data.select_sequences],
                            recorded=settings.recorded)
     log.info(setup.filter.describe())
+    mode = (setup.filter.navigation.measurements.get("vehicle") or VehicleSettings()).mode
+    for seq in [*data.sequences["train"], *data.sequences["val"]]:
+        hint = vehicle_hint(seq.gnss, platform_named="vehicle" in seq.streams, mode=mode)
+        if hint:
+            log.info(f"{seq.name}: {hint} To learn how much it holds to it: experiment=real_vehicle.")
     tuned, start, learn = setup.parameters
     params = FilterParameters(start, learn, bounds=setup.parameters.bounds)
     log.info(f"learning {len(params.learned)} parameters: {', '.join(params.learned)}")
