@@ -69,3 +69,10 @@ def test_the_benchmark_alone_on_the_short_walk_with_its_profile(tmp_path):
     _, calls = _run(tmp_path, "4")
     (bench,) = [c for c in calls if "bench_flow_filter.py" in c]
     assert "--quick" not in bench and "--profile-s 0" in bench, bench
+
+
+def test_section_7_times_a_training_step_at_the_rows_asked_for_on_the_device(tmp_path):
+    done, calls = _run(tmp_path, "7", GPU_SH_TRAIN_ROWS="2,64")
+    assert done.returncode == 0, done.stdout
+    step = [c for c in calls if "bench_train_ops.py" in c]
+    assert len(step) == 1 and "--device cpu" in step[0] and "--rows 2,64" in step[0], calls
