@@ -126,8 +126,9 @@ s6() {
 
 s7() {
   section "7. a training step as its rows grow (bench_train_ops.py: one 20 s window, repeated as a larger data.batch_size would)"
+  # grep -v finding nothing to print is no failure; the benchmark's own exit status is the section's
   python benchmarks/bench_train_ops.py --device "$device" --rows "${GPU_SH_TRAIN_ROWS:-2,8,32}" 2>&1 \
-    | grep --line-buffered -v "read from the cache"
+    | { grep --line-buffered -v "read from the cache" || true; }
 }
 
 for n in $sections; do

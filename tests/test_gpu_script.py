@@ -20,14 +20,14 @@ exit 0
 """
 
 
-def _run(tmp_path: Path, sections: str, **env: str) -> tuple[subprocess.CompletedProcess, list[str]]:
+def _run(tmp_path: Path, sections: str, *, fake: str = FAKE_PYTHON, **env: str) -> tuple[subprocess.CompletedProcess, list[str]]:
     if shutil.which("timeout") is None:
         pytest.skip("no timeout(1) on this machine")
     bin_dir = tmp_path / "bin"
     bin_dir.mkdir(exist_ok=True)
-    fake = bin_dir / "python"
-    fake.write_text(FAKE_PYTHON)
-    fake.chmod(0o755)
+    fake_path = bin_dir / "python"
+    fake_path.write_text(fake)
+    fake_path.chmod(0o755)
     log = tmp_path / "calls.log"
     log.write_text("")
     environ = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}", "FAKE_LOG": str(log),
@@ -76,3 +76,10 @@ def test_section_7_times_a_training_step_at_the_rows_asked_for_on_the_device(tmp
     assert done.returncode == 0, done.stdout
     step = [c for c in calls if "bench_train_ops.py" in c]
     assert len(step) == 1 and "--device cpu" in step[0] and "--rows 2,64" in step[0], calls
+
+
+
+def test_a_failing_step_benchmark_fails_its_section(tmp_path):
+    failing = FAKE_PYTHON.replace("exit 0", 'case "$*" in *bench_train_ops*) exit 3 ;; esac\nexit 0')
+    done, _ = _run(tmp_path, "7", fake=failing)
+    assert done.returncode == 1 and "error: section 7 failed" in done.stdout, done.stdout
