@@ -325,6 +325,9 @@ def main() -> None:
     parser.add_argument("overrides", nargs="*", help="evaluate.py's KEY=VALUE overrides of the filter, e.g. "
                         "filter.gnss_heading.second_pass=true")
     args = parser.parse_args()
+    for name in ("repeats", "batch", "step_s"):
+        if getattr(args, name) < 0:
+            parser.error(f"--{name.replace('_', '-')} must be >= 0, got {getattr(args, name)}")
     with initialize_config_dir(config_dir=CONFIGS, version_base=None):
         cfg = OmegaConf.to_container(compose("evaluate", overrides=[f"filter.flow.n_points={args.points}",
                                                                     f"flow.device={args.device}", *args.overrides]),

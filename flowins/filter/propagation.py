@@ -196,7 +196,7 @@ def plan_nodes(node_steps: Sequence[Sequence[int]], num_steps: int, *, device=No
     identity steps after its own.
     """
     rows = [_check_nodes(steps, num_steps, allow_empty=True) for steps in node_steps]
-    if len(rows) > 4:  # array arithmetic: 0.2 ms for 256 rows where the lists take 5 ms
+    if len(rows) > 4:  # array arithmetic: the lists below cost Python work per row and slot
         return _plan_arrays(rows, num_steps, device)
     m = max(len(steps) for steps in rows)
     intervals, node_step, real = [], [], []

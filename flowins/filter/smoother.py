@@ -106,6 +106,7 @@ class _Prepared(NamedTuple):
     """One track's gains and key nodes, ready for the backward pass over its keys."""
 
     keys: Tensor  # (K,) the key nodes
+    key_pred_cov: Tensor  # (K, D, D) their predicted covariances
     slot: Tensor  # (J-1,) each node's next key (an index into keys)
     blocks: list[tuple[int, int]]
     gains: list[Tensor]  # per block: 𝒢_j[:c] (nodes, c, D)
@@ -118,7 +119,8 @@ def _prepare(track: FilterTrack, c: int) -> _Prepared:
     node_cov = track.node_cov
     keys = torch.nonzero(track.key_nodes()).squeeze(-1)
     slot = torch.searchsorted(keys, torch.arange(J - 1, device=keys.device), right=True)  # each node's next key
-    LU, pivots = _factor_predicted(symmetrize(track.key_pred_cov()), track.t_s[keys.to(track.t_s.device)])
+    key_pred_cov = track.key_pred_cov()
+    LU, pivots = _factor_predicted(symmetrize(key_pred_cov), track.t_s[keys.to(track.t_s.device)])
     # the nodes in blocks of whole runs (each ends at a key node), so that the (nodes, D, D)
     # products below stay small
     blocks = _node_blocks(keys, J, D)
@@ -136,7 +138,7 @@ def _prepare(track: FilterTrack, c: int) -> _Prepared:
             key_slot = slot[inner]
             key_gains.append(torch.linalg.lu_solve(LU[key_slot], pivots[key_slot],
                                                    to_key[inner - a] @ node_cov[inner]).transpose(-1, -2))
-    return _Prepared(keys, slot, blocks, gains, torch.cat(key_gains))
+    return _Prepared(keys, key_pred_cov, slot, blocks, gains, torch.cat(key_gains))
 
 
 #: the most bytes of one (tracks, keys, D, D) tensor the batched backward pass forms at a time
@@ -188,7 +190,7 @@ def _backward_group(tracks: Sequence[FilterTrack], prepared: Sequence[_Prepared]
     # what each key's update changed, m_k - m⁻_k and P_k - P⁻_k: the residuals follow
     # r_k = (m_k - m⁻_k) + G_k r_next, R_k = (P_k - P⁻_k) + G_k R_next G_kᵀ
     jump_mean = aligned([t.node_mean[p.keys] - t.pred_mean[p.keys] for t, p in zip(tracks, prepared)], K)
-    jump_cov = aligned([t.node_cov[p.keys] - t.key_pred_cov() for t, p in zip(tracks, prepared)], K)
+    jump_cov = aligned([t.node_cov[p.keys] - p.key_pred_cov for t, p in zip(tracks, prepared)], K)
     gains = aligned([p.key_gains for p in prepared], K - 1)  # key k's gain at k (the last key has none)
     residual_mean: list[Tensor] = [jump_mean[:, -1]]
     residual_cov: list[Tensor] = [jump_cov[:, -1]]
