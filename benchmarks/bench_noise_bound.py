@@ -75,6 +75,42 @@ def overrides_for(values: dict[str, float]) -> list[str]:
     return ["imu.inflation=1", *(f"{PARAMS[p]}={values[p]:.17g}" for p in values)]
 
 
+def coordinate_search(score, values: dict[str, float], params: list[str], steps: list[float], *,
+                      start_score: float | None = None, rounds: int = 2, min_gain: float = 1e-3,
+                      max_evals: int = 120, report=None) -> tuple[float, dict[str, float], int]:
+    """Minimise ``score(values)`` over the parameters ``params`` of ``values`` (positive numbers)
+    in log10 steps: for each step size of ``steps`` (largest first), up to ``rounds`` passes over
+    the parameters, each trying ``x 10^step`` then ``x 10^-step`` and keeping the first trial
+    that scores below ``best * (1 - min_gain)``; a pass that keeps nothing ends that step size.
+    At most ``max_evals`` calls of ``score`` (the start's included unless ``start_score`` is
+    given). ``report(step, name, factor, score)`` hears of each kept trial.
+
+    Returns ``(best score, its values, calls of score)``."""
+    evals = 0
+    if start_score is None:
+        start_score, evals = score(values), 1
+    best = start_score
+    for step in steps:
+        for _ in range(rounds):
+            moved = False
+            for name in params:
+                for sign in (1.0, -1.0):
+                    if evals >= max_evals:
+                        return best, values, evals
+                    factor = 10.0 ** (sign * step)
+                    trial = dict(values, **{name: values[name] * factor})
+                    result = score(trial)
+                    evals += 1
+                    if result < best * (1.0 - min_gain):
+                        best, values, moved = result, trial, True
+                        if report is not None:
+                            report(step, name, factor, result)
+                        break
+            if not moved:
+                break
+    return best, values, evals
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("folder", type=Path, help="a recording folder (sequence.path)")
@@ -117,22 +153,13 @@ def main() -> None:
             raise SystemExit(f"error: the start as overrides scores {start_rmse:.6f} m, as configured "
                              f"{as_configured:.6f} m: the overrides do not reproduce the configuration")
         print(f"start: filter RMSE {start_rmse:.3f} m; " + ", ".join(f"{p} {values[p]:.4g}" for p in params), flush=True)
-        best = start_rmse
-        for step in (float(s) for s in args.steps.split(",")):
-            for _ in range(args.rounds):
-                moved = False
-                for p in params:
-                    for sign in (1.0, -1.0):
-                        if evals >= args.max_evals:
-                            break
-                        trial = dict(values, **{p: values[p] * 10.0 ** (sign * step)})
-                        rmse = score(trial)
-                        if rmse < best * (1.0 - args.min_gain):
-                            best, values, moved = rmse, trial, True
-                            print(f"  step {step:g}: {p} x{10.0 ** (sign * step):.3g} -> {rmse:.3f} m", flush=True)
-                            break
-                if not moved:
-                    break
+
+        def report(step: float, name: str, factor: float, rmse: float) -> None:
+            print(f"  step {step:g}: {name} x{factor:.3g} -> {rmse:.3f} m", flush=True)
+
+        best, values, _ = coordinate_search(score, values, params, [float(s) for s in args.steps.split(",")],
+                                            start_score=start_rmse, rounds=args.rounds, min_gain=args.min_gain,
+                                            max_evals=args.max_evals - evals, report=report)
         factors = ", ".join(f"{p} {values[p]:.4g}" for p in params)
         print(f"best: filter RMSE {best:.3f} m; {factors}")
         change = 100.0 * (best / start_rmse - 1.0) if start_rmse > 0 and math.isfinite(best) else float("nan")
