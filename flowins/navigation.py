@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import dataclasses
+import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import KW_ONLY, dataclass, field
 from typing import Any
@@ -16,7 +17,7 @@ from flowins.data.streams import GnssStream, ImuStream, PoseStream
 from flowins.filter.augmentation import with_window
 from flowins.filter.ekf import Gate
 from flowins.filter.chain import FilterTrack
-from flowins.filter.runner import FilterInput, run_filters
+from flowins.filter.runner import FilterInput, chain_bytes, run_filters
 from flowins.filter.smoother import SmoothedTrack, rts_smooth_batch
 from flowins.flow.pairs import FlowPairs
 from flowins.geometry.geodesy import LocalTangentPlane
@@ -29,8 +30,11 @@ from flowins.measurements.registry import NavigationContext, measurement_kind
 from flowins.measurements.tracks import TrackUpdate, track_frames
 from flowins.measurements.vehicle import VehicleConstraint  # noqa: F401  (registers the kind "vehicle")
 from flowins.measurements.zero_velocity import ZeroVelocity
+from flowins.memory import available_memory_bytes, describe_bytes
 from flowins.state import STATE, STATE_DIM, window_size
 from flowins.start import Start, StartSettings, choose_start
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -356,6 +360,9 @@ def _navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig,
         first = setup.start.index
         inputs.append(FilterInput(run.imu.t_s[first:], run.imu.acc_mps2[first:], run.imu.gyro_rps[first:],
                                   setup.mean0, setup.cov0, setup.events))
+    warning = memory_warning(inputs, output_every=config.output_every)
+    if warning:
+        log.warning("warning: %s", warning)
     tracks = run_filters(inputs, progress=progress, **config.filter_settings())
     again, passes = smoother_tracks(inputs, tracks, config, progress=progress)
     smoothed = rts_smooth_batch(again, marginal=STATE_DIM)
@@ -374,6 +381,36 @@ def _navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig,
         )
         for run, setup, track, smoother, which in zip(runs, setups, tracks, smoothed, passes)
     ]
+
+
+#: a filter pass's peak memory over its node chain's (:func:`~flowins.filter.runner.chain_bytes`):
+#: the chain, its copy into the tracks and the smoother's work. Measured: the 300 s walk's two
+#: sparse rows at ``filter.tracks.window=10`` estimate 2.9 GB and peak at 7.0-7.2 GB resident
+#: (docs/performance.md)
+PEAK_OVER_CHAIN = 2.5
+
+
+def memory_warning(inputs: Sequence[FilterInput], *, output_every: int,
+                   available: int | None | str = "ask") -> str | None:
+    """Why a filter pass over ``inputs`` (one batch) may not fit in memory, or None: its estimated
+    peak (:data:`PEAK_OVER_CHAIN` times :func:`~flowins.filter.runner.chain_bytes`) against 80 %
+    of the memory free on the state's device (``available`` bytes; ``"ask"``: as
+    :func:`~flowins.memory.available_memory_bytes` tells; None: unknown, no warning)."""
+    if not inputs:
+        return None
+    device = inputs[0].mean0.device
+    if available == "ask":
+        available = available_memory_bytes(device)
+    need = PEAK_OVER_CHAIN * chain_bytes(inputs, output_every=output_every)
+    if available is None or need <= 0.8 * available:
+        return None
+    D = inputs[0].mean0.shape[-1]
+    window = window_size(D)
+    longest = max(float(run.t_s[-1] - run.t_s[0]) for run in inputs)
+    return (f"this filter pass may need about {describe_bytes(need)} ({len(inputs)} run(s) in one batch, the longest "
+            f"{longest:.0f} s; a state of {D} entries, {window} cloned pose(s), whose node chain keeps {D} x {D} "
+            f"matrices at every node), and the {device.type.upper()} has {describe_bytes(available)} free. A smaller "
+            f"filter.tracks.window, fewer combinations or seeds at once, or a shorter sequence (sequence.end_s) needs less")
 
 
 def heading_fit_record(track: FilterTrack) -> dict[str, Any] | None:

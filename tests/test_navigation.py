@@ -158,3 +158,35 @@ def test_the_second_pass_reports_its_progress_under_its_own_name(monkeypatch, wr
     _, run, config = wrong_heading_walk(2, duration_s=60.0, second_pass=True)
     navigate(run, config=config, progress=True)
     assert seen == [("filter", True), ("smoother's second pass", True)]
+
+
+def test_memory_warning_compares_the_pass_s_estimated_peak_with_80_percent_of_the_free_memory():
+    from flowins.filter.runner import FilterInput, chain_bytes
+    from flowins.navigation import PEAK_OVER_CHAIN, memory_warning
+
+    n = 1001
+    t = torch.linspace(0.0, 10.0, n, dtype=torch.float64)
+    inputs = [FilterInput(t, torch.zeros(n, 3, dtype=torch.float64), torch.zeros(n, 3, dtype=torch.float64),
+                          torch.zeros(89, dtype=torch.float64), torch.eye(89, dtype=torch.float64))] * 2
+    need = PEAK_OVER_CHAIN * chain_bytes(inputs, output_every=10)
+    assert memory_warning(inputs, output_every=10, available=None) is None
+    assert memory_warning(inputs, output_every=10, available=int(need / 0.8 * 1.01)) is None
+    message = memory_warning(inputs, output_every=10, available=int(need / 0.8 * 0.99))
+    assert message is not None
+    for part in (f"{need / 2**20:.0f} MiB", "2 run(s)", "10 s", "89 entries, 10 cloned pose(s)", "filter.tracks.window",
+                 "sequence.end_s"):
+        assert part in message
+
+
+def test_navigate_warns_before_a_pass_that_may_not_fit(monkeypatch, caplog, recording):
+    import flowins.navigation as navigation
+
+    monkeypatch.setattr(navigation, "available_memory_bytes", lambda device: 1)
+    with caplog.at_level("WARNING", logger="flowins.navigation"):
+        navigate(NavigationRun(recording.imu, recording.gnss))
+    assert any(r.getMessage().startswith("warning: this filter pass may need about") for r in caplog.records)
+    caplog.clear()
+    monkeypatch.setattr(navigation, "available_memory_bytes", lambda device: 1 << 50)
+    with caplog.at_level("WARNING", logger="flowins.navigation"):
+        navigate(NavigationRun(recording.imu, recording.gnss))
+    assert not caplog.records

@@ -199,6 +199,24 @@ def run_filters(
     return chain.finish()
 
 
+def chain_bytes(runs: Sequence[FilterInput], *, output_every: int = 10) -> int:
+    """About how many bytes the node chain of :func:`run_filters` over ``runs`` (one batch) holds
+    when the pass ends: per node a transition and a covariance, ``D x D`` each, two means, and at
+    each updated node its predicted covariance besides (:class:`~flowins.filter.chain.BatchChain`).
+
+    A run has a node every ``output_every`` IMU samples, at the end, and at most two per event
+    (at its time, and a linear prediction such as a pose copy), of which at most one is updated:
+    ``N // output_every + 2 E + 1`` nodes, ``E`` updated, for ``N`` samples and ``E`` events, an
+    upper estimate where events append fewer. The rows of a batch share their columns, so the
+    batch holds ``B`` times its largest run's nodes."""
+    if not runs:
+        return 0
+    D = runs[0].mean0.shape[-1]
+    nodes = max(int(run.t_s.shape[0]) // output_every + 2 * len(run.events) + 1 for run in runs)
+    updated = max(len(run.events) for run in runs)
+    return len(runs) * ((2 * nodes + updated) * D * D + 2 * nodes * D) * runs[0].mean0.element_size()
+
+
 def _state_size(run: FilterInput, i: int) -> int:
     """``D`` of run ``i``'s prior: ``mean0`` ``(D,)``, ``cov0`` ``(D, D)``, ``D = 19 + 7 N`` (ValueError otherwise)."""
     shape, cov_shape = tuple(run.mean0.shape), tuple(run.cov0.shape)

@@ -16,9 +16,9 @@ from flowins.data.synthetic import (
 )
 from flowins.filter.ekf import Gate
 from flowins.measurements.gnss import gnss_fixes, GnssFix
-from flowins.filter.augmentation import PoseAugmentation
+from flowins.filter.augmentation import PoseAugmentation, with_window
 from flowins.filter.chain import BatchEvent
-from flowins.filter.runner import FilterInput, run_filter, run_filters
+from flowins.filter.runner import FilterInput, chain_bytes, run_filter, run_filters
 from flowins.filter.smoother import rts_smooth
 from flowins.geometry import quaternion as quat
 from flowins.ins.initialization import InitialUncertainty, stationary_initialization
@@ -327,3 +327,31 @@ def test_smoother_covariances_psd_and_position_error_below_filter(long_run):
     rmse_filter = float((track.mean[:, STATE.p] - truth).norm(dim=-1).pow(2).mean().sqrt())
     rmse_smooth = float((smoothed.mean[:, STATE.p] - truth).norm(dim=-1).pow(2).mean().sqrt())
     assert math.isfinite(rmse_filter) and rmse_smooth < 0.8 * rmse_filter, (rmse_filter, rmse_smooth)
+
+
+# --------------------------------------------------------------------------- the chain's memory
+
+
+def _stored_bytes(track):
+    """What a finished track holds of its chain: every node's transition, covariance and means, and
+    the updated nodes' predicted covariances."""
+    return sum(x.nbytes for x in (track.transition, track.node_cov, track.updated_pred_cov, track.pred_mean,
+                                  track.node_mean))
+
+
+def test_chain_bytes_is_what_a_run_of_output_nodes_stores():
+    t, acc, gyro, _, mean0, cov0 = resting_device()
+    runs = [FilterInput(t, acc, gyro, mean0, cov0)]
+    track = run_filters(runs, noise=ProcessNoise(), output_every=10)[0]
+    assert len(track.t_s) == 201 // 10 + 1
+    assert chain_bytes(runs, output_every=10) == _stored_bytes(track)
+
+
+@pytest.mark.parametrize("window, mode", [(1, "paper"), (5, "limit")])
+def test_chain_bytes_bounds_a_batch_with_events_from_above_within_2x(window, mode):
+    t, acc, gyro, _, mean0, cov0 = resting_device()
+    mean0, cov0 = with_window(mean0, cov0, window)
+    events = [PoseAugmentation(0.1 * k, mode=mode) for k in range(1, 20)]
+    runs = [FilterInput(t, acc, gyro, mean0, cov0, events)] * 3
+    stored = sum(_stored_bytes(track) for track in run_filters(runs, noise=ProcessNoise()))
+    assert stored <= chain_bytes(runs) <= 2 * stored
