@@ -119,3 +119,15 @@ def test_one_training_epoch_on_the_gpu_takes_the_cpu_steps(tmp_path):
         last = FilterParameters.from_checkpoint(out / "checkpoints" / "last.ckpt")
         raw[trainer] = np.array([float(last.raw[n]) for n in NAMES])
     assert np.abs(raw["gpu"] - raw["cpu"]).max() < 1e-6
+
+
+def test_the_free_memory_a_pass_checks_against_is_the_gpu_s():
+    from flowins.memory import available_memory_bytes
+
+    torch.cuda.empty_cache()  # the allocator's cached blocks back to the driver: the next allocation takes new memory
+    free, total = torch.cuda.mem_get_info(CUDA)
+    held = torch.empty(256 << 20, dtype=torch.uint8, device=CUDA)  # 256 MiB more in use
+    after = available_memory_bytes(CUDA)
+    assert 0 < after <= total
+    assert after <= free - (200 << 20)  # the allocation shows (the caching allocator may round up)
+    del held
