@@ -384,9 +384,9 @@ def _navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig,
 
 
 #: a filter pass's peak memory over its node chain's (:func:`~flowins.filter.runner.chain_bytes`):
-#: the chain, its copy into the tracks and the smoother's work. Measured: the 300 s walk's two
-#: sparse rows at ``filter.tracks.window=10`` estimate 2.9 GB and peak at 7.0-7.2 GB resident
-#: (docs/performance.md)
+#: the chain and the smoother's work, and for a batch of more than four rows the chain's copy
+#: into the tracks. Measured: the 300 s walk's two sparse rows at ``filter.tracks.window=10``
+#: estimate 2.9 GB and peak at 5.1 GB resident (docs/performance.md)
 PEAK_OVER_CHAIN = 2.5
 
 

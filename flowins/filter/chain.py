@@ -12,6 +12,7 @@ chain, so it is exact through every prediction, forgetting and augmentation step
 """
 from __future__ import annotations
 
+from bisect import bisect_left
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
@@ -48,6 +49,58 @@ class BatchEvent(Event, Protocol):
     def apply_batch(cls, chain: BatchChain, rows: Sequence[int], events: Sequence[BatchEvent]) -> None: ...
 
 
+#: unflushed node columns a :class:`BatchChain` with row stores holds before it moves them to
+#: the stores (bytes of their ``D x D`` matrices): small enough that the join it copies them
+#: through is reused from the heap, large enough that a flush is a few operations per node run
+FLUSH_BYTES = 16 << 20
+#: the most rows a chain gives stores of their own (more rows gather theirs at the end)
+STORE_ROWS = 4
+
+
+class _RowStore:
+    """One row's finished nodes in tensors of their own, filled as the pass goes
+    (:meth:`BatchChain._flush`), so that :meth:`BatchChain.finish` hands views of them over
+    instead of copying every node into fresh memory at the end. ``capacity`` nodes are
+    reserved (untouched memory costs nothing); more grow the tensors by doubling."""
+
+    NAMES = ("transition", "pred_mean", "mean", "cov")
+
+    def __init__(self, capacity: int) -> None:
+        self.capacity = max(1, int(capacity))
+        self.count = 0
+        self.parts: dict[str, Tensor] = {}
+        self.updated: list[bool] = []  # per stored node: whether an update replaced it
+        self.updated_pred: Tensor | None = None  # (capacity, D, D) the updated nodes' predictions
+        self.updated_count = 0
+
+    def reserve(self, name: str, like: Tensor, extra: int) -> Tensor:
+        """The tensor of ``name`` (nodes of ``like``'s event shape), with room for ``extra`` more."""
+        part = self.parts.get(name)
+        needed = self.count + extra
+        if part is None or part.shape[0] < needed:
+            size = max(self.capacity if part is None else 2 * part.shape[0], needed)
+            grown = like.new_empty(size, *like.shape[2:])
+            if part is not None:
+                grown[: self.count].copy_(part[: self.count])
+            self.parts[name] = part = grown
+        return part
+
+    def add_updated(self, covs: list[Tensor]) -> None:
+        """Append the predicted covariances of updated nodes, in node order."""
+        if not covs:
+            return
+        have = self.updated_pred
+        needed = self.updated_count + len(covs)
+        if have is None or have.shape[0] < needed:
+            size = max(self.capacity if have is None else 2 * have.shape[0], needed)
+            grown = covs[0].new_empty(size, *covs[0].shape)
+            if have is not None:
+                grown[: self.updated_count].copy_(have[: self.updated_count])
+            self.updated_pred = have = grown
+        torch.stack(covs, out=have[self.updated_count: needed])
+        self.updated_count = needed
+
+
 class BatchChain:
     """The node chains of ``B`` runs, grown together (:func:`~flowins.filter.runner.run_filters`).
 
@@ -61,9 +114,14 @@ class BatchChain:
     that stays true. A node's predicted covariance differs from its filtered one only where
     an update acted: the tracks :meth:`finish` hands over keep it at those nodes alone
     (:attr:`FilterTrack.updated_pred_cov`), a third less memory than every node's.
+
+    ``capacity`` (the nodes each row expects, e.g. from :func:`~flowins.filter.runner.chain_bytes`'s
+    count): with at most :data:`STORE_ROWS` rows and no gradient to keep, each row's finished
+    nodes move to tensors of its own as the pass goes (:class:`_RowStore`), and :meth:`finish`
+    hands views of them over: no copy of the whole chain into fresh memory at the end.
     """
 
-    def __init__(self, rows: int, *, likelihood: bool = False) -> None:
+    def __init__(self, rows: int, *, likelihood: bool = False, capacity: Sequence[int] | None = None) -> None:
         self.rows = rows
         #: whether updates add their innovation negative log-likelihood (:meth:`add_likelihood`)
         self.likelihood = likelihood
@@ -87,6 +145,10 @@ class BatchChain:
         self._mean: list[Tensor] = []  # chunks; the last is (B, 1, 26)
         self._cov: list[Tensor] = []
         self._finished = False
+        use_stores = capacity is not None and rows <= STORE_ROWS and not torch.is_grad_enabled()
+        self._stores = [_RowStore(c) for c in capacity] if use_stores else None
+        self._start = 0  # the first column the chunk lists hold (the ones before are in the stores)
+        self._stored = [0] * rows  # per row: how many of its own columns are in its store
 
     @property
     def mean(self) -> Tensor:
@@ -108,6 +170,10 @@ class BatchChain:
         """Append columns ``(B, n, ...)``; ``mean``, ``cov`` are the filtered Gaussians of the
         last column ``(B, 1, ...)`` (the others' are their predictions)."""
         n = pred_mean.shape[1]
+        if self._stores is not None and self._count > self._start:
+            D = pred_cov.shape[-1]
+            if (self._count - self._start) * self.rows * D * D * pred_cov.element_size() >= FLUSH_BYTES:
+                self._flush()
         self._transition.append(transition)
         self._pred_mean.append(pred_mean)
         self._pred_cov.append(pred_cov)
@@ -213,6 +279,58 @@ class BatchChain:
         self._append(*(c.unsqueeze(1) for c in columns))
         self.log_rows(rows, infos)
 
+    def _flush(self) -> None:
+        """Move every column the chunk lists hold to the rows' stores; the lists are then empty.
+        Only between a column's last change and the next (at an append: no event acts on a node
+        but the newest, and the newest's owners are settled once a column follows it)."""
+        end = self._count
+        sizes = [c.shape[1] for c in self._transition]
+        joined = {name: (chunks[0] if len(chunks) == 1 else torch.cat(chunks, dim=1))
+                  for name, chunks in (("transition", self._transition), ("pred_mean", self._pred_mean),
+                                       ("mean", self._mean), ("cov", self._cov))}
+        if sum(sizes) != end - self._start:
+            raise RuntimeError(f"BatchChain: the chunks hold {sum(sizes)} columns, expected {end - self._start}")
+        for b, store in enumerate(self._stores):
+            columns = self._columns[b]
+            first, last = self._stored[b], bisect_left(columns, end, self._stored[b])
+            if last == first:
+                continue
+            local = [c - self._start for c in columns[first:last]]
+            k = last - first
+            run = local[-1] - local[0] == k - 1  # one contiguous run of columns: a slice
+            index = None if run else torch.tensor(local, dtype=torch.long, device=joined["cov"].device)
+            for name, part in joined.items():
+                target = store.reserve(name, part, k)[store.count: store.count + k]
+                target.copy_(part[b, local[0]: local[0] + k] if run else part[b].index_select(0, index))
+            updated = self._updated[b]
+            own_updated = sorted(c for c in updated if c < end)
+            flags = [False] * k
+            for c in own_updated:
+                flags[bisect_left(columns, c, first, last) - first] = True
+            store.add_updated([updated.pop(c) for c in own_updated])
+            store.updated.extend(flags)
+            store.count += k
+            self._stored[b] = last
+        for chunks in (self._transition, self._pred_mean, self._pred_cov, self._mean, self._cov):
+            chunks.clear()
+        self._start = end
+
+    def _finish_stores(self) -> list[tuple[Tensor, ...]]:
+        """Each row's ``(transition, pred_mean, mean, cov, updated, updated_pred_cov)`` as views of
+        its store, after the last flush; the chain keeps its newest nodes."""
+        newest = (self._transition[-1][:, -1:], self._pred_mean[-1][:, -1:], self._pred_cov[-1][:, -1:],
+                  self._mean[-1], self._cov[-1])
+        self._flush()
+        self._transition, self._pred_mean, self._pred_cov, self._mean, self._cov = ([part] for part in newest)
+        out = []
+        for store in self._stores:
+            n = store.count
+            parts = tuple(store.parts[name][:n] for name in _RowStore.NAMES)
+            covs = parts[3]
+            updated_pred = store.updated_pred[: store.updated_count] if store.updated_pred is not None else covs[:0].clone()
+            out.append((*parts, torch.tensor(store.updated, dtype=torch.bool, device=covs.device), updated_pred))
+        return out
+
     def finish(self) -> list[FilterTrack]:
         """Each row's :class:`FilterTrack` (its own nodes only). The chain's storage is handed
         over part by part (each part's columns are freed once the rows have copied theirs, so
@@ -221,6 +339,8 @@ class BatchChain:
         if self._finished:
             raise RuntimeError("BatchChain.finish: the chain is finished already (it hands its nodes over once)")
         self._finished = True
+        if self._stores is not None:
+            return [self._track(b, *parts) for b, parts in enumerate(self._finish_stores())]
         # the predicted covariances of the updated nodes only (a copy: the chunks they view go)
         updated = []
         for b in range(self.rows):
@@ -241,17 +361,18 @@ class BatchChain:
             chunks = getattr(self, name)
             setattr(self, name, chunks[-1:])
             own.append(self._own_columns(chunks))
-        tracks = []
-        for b in range(self.rows):
-            transition, pred_mean, mean, cov = (part[b] for part in own)
-            mask, updated_pred_cov = updated[b]
-            nll = (torch.stack(self._nll[b]).sum() if self._nll[b] else mean.new_zeros(())) if self.likelihood else None
-            count = float(torch.stack(self._nll_count[b]).sum()) if self._nll_count[b] else 0.0
-            tracks.append(FilterTrack(t_s=torch.tensor(self.t_s[b], dtype=torch.float64), transition=transition,
-                                      pred_mean=pred_mean, updated=mask.to(mean.device), updated_pred_cov=updated_pred_cov,
-                                      node_mean=mean, node_cov=cov, log=self.logs[b],
-                                      frame_changes=self.frame_changes[b], nll=nll, nll_count=count))
-        return tracks
+        return [self._track(b, *(part[b] for part in own), updated[b][0].to(own[2][b].device), updated[b][1])
+                for b in range(self.rows)]
+
+    def _track(self, b: int, transition: Tensor, pred_mean: Tensor, mean: Tensor, cov: Tensor, mask: Tensor,
+               updated_pred_cov: Tensor) -> FilterTrack:
+        """Row ``b``'s :class:`FilterTrack` from its nodes."""
+        nll = (torch.stack(self._nll[b]).sum() if self._nll[b] else mean.new_zeros(())) if self.likelihood else None
+        count = float(torch.stack(self._nll_count[b]).sum()) if self._nll_count[b] else 0.0
+        return FilterTrack(t_s=torch.tensor(self.t_s[b], dtype=torch.float64), transition=transition,
+                           pred_mean=pred_mean, updated=mask, updated_pred_cov=updated_pred_cov,
+                           node_mean=mean, node_cov=cov, log=self.logs[b],
+                           frame_changes=self.frame_changes[b], nll=nll, nll_count=count)
 
     def _own_columns(self, chunks: list[Tensor]) -> list[Tensor]:
         """Per row, its own columns of ``chunks`` (``(B, n, ...)`` each) in one tensor of its own.

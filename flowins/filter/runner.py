@@ -150,7 +150,7 @@ def run_filters(
     noises = [run.noise or noise for run in runs]
     plans = [_prepare(run, output_every, dtype, device, n) for run, n in zip(runs, noises)]
     B = len(runs)
-    chain = BatchChain(B, likelihood=likelihood)
+    chain = BatchChain(B, likelihood=likelihood, capacity=[expected_nodes(run, output_every) for run in runs])
     eye = torch.eye(dim, dtype=dtype, device=device)
     chain.add_nodes([[plan.t0] for plan in plans], eye.expand(B, 1, dim, dim),
                     torch.stack([run.mean0 for run in runs]).unsqueeze(1),
@@ -199,6 +199,11 @@ def run_filters(
     return chain.finish()
 
 
+def expected_nodes(run: FilterInput, output_every: int) -> int:
+    """The nodes a run's chain gets at most, as :func:`chain_bytes` counts them."""
+    return int(run.t_s.shape[0]) // output_every + 2 * len(run.events) + 1
+
+
 def chain_bytes(runs: Sequence[FilterInput], *, output_every: int = 10) -> int:
     """About how many bytes the node chain of :func:`run_filters` over ``runs`` (one batch) holds
     when the pass ends: per node a transition and a covariance, ``D x D`` each, two means, and at
@@ -212,7 +217,7 @@ def chain_bytes(runs: Sequence[FilterInput], *, output_every: int = 10) -> int:
     if not runs:
         return 0
     D = runs[0].mean0.shape[-1]
-    nodes = max(int(run.t_s.shape[0]) // output_every + 2 * len(run.events) + 1 for run in runs)
+    nodes = max(expected_nodes(run, output_every) for run in runs)
     updated = max(len(run.events) for run in runs)
     return len(runs) * ((2 * nodes + updated) * D * D + 2 * nodes * D) * runs[0].mean0.element_size()
 

@@ -122,3 +122,40 @@ def test_the_cholesky_jitter_one_covariance_needs_leaves_the_others_of_the_batch
     both = _cholesky_psd(torch.stack((good, bad)))
     assert torch.equal(both[0], _cholesky_psd(good)) and torch.equal(both[1], _cholesky_psd(bad))
     assert not torch.equal(both[0], torch.linalg.cholesky(good + 1e-14 * good.diagonal().max() * torch.eye(6, dtype=F64)))
+
+
+@pytest.mark.parametrize("flush_bytes, capacity", [(None, None), (1, None), (1, 1), (100_000, 3)])
+def test_row_stores_hand_over_exactly_the_nodes_the_chunks_do(monkeypatch, flush_bytes, capacity):
+    """Without a gradient a chain of a few rows moves its finished nodes to stores of their own
+    as it goes (at every append with ``FLUSH_BYTES = 1``; from one reserved node, growing, with
+    ``capacity = 1``); its tracks are the ones the chunk lists give with a gradient, bit for bit."""
+    import flowins.filter.chain as chain
+    import flowins.filter.runner as runner
+
+    runs = _unequal_runs() + [_run(3, 3.0, 100.0, 0.5, augment_s=0.3)]
+    reference = run_filters(runs, noise=NOISE)
+    if flush_bytes is not None:
+        monkeypatch.setattr(chain, "FLUSH_BYTES", flush_bytes)
+    if capacity is not None:
+        monkeypatch.setattr(runner, "expected_nodes", lambda run, output_every: capacity)
+    with torch.inference_mode():
+        stored = run_filters(runs, noise=NOISE)
+        chain_rows = chain.BatchChain(len(runs), capacity=[1] * len(runs))
+    assert chain_rows._stores is not None  # the path under test
+    assert any(e.get("kind") == "gnss_reset" for e in stored[1].log)  # a prediction on one row only
+    for got, want in zip(stored, reference):
+        assert got.updated.dtype == torch.bool and int(got.updated.sum()) > 0
+        for name in ("t_s", "updated", "updated_pred_cov", "node_mean", "node_cov", "pred_mean", "transition"):
+            x, y = getattr(got, name), getattr(want, name)
+            assert x.shape == y.shape and torch.equal(x, y), name
+        assert got.log == want.log
+
+
+def test_a_chain_keeps_no_stores_with_a_gradient_or_many_rows():
+    import flowins.filter.chain as chain
+
+    assert chain.BatchChain(2, capacity=[5, 5])._stores is None  # grad mode: the chunks' path
+    with torch.inference_mode():
+        assert chain.BatchChain(chain.STORE_ROWS + 1, capacity=[5] * (chain.STORE_ROWS + 1))._stores is None
+        assert chain.BatchChain(2)._stores is None  # no capacity given
+
