@@ -230,5 +230,6 @@ def _quaternion_index(device: torch.device, clones: int = 1) -> Tensor:
 
 
 def symmetrize(cov: Tensor) -> Tensor:
-    """``(P + P^T) / 2`` over the last two dimensions."""
-    return 0.5 * (cov + cov.transpose(-1, -2))
+    """``(P + P^T) / 2`` over the last two dimensions (the half in place on the sum: one new tensor,
+    not two, the same numbers)."""
+    return (cov + cov.transpose(-1, -2)).mul_(0.5)
