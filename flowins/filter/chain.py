@@ -332,10 +332,10 @@ class BatchChain:
         return out
 
     def finish(self) -> list[FilterTrack]:
-        """Each row's :class:`FilterTrack` (its own nodes only). The chain's storage is handed
-        over part by part (each part's columns are freed once the rows have copied theirs, so
-        the nodes are not held twice): after it the chain keeps only its newest nodes
-        (:attr:`mean`, :attr:`cov`)."""
+        """Each row's :class:`FilterTrack` (its own nodes only). With row stores the tracks are
+        views of them (after a last flush); otherwise the chain's storage is handed over part by
+        part (each part's columns are freed once the rows have copied theirs, so the nodes are
+        not held twice). After it the chain keeps only its newest nodes (:attr:`mean`, :attr:`cov`)."""
         if self._finished:
             raise RuntimeError("BatchChain.finish: the chain is finished already (it hands its nodes over once)")
         self._finished = True
