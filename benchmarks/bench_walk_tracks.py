@@ -13,7 +13,9 @@ two-view flow pairs are read from the cache that ``python evaluate.py`` fills (c
 if missing). The last line is ``RESULT window=<N> two_view=<s> multi_view=<s> ratio=<x>``.
 
 ``--stages`` also prints, per update, the median seconds of each pass spent handing the chain's
-nodes over (``BatchChain.finish``) and in the smoother (``rts_smooth_batch``).
+nodes over (``BatchChain.finish``) and in the smoother (``rts_smooth_batch``), and the bytes the
+finished tracks hold of their node chains against the estimate made before the pass
+(:func:`flowins.filter.runner.chain_bytes`, what the memory warning uses).
 
     python benchmarks/bench_walk_tracks.py [--window 10] [--sparse lk|tracks] [--repeats 3] [--quick] [--stages]
 """
@@ -108,18 +110,40 @@ def timed(owner, name: str, spent: dict[str, float]) -> None:
     setattr(owner, name, wrapped)
 
 
+def recorded(owner, name: str, seen: list) -> None:
+    """Wrap ``owner.name`` so that each value it returns is appended to ``seen``."""
+    original = getattr(owner, name)
+
+    def wrapped(*args, **kwargs):
+        out = original(*args, **kwargs)
+        seen.append(out)
+        return out
+
+    setattr(owner, name, wrapped)
+
+
+def stored_bytes(results) -> int:
+    """What the finished filter tracks hold of their node chains (transitions, covariances, means,
+    the updated nodes' predictions)."""
+    return sum(t.nbytes for r in results for t in (r.filter.transition, r.filter.node_cov, r.filter.updated_pred_cov,
+                                                      r.filter.pred_mean, r.filter.node_mean))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--window", type=int, default=10, help="cloned poses of the multi-view update (>= 1)")
     parser.add_argument("--sparse", choices=["lk", "tracks"], default="lk")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--quick", action="store_true", help="the 60 s walk instead of the 300 s one")
-    parser.add_argument("--stages", action="store_true", help="time BatchChain.finish and the smoother in each pass")
+    parser.add_argument("--stages", action="store_true", help="time BatchChain.finish and the smoother in each pass, "
+                        "and print the node chain's bytes against its estimate (flowins.filter.runner.chain_bytes)")
     args = parser.parse_args()
     spent: dict[str, float] = {}
+    estimates: list[int] = []
     if args.stages:
         timed(BatchChain, "finish", spent)
         timed(navigation, "rts_smooth_batch", spent)
+        recorded(navigation, "chain_bytes", estimates)
     if args.window < 1:
         raise SystemExit(f"error: --window must be >= 1, got {args.window}")
     variants = {"two-view": setup(0, args.sparse, args.quick), f"window {args.window}": setup(args.window, args.sparse, args.quick)}
@@ -129,16 +153,20 @@ def main() -> None:
           f"rows {' + '.join(ROWS)} in one batched pass (filter + smoother), the CPU with {torch.get_num_threads()} threads")
     times: dict[str, list[float]] = {name: [] for name in variants}
     stages: dict[str, dict[str, list[float]]] = {name: {} for name in variants}
+    chains: dict[str, tuple[int, int]] = {}  # stored, estimated (bytes)
     scores = {}
     for _ in range(args.repeats):
         for name, (rec_v, runs, config) in variants.items():
             spent.clear()
+            estimates.clear()
             t0 = time.perf_counter()
             results = navigate_batch(runs, config=config)
             times[name].append(time.perf_counter() - t0)
             for stage, seconds in spent.items():
                 stages[name].setdefault(stage, []).append(seconds)
             scores[name] = rmse(rec_v, results)
+            if estimates:
+                chains[name] = (stored_bytes(results), sum(estimates))
     print(f"{'update':<12} {'wall (median)':>14} {'ms/frame':>9}   filter / smoother RMSE ({ROWS[0]}, {ROWS[1]})")
     median = {name: statistics.median(t) for name, t in times.items()}
     for name in variants:
@@ -147,6 +175,10 @@ def main() -> None:
     for name in variants if args.stages else ():
         print(f"{name:<12} " + ", ".join(f"{stage} {statistics.median(t):.2f} s (runs: "
                                          f"{', '.join(f'{x:.2f}' for x in t)})" for stage, t in stages[name].items()))
+        if name in chains:
+            held, estimated = chains[name]
+            print(f"{name:<12} node chains {held / 1e9:.2f} GB held at the end, {estimated / 1e9:.2f} GB estimated "
+                  f"before the pass (chain_bytes)")
     with initialize_config_dir(config_dir=CONFIGS, version_base=None):
         correlation_s = float(compose("evaluate")["filter"]["gnss_correlation_s"])
     for line in accuracy_lines(rec, scores, f"window {args.window}", correlation_s):
