@@ -25,6 +25,8 @@ import os
 import tempfile
 from pathlib import Path
 
+from flowins.jobs.cli import user_errors
+
 PARAMS = {  # name: config key
     "acc_noise": "imu.acc_noise",
     "gyro_noise": "imu.gyro_noise",
@@ -40,14 +42,18 @@ DEFAULT = "acc_noise,gyro_noise,acc_bias_walk,gyro_bias_walk,gnss_noise_scale"
 def run_once(folder: Path, out: Path, overrides: list[str], combination: str) -> tuple[dict, dict]:
     """``evaluate.py sequence.path=FOLDER combinations=[COMBINATION] OVERRIDES``; its metrics and config."""
     from hydra import compose, initialize_config_dir
+    from hydra.errors import ConfigCompositionException
     from omegaconf import OmegaConf
 
     from flowins.jobs.evaluate import run
 
     configs = Path(__file__).resolve().parents[1] / "configs"
     with initialize_config_dir(str(configs), version_base=None):
-        cfg = compose("evaluate", overrides=[f"sequence.path={folder}", f"combinations=[{combination}]",
-                                             f"output_dir={out}", "plots=false", "progress=false", *overrides])
+        try:
+            cfg = compose("evaluate", overrides=[f"sequence.path={folder}", f"combinations=[{combination}]",
+                                                 f"output_dir={out}", "plots=false", "progress=false", *overrides])
+        except ConfigCompositionException as error:  # a bad override: the user's, named as hydra names it
+            raise ValueError(str(error)) from error
     with open(os.devnull, "w") as quiet, contextlib.redirect_stdout(quiet):  # each run's table: not this script's output
         config = OmegaConf.to_container(cfg, resolve=True)
         run(config)
@@ -111,6 +117,7 @@ def coordinate_search(score, values: dict[str, float], params: list[str], steps:
     return best, values, evals
 
 
+@user_errors  # a bad folder, part or override: `error: ...`, exit status 2, as the jobs say it
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("folder", type=Path, help="a recording folder (sequence.path)")
