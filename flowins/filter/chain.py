@@ -73,31 +73,30 @@ class _RowStore:
         self.updated_pred: Tensor | None = None  # (capacity, D, D) the updated nodes' predictions
         self.updated_count = 0
 
+    def _room(self, part: Tensor | None, used: int, needed: int, event_shape: tuple[int, ...],
+              like: Tensor) -> Tensor:
+        """``part``, or a tensor of ``max(capacity, twice its size, needed)`` nodes of ``event_shape``
+        holding its first ``used`` nodes, when it has fewer than ``needed``."""
+        if part is not None and part.shape[0] >= needed:
+            return part
+        grown = like.new_empty(max(self.capacity if part is None else 2 * part.shape[0], needed), *event_shape)
+        if part is not None:
+            grown[:used].copy_(part[:used])
+        return grown
+
     def reserve(self, name: str, like: Tensor, extra: int) -> Tensor:
         """The tensor of ``name`` (nodes of ``like``'s event shape), with room for ``extra`` more."""
-        part = self.parts.get(name)
-        needed = self.count + extra
-        if part is None or part.shape[0] < needed:
-            size = max(self.capacity if part is None else 2 * part.shape[0], needed)
-            grown = like.new_empty(size, *like.shape[2:])
-            if part is not None:
-                grown[: self.count].copy_(part[: self.count])
-            self.parts[name] = part = grown
+        part = self._room(self.parts.get(name), self.count, self.count + extra, tuple(like.shape[2:]), like)
+        self.parts[name] = part
         return part
 
     def add_updated(self, covs: list[Tensor]) -> None:
         """Append the predicted covariances of updated nodes, in node order."""
         if not covs:
             return
-        have = self.updated_pred
         needed = self.updated_count + len(covs)
-        if have is None or have.shape[0] < needed:
-            size = max(self.capacity if have is None else 2 * have.shape[0], needed)
-            grown = covs[0].new_empty(size, *covs[0].shape)
-            if have is not None:
-                grown[: self.updated_count].copy_(have[: self.updated_count])
-            self.updated_pred = have = grown
-        torch.stack(covs, out=have[self.updated_count: needed])
+        self.updated_pred = self._room(self.updated_pred, self.updated_count, needed, tuple(covs[0].shape), covs[0])
+        torch.stack(covs, out=self.updated_pred[self.updated_count: needed])
         self.updated_count = needed
 
 
@@ -284,12 +283,12 @@ class BatchChain:
         Only between a column's last change and the next (at an append: no event acts on a node
         but the newest, and the newest's owners are settled once a column follows it)."""
         end = self._count
-        sizes = [c.shape[1] for c in self._transition]
+        held = sum(c.shape[1] for c in self._transition)
+        if held != end - self._start:
+            raise RuntimeError(f"BatchChain: the chunks hold {held} columns, expected {end - self._start}")
         joined = {name: (chunks[0] if len(chunks) == 1 else torch.cat(chunks, dim=1))
                   for name, chunks in (("transition", self._transition), ("pred_mean", self._pred_mean),
                                        ("mean", self._mean), ("cov", self._cov))}
-        if sum(sizes) != end - self._start:
-            raise RuntimeError(f"BatchChain: the chunks hold {sum(sizes)} columns, expected {end - self._start}")
         for b, store in enumerate(self._stores):
             columns = self._columns[b]
             first, last = self._stored[b], bisect_left(columns, end, self._stored[b])
