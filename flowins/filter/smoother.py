@@ -83,16 +83,21 @@ def _factor_predicted(cov: Tensor, t_s: Tensor) -> tuple[Tensor, Tensor]:
                      f"1e-3 of its largest variance; run the filter in float64 (filter.dtype=float64)")
 
 
-#: the most bytes of one (nodes, D, D) tensor the smoother's batched steps form at a time
-_BLOCK_BYTES = 32 << 20
+#: the most bytes of one (nodes, D, D) tensor the smoother's batched steps form at a time on a
+#: CPU: well below glibc's largest threshold for mapping an allocation on its own (32 MiB), so
+#: that each block's tensors reuse the heap's pages instead of mapping fresh ones, which the
+#: kernel must zero at their first touch (``benchmarks/bench_walk_tracks.py --stages`` times the
+#: smoother); on a GPU (no such cost, and each block is kernel launches) :data:`_CUDA_BLOCK_BYTES`
+_BLOCK_BYTES = 8 << 20
+_CUDA_BLOCK_BYTES = 32 << 20
 
 
 def _node_blocks(keys: Tensor, J: int, D: int) -> list[tuple[int, int]]:
     """The nodes ``0 .. J-2`` as ranges ``[a, b)`` with ``b`` a key node (whole runs: the nodes
     whose next key is ``b`` or before, so each node's transition to its next key stays inside
-    its block), each of about :data:`_BLOCK_BYTES` of ``D x D`` float64 matrices (a single
-    longer run is one block)."""
-    per_block = max(1, _BLOCK_BYTES // (8 * D * D))
+    its block), each of about :data:`_BLOCK_BYTES` (:data:`_CUDA_BLOCK_BYTES` for keys on a GPU)
+    of ``D x D`` float64 matrices (a single longer run is one block)."""
+    per_block = max(1, (_CUDA_BLOCK_BYTES if keys.is_cuda else _BLOCK_BYTES) // (8 * D * D))
     blocks, a = [], 0
     for end in keys.tolist():  # the last key is J-1
         if end - a >= per_block or end == J - 1:
