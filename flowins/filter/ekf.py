@@ -282,22 +282,26 @@ def information_update(mean: Tensor, cov: Tensor, information: Tensor, projected
     return new_mean, symmetrize(new_cov)
 
 
-def block_information(innovation: Tensor, H: Tensor, noise_cov: Tensor) -> tuple[Tensor, Tensor]:
+def block_information(innovation: Tensor, H: Tensor, noise_cov: Tensor | None) -> tuple[Tensor, Tensor]:
     """``G = Σᵢ Hᵢᵀ Rᵢ⁻¹ Hᵢ`` ``(..., D, D)`` and ``b = Σᵢ Hᵢᵀ Rᵢ⁻¹ vᵢ`` ``(..., D)`` of ``M`` blocks
-    (innovation ``(..., M, d)``, H ``(..., M, d, D)``, noise_cov ``(..., M, d, d)``), each block's
-    ``R⁻¹`` from its Cholesky factor (a batched ``cholesky_solve`` with ``D`` right-hand sides is
-    two orders of magnitude slower on the CPU than the ``d x d`` inverse and a product)."""
-    Rinv = torch.cholesky_inverse(torch.linalg.cholesky(symmetrize(noise_cov)))
-    Rinv_H = (Rinv @ H).flatten(-3, -2)  # (..., M d, D): the sums over blocks are one product each
+    (innovation ``(..., M, d)``, H ``(..., M, d, D)``, noise_cov ``(..., M, d, d)``, or None for
+    whitened blocks, ``R = I``), each block's ``R⁻¹`` from its Cholesky factor (a batched
+    ``cholesky_solve`` with ``D`` right-hand sides is two orders of magnitude slower on the CPU
+    than the ``d x d`` inverse and a product)."""
+    if noise_cov is None:
+        Rinv_H = H.flatten(-3, -2)
+    else:
+        Rinv = torch.cholesky_inverse(torch.linalg.cholesky(symmetrize(noise_cov)))
+        Rinv_H = (Rinv @ H).flatten(-3, -2)  # (..., M d, D): the sums over blocks are one product each
     G = H.flatten(-3, -2).transpose(-1, -2) @ Rinv_H
     return G, (Rinv_H.transpose(-1, -2) @ innovation.flatten(-2).unsqueeze(-1)).squeeze(-1)
 
 
-def block_nis(cov: Tensor, innovation: Tensor, H: Tensor, noise_cov: Tensor) -> Tensor:
+def block_nis(cov: Tensor, innovation: Tensor, H: Tensor, noise_cov: Tensor | None) -> Tensor:
     """NIS ``v_iᵀ S_i⁻¹ v_i`` of each of ``M`` measurement blocks.
 
-    innovation ``(..., M, d)``, H ``(..., M, d, D)``, noise_cov ``(..., M, d, d)``,
-    cov ``(..., D, D)`` -> ``(..., M)``.
+    innovation ``(..., M, d)``, H ``(..., M, d, D)``, noise_cov ``(..., M, d, d)`` (None:
+    whitened, ``R = I``), cov ``(..., D, D)`` -> ``(..., M)``.
     """
     if innovation.shape[-1] == 1:  # scalars: S_i = h_i P h_iᵀ + r_i without M tiny solves
         return innovation[..., 0] ** 2 / _scalar_innovation_variance(cov, H, noise_cov)
@@ -305,7 +309,7 @@ def block_nis(cov: Tensor, innovation: Tensor, H: Tensor, noise_cov: Tensor) -> 
     return (innovation * torch.linalg.solve(S, innovation.unsqueeze(-1)).squeeze(-1)).sum(-1)
 
 
-def block_nll(cov: Tensor, innovation: Tensor, H: Tensor, noise_cov: Tensor) -> tuple[Tensor, Tensor]:
+def block_nll(cov: Tensor, innovation: Tensor, H: Tensor, noise_cov: Tensor | None) -> tuple[Tensor, Tensor]:
     """NIS and innovation negative log-likelihood of each of ``M`` measurement blocks.
 
     Shapes as for :func:`block_nis`; returns ``(nis, nll)``, both ``(..., M)``, with
@@ -313,7 +317,9 @@ def block_nll(cov: Tensor, innovation: Tensor, H: Tensor, noise_cov: Tensor) -> 
     log-density of the block's innovation under the filter's prediction, without the
     constant ``½ d log 2π``. Summed over the updates of a run, one block per update, it is
     the negative log-likelihood of all the measurements (the prediction-error
-    decomposition).
+    decomposition). With whitened blocks (``noise_cov`` None) ``log det S`` is that of the
+    whitened rows: the caller adds the whitening's own ``½ log det R`` (:func:`ekf_update`'s
+    ``noise_logdet``).
     """
     if innovation.shape[-1] == 1:
         S = _scalar_innovation_variance(cov, H, noise_cov)
@@ -326,17 +332,20 @@ def block_nll(cov: Tensor, innovation: Tensor, H: Tensor, noise_cov: Tensor) -> 
     return nis, 0.5 * nis + torch.log(L.diagonal(dim1=-2, dim2=-1)).sum(-1)
 
 
-def _block_innovation_cov(cov: Tensor, H: Tensor, noise_cov: Tensor) -> Tensor:
-    """``S_i = H_i P H_iᵀ + R_i`` ``(..., M, d, d)`` of each block, symmetrised."""
+def _block_innovation_cov(cov: Tensor, H: Tensor, noise_cov: Tensor | None) -> Tensor:
+    """``S_i = H_i P H_iᵀ + R_i`` ``(..., M, d, d)`` of each block, symmetrised (``R_i = I`` for
+    ``noise_cov`` None)."""
     M, d = H.shape[-3:-1]
     HP = (H.flatten(-3, -2) @ cov).unflatten(-2, (M, d))  # one product per covariance, not one per block
-    return symmetrize(HP @ H.transpose(-1, -2) + noise_cov)
+    R = _eye(d, cov.dtype, cov.device) if noise_cov is None else noise_cov
+    return symmetrize(HP @ H.transpose(-1, -2) + R)
 
 
-def _scalar_innovation_variance(cov: Tensor, H: Tensor, noise_cov: Tensor) -> Tensor:
-    """``S_i = h_i P h_iᵀ + r_i`` ``(..., M)`` of scalar blocks (``d = 1``)."""
+def _scalar_innovation_variance(cov: Tensor, H: Tensor, noise_cov: Tensor | None) -> Tensor:
+    """``S_i = h_i P h_iᵀ + r_i`` ``(..., M)`` of scalar blocks (``d = 1``; ``r_i = 1`` for
+    ``noise_cov`` None)."""
     h = H[..., 0, :]
-    return torch.linalg.vecdot(h @ cov, h) + noise_cov[..., 0, 0]
+    return torch.linalg.vecdot(h @ cov, h) + (1.0 if noise_cov is None else noise_cov[..., 0, 0])
 
 
 def _block_diagonal(blocks: Tensor) -> Tensor:
@@ -353,12 +362,13 @@ def ekf_update(
     *,
     innovation: Tensor,
     H: Tensor,
-    noise_cov: Tensor,
+    noise_cov: Tensor | None,
     gate: Gate | None = None,
     sequential: bool = False,
     normalize: Callable[[Tensor], Tensor] | None = None,
     likelihood: bool = False,
     dof: Tensor | None = None,
+    noise_logdet: Tensor | None = None,
 ) -> UpdateResult:
     """Gated EKF update with ``M`` independent measurement blocks of dimension ``d``.
 
@@ -366,7 +376,9 @@ def ekf_update(
         mean ``(..., D)``, cov ``(..., D, D)``.
         innovation: ``(..., M, d)`` (``z - h(m)``, or ``-h(m, δ)`` for implicit models).
         H: ``(..., M, d, D)`` Jacobians of the measurement function at ``m``.
-        noise_cov: ``(..., M, d, d)`` noise in measurement space, ``H_r R H_rᵀ``.
+        noise_cov: ``(..., M, d, d)`` noise in measurement space, ``H_r R H_rᵀ``; None: the
+            blocks are whitened (``R = I``: each block's innovation and ``H`` already
+            multiplied by ``L⁻¹`` of its noise ``L Lᵀ``), which spares the ``d x d`` inverses.
         gate: innovation gate applied per block (default: none).
         sequential: process the blocks one after another (the paper's per-point
             update, each gated against the covariance updated so far) instead of
@@ -381,15 +393,19 @@ def ekf_update(
         dof: ``(..., M)`` the degrees of freedom each block's gate tests (default ``d``): a
             block padded to ``d`` with rows that carry nothing (zero innovation and ``H``,
             noise uncorrelated with its real rows) has fewer.
+        noise_logdet: ``(..., M)`` with whitened blocks, ``½ log det`` of each block's noise
+            before the whitening, added to its negative log-likelihood (which is then that of
+            the measurement as it was; default 0).
 
     Stacked blocks with ``M d > D`` (many blocks of several rows, such as the multi-view
     track update) update in information form (:func:`information_update`), ``D x D`` algebra
     instead of an ``M d x M d`` innovation covariance.
     """
-    if innovation.ndim < 2 or H.shape[:-1] != innovation.shape or noise_cov.shape[-2:] != innovation.shape[-1:] * 2:
+    if innovation.ndim < 2 or H.shape[:-1] != innovation.shape or (
+            noise_cov is not None and noise_cov.shape[-2:] != innovation.shape[-1:] * 2):
         raise ValueError(
-            "ekf_update expects innovation (..., M, d), H (..., M, d, D), noise_cov (..., M, d, d); got "
-            f"{tuple(innovation.shape)}, {tuple(H.shape)}, {tuple(noise_cov.shape)}"
+            "ekf_update expects innovation (..., M, d), H (..., M, d, D), noise_cov (..., M, d, d) or None; got "
+            f"{tuple(innovation.shape)}, {tuple(H.shape)}, {None if noise_cov is None else tuple(noise_cov.shape)}"
         )
     gate = gate or Gate(mode="off")
     dof = innovation.shape[-1] if dof is None else dof
@@ -397,7 +413,7 @@ def ekf_update(
         nis_list, weight_list, nll_list = [], [], []
         prior_mean = mean
         for i in range(innovation.shape[-2]):
-            Hi, Ri = H[..., i : i + 1, :, :], noise_cov[..., i : i + 1, :, :]
+            Hi, Ri = H[..., i : i + 1, :, :], None if noise_cov is None else noise_cov[..., i : i + 1, :, :]
             # the innovation was formed at the prior mean; move it to the current one
             # (first order: v_i - H_i (m - m_prior), exact for linear measurements)
             shift = (Hi[..., 0, :, :] @ (mean - prior_mean).unsqueeze(-1)).squeeze(-1)
@@ -417,7 +433,7 @@ def ekf_update(
         *batch, M, d = innovation.shape
         if d == 1:  # independent scalars (the epipolar flow update): D x D algebra
             mean, cov = scalar_update(mean, cov, (w * innovation)[..., 0], (w.unsqueeze(-1) * H)[..., 0, :],
-                                      noise_cov[..., 0, 0])
+                                      torch.ones_like(innovation[..., 0]) if noise_cov is None else noise_cov[..., 0, 0])
         elif M * d > H.shape[-1]:
             mean, cov = information_update(mean, cov, *block_information(w * innovation, w.unsqueeze(-1) * H, noise_cov))
         else:
@@ -426,8 +442,10 @@ def ekf_update(
                 cov,
                 (w * innovation).reshape(*batch, M * d),
                 (w.unsqueeze(-1) * H).reshape(*batch, M * d, H.shape[-1]),
-                _block_diagonal(noise_cov),
+                _block_diagonal(_eye(d, cov.dtype, cov.device).expand(*batch, M, d, d) if noise_cov is None else noise_cov),
             )
+    if nll is not None and noise_logdet is not None:
+        nll = nll + noise_logdet
     if normalize is not None:
         mean = normalize(mean)
     return UpdateResult(mean, cov, nis, weight, nll)  # each branch's covariance is already symmetrised

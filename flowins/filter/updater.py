@@ -2,7 +2,8 @@
 
 A measurement model builds, at the filter's newest mean ``m``, ``M`` blocks of dimension
 ``d``: the Jacobian ``H (..., M, d, D)``, the residual ``v = z - h(m)`` ``(..., M, d)`` (or
-``-h(m, δ)`` for an implicit model) and the noise ``R = H_r R H_rᵀ`` ``(..., M, d, d)``, and
+``-h(m, δ)`` for an implicit model) and the noise ``R = H_r R H_rᵀ`` ``(..., M, d, d)`` (or
+whitened blocks, ``R = I``, with the ``½ log det`` of the noise they were whitened by), and
 calls :func:`update` (one run, a :class:`~flowins.filter.chain.ChainBuilder`) or
 :func:`update_rows` (rows of a :class:`~flowins.filter.chain.BatchChain`), as OpenVINS'
 updaters hand theirs to ``StateHelper::EKFUpdate``. The helper owns the rest:
@@ -40,12 +41,13 @@ def update(
     *,
     H: Tensor,
     residual: Tensor,
-    noise_cov: Tensor,
+    noise_cov: Tensor | None,
     gate: Gate | None = None,
     sequential: bool = False,
     valid: Tensor | None = None,
     likelihood: bool = True,
     dof: Tensor | None = None,
+    noise_logdet: Tensor | None = None,
     **info: Any,
 ) -> UpdateResult:
     """Update one run's newest node with ``M`` measurement blocks of dimension ``d``.
@@ -53,7 +55,9 @@ def update(
     Args:
         chain: the run's chain; its newest node ``(D,)``, ``(D, D)`` is the prior.
         H ``(M, d, D)``, residual ``(M, d)``, noise_cov ``(M, d, d)``: the blocks,
-            linearised at the prior mean.
+            linearised at the prior mean; noise_cov None: whitened blocks (``R = I``), with
+            ``noise_logdet`` ``(M,)`` the ``½ log det`` of each one's noise before the whitening
+            (:func:`~flowins.filter.ekf.ekf_update`).
         gate: the innovation gate of each block (default: none).
         sequential: the blocks one after another (:func:`~flowins.filter.ekf.ekf_update`).
         valid ``(M,)`` bool: the blocks that carry a measurement (default: all).
@@ -71,7 +75,7 @@ def update(
                          "(update_rows updates rows of a batch)")
     keep = likelihood and chain.likelihood
     result = _step(chain.mean, chain.cov, H=H, residual=residual, noise_cov=noise_cov, gate=gate,
-                   sequential=sequential, valid=valid, likelihood=keep, dof=dof)
+                   sequential=sequential, valid=valid, likelihood=keep, dof=dof, noise_logdet=noise_logdet)
     if keep:
         chain.add_likelihood(*_likelihood(result, residual.shape[-1] if dof is None else dof))
     if info:
@@ -90,22 +94,24 @@ def update_rows(
     *,
     H: Tensor,
     residual: Tensor,
-    noise_cov: Tensor,
+    noise_cov: Tensor | None,
     gate: Gate | None = None,
     sequential: bool = False,
     valid: Tensor | None = None,
     likelihood: bool = True,
     infos: Sequence[dict[str, Any]] | None = None,
     dof: Tensor | None = None,
+    noise_logdet: Tensor | None = None,
 ) -> UpdateResult:
     """:func:`update` of the rows ``rows`` of ``chain`` at once (``r`` of them).
 
     Shapes carry the rows first: H ``(r, M, d, D)``, residual ``(r, M, d)``, noise_cov
-    ``(r, M, d, d)``, valid and dof ``(r, M)``; ``infos[i]`` is row ``rows[i]``'s log entry. A row
+    ``(r, M, d, d)`` (or None, with noise_logdet ``(r, M)``: whitened blocks, as in :func:`update`),
+    valid and dof ``(r, M)``; ``infos[i]`` is row ``rows[i]``'s log entry. A row
     without a valid block keeps its node and is only logged.
     """
     result = step_rows(chain, rows, H=H, residual=residual, noise_cov=noise_cov, gate=gate, sequential=sequential,
-                       valid=valid, likelihood=likelihood, dof=dof)
+                       valid=valid, likelihood=likelihood, dof=dof, noise_logdet=noise_logdet)
     if infos is not None:
         summary = _summary(result, valid).tolist()
         infos = [{**info, "nis": nis, "accepted": accepted} if info else info
@@ -121,13 +127,14 @@ def step_rows(
     *,
     H: Tensor,
     residual: Tensor,
-    noise_cov: Tensor,
+    noise_cov: Tensor | None,
     gate: Gate | None = None,
     sequential: bool = False,
     valid: Tensor | None = None,
     likelihood: bool = True,
     prior: tuple[Tensor, Tensor] | None = None,
     dof: Tensor | None = None,
+    noise_logdet: Tensor | None = None,
 ) -> UpdateResult:
     """The update of :func:`update_rows` without writing the chain: one step of an
     iterated update, whose result the caller writes with :func:`commit_rows`.
@@ -142,7 +149,7 @@ def step_rows(
     mean, cov = chain.newest(rows) if prior is None else prior
     keep = likelihood and chain.likelihood
     result = _step(mean, cov, H=H, residual=residual, noise_cov=noise_cov, gate=gate, sequential=sequential,
-                   valid=valid, likelihood=keep, dof=dof)
+                   valid=valid, likelihood=keep, dof=dof, noise_logdet=noise_logdet)
     if keep:
         chain.add_likelihood(rows, *_likelihood(result, residual.shape[-1] if dof is None else dof))
     return result
@@ -172,14 +179,15 @@ def commit_rows(
     chain.log_rows([rows[i] for i in skipped], [infos[i] for i in skipped])
 
 
-def _step(mean: Tensor, cov: Tensor, *, H: Tensor, residual: Tensor, noise_cov: Tensor, gate: Gate | None,
-          sequential: bool, valid: Tensor | None, likelihood: bool, dof: Tensor | None = None) -> UpdateResult:
+def _step(mean: Tensor, cov: Tensor, *, H: Tensor, residual: Tensor, noise_cov: Tensor | None, gate: Gate | None,
+          sequential: bool, valid: Tensor | None, likelihood: bool, dof: Tensor | None = None,
+          noise_logdet: Tensor | None = None) -> UpdateResult:
     """The gated update; the weight of invalid blocks set to zero."""
     if valid is not None and valid.shape != residual.shape[:-1]:
         raise ValueError(f"update: valid must be {tuple(residual.shape[:-1])} (one flag per block of the "
                          f"residual {tuple(residual.shape)}), got {tuple(valid.shape)}")
     result = ekf_update(mean, cov, innovation=residual, H=H, noise_cov=noise_cov, gate=gate, sequential=sequential,
-                        normalize=normalize_quaternions, likelihood=likelihood, dof=dof)
+                        normalize=normalize_quaternions, likelihood=likelihood, dof=dof, noise_logdet=noise_logdet)
     return result if valid is None else result._replace(weight=result.weight * valid)
 
 

@@ -22,11 +22,13 @@ clone ``a - 1`` for age ``a``) at pixels ``z_j``:
 * ``X`` is projected out: with ``Π = I - H_f (H_fᵀ H_f)⁻¹ H_fᵀ`` (the projector on the left
   null space of ``H_f``, rank ``2m - 3``), the update uses ``Π r = Π H_x δx + Π n``. Its
   information ``H_xᵀ Π H_x / σ²`` and ``H_xᵀ Π r / σ²`` are those of any orthonormal
-  basis ``N`` of that null space (``N Nᵀ = Π``), the MSCKF's ``Nᵀ r``; the noise given
-  to the update is ``σ² Π + (I - Π)`` (``σ²`` on the null space, 1 on the directions that
-  carry nothing), so the NIS and the likelihood are those of the ``2m - 3`` projected
-  rows, and the χ² gate tests ``2m - 3`` degrees of freedom. The result equals the update
-  with ``X`` in the state (no prior on it) and then marginalised; a test checks it.
+  basis ``N`` of that null space (``N Nᵀ = Π``), the MSCKF's ``Nᵀ r``. The update gets the
+  rows whitened, ``Π r / σ`` and ``Π H_x / σ`` with noise ``I`` (the whitening of the noise
+  ``σ² Π + (I - Π)``: ``σ²`` on the null space, 1 on the directions that carry nothing), and
+  ``(2m - 3) log σ``, the ``½ log det`` of that noise on the null space, for the likelihood:
+  the NIS and the likelihood are those of the ``2m - 3`` projected rows, and the χ² gate
+  tests ``2m - 3`` degrees of freedom. The result equals the update with ``X`` in the
+  state (no prior on it) and then marginalised; a test checks it.
 
 A track is left out (``valid = False``) when its views do not fix the point: the
 triangulation degenerate (conditioning below ``min_conditioning``), the point behind or
@@ -185,9 +187,9 @@ def triangulate_views(R_wc: Tensor, c_w: Tensor, xy: Tensor, mask: Tensor) -> Tr
 class TrackMeasurements(NamedTuple):
     """The projected measurement of ``M`` tracks of ``V`` views (rows ``2V`` per track)."""
 
-    residual: Tensor  # (r, M, 2V) Π r, px
-    H: Tensor  # (r, M, 2V, D) Π H_x
-    noise_cov: Tensor  # (r, M, 2V, 2V) σ² Π + (I - Π)
+    residual: Tensor  # (r, M, 2V) Π r / σ, whitened (noise I)
+    H: Tensor  # (r, M, 2V, D) Π H_x / σ
+    noise_logdet: Tensor  # (r, M) (2m - 3) log σ: ½ log det of the noise σ² Π + (I - Π) the rows are whitened by
     dof: Tensor  # (r, M) 2m - 3
     valid: Tensor  # (r, M) bool
     n_degenerate: Tensor  # (r,) tracks left out: no finite point in front, or conditioning too low
@@ -251,22 +253,22 @@ def track_measurements(x: Tensor, uv_px: Tensor, ages: Tensor, mask: Tensor, cam
     low = ~(angle.amax(-1) >= update.min_parallax_rad) & ~degenerate & ~behind
     valid = real & ~degenerate & ~behind & ~low
     rowmask = (mask & valid.unsqueeze(-1)).to(x.dtype).repeat_interleave(2, -1)  # (r, M, 2V)
-    residual = (uv_px - proj.pixel).flatten(-2) * rowmask
-    Hf = proj.H_point.reshape(r, M, 2 * V, 3) * rowmask.unsqueeze(-1)
-    Hx = x.new_zeros(r, M, V, 2, D).scatter(-1, index.unsqueeze(-2).expand(r, M, V, 2, 7), proj.H_pose)
-    Hx = Hx.reshape(r, M, 2 * V, D) * rowmask.unsqueeze(-1)
-    # Π = I - H_f (H_fᵀ H_f)⁻¹ H_fᵀ (identity on the padded rows and on invalid tracks)
-    eye = torch.eye(2 * V, **like)
-    normal = Hf.transpose(-1, -2) @ Hf + torch.where(valid, 0.0, 1.0)[..., None, None] * eye3
-    Hf_N = Hf @ torch.linalg.inv(normal)  # Π x = x - H_f N⁻¹ (H_fᵀ x), of rank 3 (no 2V x 2V product with H_x)
-    Pi = eye - Hf_N @ Hf.transpose(-1, -2)
     sigma = torch.as_tensor(update.sigma_px, **like)
-    Pi_real = Pi * (rowmask.unsqueeze(-1) * rowmask.unsqueeze(-2))
-    noise = sigma**2 * Pi_real + (eye - Pi_real)
+    white = rowmask / sigma  # the real rows of valid tracks, whitened (Π below is linear)
+    residual = (uv_px - proj.pixel).flatten(-2) * white
+    Hf = proj.H_point.reshape(r, M, 2 * V, 3) * rowmask.unsqueeze(-1)
+    H_pose = proj.H_pose * white.view(r, M, V, 2, 1)  # masked before the scatter: no (r, M, 2V, D) product
+    Hx = x.new_zeros(r, M, V, 2, D).scatter(-1, index.unsqueeze(-2).expand(r, M, V, 2, 7), H_pose).view(r, M, 2 * V, D)
+    # Π x = x - H_f (H_fᵀ H_f)⁻¹ (H_fᵀ x), of rank 3 (no 2V x 2V matrix; the padded rows of r,
+    # H_x and H_f are zero, so Π leaves them zero)
+    normal = Hf.transpose(-1, -2) @ Hf + torch.where(valid, 0.0, 1.0)[..., None, None] * eye3
+    Hf_N = Hf @ torch.linalg.inv(normal)
+    Hf_t = Hf.transpose(-1, -2)
     dof = (2 * views - 3).clamp_min(1) * valid
     counts = [flag.sum(-1) for flag in (degenerate & real, behind & real, low & real)]
-    Pi_Hx = Hx - Hf_N @ (Hf.transpose(-1, -2) @ Hx)
-    return TrackMeasurements((Pi @ residual.unsqueeze(-1)).squeeze(-1), Pi_Hx, noise, dof, valid, *counts, X)
+    Pi_r = residual - (Hf_N @ (Hf_t @ residual.unsqueeze(-1))).squeeze(-1)
+    Pi_Hx = Hx - Hf_N @ (Hf_t @ Hx)
+    return TrackMeasurements(Pi_r, Pi_Hx, dof * torch.log(sigma), dof, valid, *counts, X)
 
 
 # ----------------------------------------------------------------------------- the schedule
@@ -396,8 +398,8 @@ def _track_update(chain: BatchChain, rows: list[int], frames: list[TrackFrame]) 
         infos.append(dict(kind="tracks", name=frame.name, candidates=frame.views.candidates,
                           tracks=int(frame.views.ages.shape[0]), valid=int(valid), degenerate=int(degenerate),
                           behind=int(behind), low_parallax=int(low)))
-    update_rows(chain, rows, H=m.H, residual=m.residual, noise_cov=m.noise_cov, gate=u.gate, valid=m.valid,
-                dof=m.dof, infos=infos)
+    update_rows(chain, rows, H=m.H, residual=m.residual, noise_cov=None, noise_logdet=m.noise_logdet, gate=u.gate,
+                valid=m.valid, dof=m.dof, infos=infos)
 
 
 def _pad_rows(t: Tensor, M: int) -> Tensor:

@@ -510,3 +510,37 @@ def test_block_nis_and_information_broadcast_over_batch_dimensions_H_lacks():
         Rinv = torch.linalg.inv(R[i])
         torch.testing.assert_close(G[i], sum(H[m].T @ Rinv[m] @ H[m] for m in range(M)), rtol=1e-12, atol=1e-12)
         torch.testing.assert_close(b[i], sum(H[m].T @ Rinv[m] @ v[m] for m in range(M)), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("M, d, sequential", [(3, 1, False), (2, 2, False), (6, 3, False), (3, 2, True)])
+def test_whitened_blocks_give_the_textbook_update_and_its_likelihood(M, d, sequential):
+    """Blocks handed whitened (``L⁻¹ v``, ``L⁻¹ H``, ``noise_cov`` None, ``R = L Lᵀ``) with
+    ``½ log det R`` give the update, NIS and likelihood of the textbook filter with ``R`` (every
+    branch: scalars, the Joseph form, the information form for M d > D, one block at a time)."""
+    gen = torch.Generator().manual_seed(7 * M + d)
+    D = 5
+    m = torch.randn(D, generator=gen, dtype=F64)
+    P = random_spd(gen, D)
+    H = torch.randn(M, d, D, generator=gen, dtype=F64)
+    R = torch.stack([random_spd(gen, d, scale=0.5) for _ in range(M)])
+    innovation = torch.randn(M, d, generator=gen, dtype=F64)
+    L = torch.linalg.cholesky(R)
+    white_v = torch.linalg.solve_triangular(L, innovation.unsqueeze(-1), upper=False).squeeze(-1)
+    white_H = torch.linalg.solve_triangular(L, H, upper=False)
+    half_logdet = torch.log(L.diagonal(dim1=-2, dim2=-1)).sum(-1)
+    result = ekf_update(m, P, innovation=white_v, H=white_H, noise_cov=None, noise_logdet=half_logdet,
+                        likelihood=True, sequential=sequential)
+    expected_m, expected_P = textbook_update(m, P, (innovation + H @ m).reshape(-1), H.reshape(M * d, D),
+                                             block_diag(R))
+    torch.testing.assert_close(result.mean, expected_m, rtol=0, atol=1e-10)
+    torch.testing.assert_close(result.cov, expected_P, rtol=0, atol=1e-10)
+    if sequential:  # each block against the covariance the blocks before it left: as with R itself
+        plain = ekf_update(m, P, innovation=innovation, H=H, noise_cov=R, likelihood=True, sequential=True)
+        torch.testing.assert_close(result.nis, plain.nis, rtol=1e-10, atol=1e-12)
+        torch.testing.assert_close(result.nll, plain.nll, rtol=1e-10, atol=1e-12)
+        return
+    for i in range(M):
+        S_i = H[i] @ P @ H[i].T + R[i]
+        nis_i = innovation[i] @ torch.linalg.inv(S_i) @ innovation[i]
+        torch.testing.assert_close(result.nis[i], nis_i, rtol=1e-10, atol=1e-12)
+        torch.testing.assert_close(result.nll[i], 0.5 * (nis_i + torch.logdet(S_i)), rtol=1e-10, atol=1e-12)

@@ -178,7 +178,8 @@ def test_projected_nis_and_likelihood_are_those_of_an_orthonormal_null_space_bas
                            TrackUpdate(window=N, sigma_px=sigma))
     from flowins.filter.ekf import block_nll
 
-    nis, nll = block_nll(P, m.residual[0], m.H[0], m.noise_cov[0])
+    nis, nll = block_nll(P, m.residual[0], m.H[0], None)  # whitened rows; the whitening's ½ log det apart
+    nll = nll + m.noise_logdet[0]
     # naive: the unprojected rows, an orthonormal basis of the left null space of H_f
     index = pose_index(D, x.device)[ages]
     pose = x[index]
@@ -196,6 +197,16 @@ def test_projected_nis_and_likelihood_are_those_of_an_orthonormal_null_space_bas
     torch.testing.assert_close(nis[0], ref_nis, atol=1e-9, rtol=1e-9)
     torch.testing.assert_close(nll[0], 0.5 * (ref_nis + torch.logdet(S)), atol=1e-9, rtol=1e-9)
     assert int(m.dof[0, 0]) == 2 * views - 3
+    # the filter's own update adds the same likelihood to a chain that keeps one
+    from flowins.measurements.tracks import _track_update
+
+    chain = BatchChain(1, likelihood=True)
+    chain.add_nodes([[0.0]], torch.eye(D).expand(1, 1, D, D), x.reshape(1, 1, D), P.reshape(1, 1, D, D))
+    views_in = TrackViews(torch.cat((uv, torch.zeros(pad, 2))).unsqueeze(0),
+                          torch.cat((ages, torch.zeros(pad, dtype=torch.long))).unsqueeze(0), mask[0], 1)
+    update = TrackUpdate(window=N, sigma_px=sigma, gate=Gate(mode="off"))
+    _track_update(chain, [0], [TrackFrame(0.0, views_in, CAMERA, update)])
+    torch.testing.assert_close(torch.stack(chain._nll[0]).sum(), 0.5 * (ref_nis + torch.logdet(S)), atol=1e-9, rtol=1e-9)
 
 
 def test_padding_and_batching_leave_the_update_unchanged():
