@@ -265,21 +265,22 @@ def information_update(mean: Tensor, cov: Tensor, information: Tensor, projected
     and ``b = Σᵢ Hᵢᵀ Rᵢ⁻¹ vᵢ`` ``(..., D)``, in ``D x D`` algebra (:func:`scalar_update` for
     blocks of any size and full noise).
 
-    With a square root ``P = F Fᵀ`` and ``W = I + Fᵀ G F`` (eigenvalues ``>= 1``),
-    ``A = F W⁻¹ Fᵀ = (P⁻¹ + G)⁻¹``; the gain satisfies ``K H = A G`` and ``K v = A b``, and the
-    covariance is the Joseph form ``(I - A G) P (I - A G)ᵀ + A G A`` (``K R Kᵀ = A G A``), so
-    it stays symmetric positive semi-definite.
+    With a square root ``P = F Fᵀ`` and ``W = I + Fᵀ G F = L Lᵀ`` (eigenvalues ``>= 1``), the
+    posterior covariance is ``A = F W⁻¹ Fᵀ = (P⁻¹ + G)⁻¹``, formed as the Gram matrix ``B Bᵀ``
+    of ``B = F L⁻ᵀ`` (one triangular solve), so it is symmetric positive semi-definite by
+    construction, as the Joseph form's would be, at a third of its products; the gain
+    satisfies ``K v = A b``, so the mean moves by ``B (Bᵀ b)``. Where ``G`` is zero (every
+    block rejected) the covariance stays ``P`` exactly (``B Bᵀ`` would give it back rounded).
     """
     eye = _eye(cov.shape[-1], cov.dtype, cov.device)
     F = _cholesky_psd(cov)
     Ft = F.transpose(-1, -2)
-    W = torch.linalg.cholesky(symmetrize(eye + Ft @ information @ F))
-    A = F @ torch.cholesky_solve(Ft, W)
-    AG = A @ information
-    D = eye - AG
-    new_cov = D @ cov @ D.transpose(-1, -2) + AG @ A.transpose(-1, -2)
-    new_mean = mean + (A @ projected.unsqueeze(-1)).squeeze(-1)
-    return new_mean, symmetrize(new_cov)
+    L = torch.linalg.cholesky(symmetrize(eye + Ft @ information @ F))
+    Bt = torch.linalg.solve_triangular(L, Ft, upper=False)  # Bᵀ = L⁻¹ Fᵀ
+    B = Bt.transpose(-1, -2)
+    new_mean = mean + (B @ (Bt @ projected.unsqueeze(-1))).squeeze(-1)
+    nothing = (information == 0).flatten(-2).all(-1)
+    return new_mean, torch.where(nothing[..., None, None], cov, symmetrize(B @ Bt))
 
 
 def block_information(innovation: Tensor, H: Tensor, noise_cov: Tensor | None) -> tuple[Tensor, Tensor]:
