@@ -268,7 +268,8 @@ def information_update(mean: Tensor, cov: Tensor, information: Tensor, projected
     With a square root ``P = F Fᵀ`` and ``W = I + Fᵀ G F = L Lᵀ`` (eigenvalues ``>= 1``), the
     posterior covariance is ``A = F W⁻¹ Fᵀ = (P⁻¹ + G)⁻¹``, formed as the Gram matrix ``B Bᵀ``
     of ``B = F L⁻ᵀ`` (one triangular solve), so it is symmetric positive semi-definite by
-    construction, as the Joseph form's would be, at a third of its products; the gain
+    construction, as the Joseph form's would be, with three ``D x D`` products and one
+    triangular solve where the Joseph form takes seven and two; the gain
     satisfies ``K v = A b``, so the mean moves by ``B (Bᵀ b)``. Where ``G`` is zero (every
     block rejected) the covariance stays ``P`` exactly (``B Bᵀ`` would give it back rounded).
     """
