@@ -195,7 +195,8 @@ def _backward_group(tracks: Sequence[FilterTrack], prepared: Sequence[_Prepared]
     # what each key's update changed, m_k - m⁻_k and P_k - P⁻_k: the residuals follow
     # r_k = (m_k - m⁻_k) + G_k r_next, R_k = (P_k - P⁻_k) + G_k R_next G_kᵀ
     jump_mean = aligned([t.node_mean[p.keys] - t.pred_mean[p.keys] for t, p in zip(tracks, prepared)], K)
-    jump_cov = aligned([t.node_cov[p.keys] - p.key_pred_cov for t, p in zip(tracks, prepared)], K)
+    # the keys' covariances gathered, then the prediction taken off in place: one (keys, D, D) tensor, not two
+    jump_cov = aligned([t.node_cov[p.keys].sub_(p.key_pred_cov) for t, p in zip(tracks, prepared)], K)
     gains = aligned([p.key_gains for p in prepared], K - 1)  # key k's gain at k (the last key has none)
     residual_mean: list[Tensor] = [jump_mean[:, -1]]
     residual_cov: list[Tensor] = [jump_cov[:, -1]]
