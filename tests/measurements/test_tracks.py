@@ -206,7 +206,8 @@ def test_projected_nis_and_likelihood_are_those_of_an_orthonormal_null_space_bas
                           torch.cat((ages, torch.zeros(pad, dtype=torch.long))).unsqueeze(0), mask[0], 1)
     update = TrackUpdate(window=N, sigma_px=sigma, gate=Gate(mode="off"))
     _track_update(chain, [0], [TrackFrame(0.0, views_in, CAMERA, update)])
-    torch.testing.assert_close(torch.stack(chain._nll[0]).sum(), 0.5 * (ref_nis + torch.logdet(S)), atol=1e-9, rtol=1e-9)
+    (track,) = chain.finish()
+    torch.testing.assert_close(track.nll, 0.5 * (ref_nis + torch.logdet(S)), atol=1e-9, rtol=1e-9)
 
 
 def test_padding_and_batching_leave_the_update_unchanged():
