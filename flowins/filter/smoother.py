@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from flowins.filter.chain import FilterTrack, NodeTrack, marginal_frame_changes, to_final_frame
-from flowins.state import normalize_quaternions, symmetrize
+from flowins.state import CORE_DIM, normalize_quaternions, symmetrize
 
 
 class SmoothedTrack(NodeTrack):
@@ -37,19 +37,80 @@ def rts_gains(track: FilterTrack) -> Tensor:
     return torch.linalg.solve(P_pred, cross).transpose(-1, -2)
 
 
-def _transitions_to_next_key(transition: Tensor, next_key: Tensor) -> Tensor:
-    """``Φ_{j→k(j)}`` ``(J-1, D, D)``: for each node ``j < J-1`` the transition to the first key
-    node ``k(j) > j`` (``next_key`` ``(J-1,)``), the product ``Φ_k ⋯ Φ_{j+1}``.
+#: a transition's kind (:func:`_transition_kinds`): the identity outside its leading
+#: ``CORE_DIM x CORE_DIM`` block (a propagation's), rows of the identity (a pose copied or moved,
+#: as a window's augmentation does), or neither
+_CORE, _COPY, _DENSE = 0, 1, 2
 
-    Built from the key nodes backwards, ``Φ_{j→k} = Φ_{j+1→k} Φ_{j+1}``: one batched product
-    per distance from the key, for all runs of nodes at once (one product per node).
+
+def _transition_kinds(transition: Tensor) -> tuple[Tensor, Tensor]:
+    """Each transition's kind ``(n,)`` and, for :data:`_COPY`, which entry each row copies ``(n, D)``
+    (the whole of ``transition`` ``(n, D, D)`` read once, a third of it again)."""
+    D = transition.shape[-1]
+    eye = torch.eye(D, dtype=transition.dtype, device=transition.device)
+    core = (transition[:, CORE_DIM:, :] == eye[CORE_DIM:]).flatten(1).all(1) & (
+        transition[:, :CORE_DIM, CORE_DIM:] == 0).flatten(1).all(1)
+    kind = torch.where(core, _CORE, _DENSE)
+    rest = torch.nonzero(~core).squeeze(-1)
+    if rest.numel():
+        T = transition[rest]
+        copy = ((T == 0) | (T == 1)).flatten(1).all(1) & (T.sum(-1) == 1).all(-1)
+        kind = kind.index_copy(0, rest, torch.where(copy, _COPY, _DENSE))
+    return kind, transition.argmax(-1)
+
+
+def _apply(transition: Tensor, kinds: tuple[Tensor, Tensor], at: Tensor, Y: Tensor) -> Tensor:
+    """``Φ_at Y`` ``(m, D, w)`` for the transitions ``transition[at]`` (``at`` ``(m,)``) of kinds
+    ``kinds`` (:func:`_transition_kinds`): a core transition's leading block times ``Y``'s leading
+    rows (``(CORE_DIM / D)²`` of the dense product), a copy's rows gathered, the others dense."""
+    kind, row = kinds[0][at], kinds[1]
+    out = Y.clone()
+    for k in (_CORE, _COPY, _DENSE):
+        i = torch.nonzero(kind == k).squeeze(-1)
+        if not i.numel():
+            continue
+        t = at[i]
+        if k == _CORE:
+            part = torch.cat((transition[t, :CORE_DIM, :CORE_DIM] @ Y[i, :CORE_DIM], Y[i, CORE_DIM:]), 1)
+        elif k == _COPY:
+            part = Y[i].gather(1, row[t].unsqueeze(-1).expand(-1, -1, Y.shape[-1]))
+        else:
+            part = transition[t] @ Y[i]
+        out.index_copy_(0, i, part)
+    return out
+
+
+def _to_next_key(transition: Tensor, kinds: tuple[Tensor, Tensor], cov: Tensor, distance: Tensor,
+                 nodes: Tensor) -> Tensor:
+    """``Φ_{j→k(j)} C_j`` ``(n, D, w)``: the columns ``C_j`` ``(n, D, w)`` of the nodes ``nodes``
+    ``(n,)`` carried to their next key node ``k(j) = j + distance_j``, where ``transition[j]`` is
+    ``Φ_j`` (into node ``j``) and ``kinds`` its :func:`_transition_kinds`.
+
+    The transitions are applied one after another, ``Φ_{j→k} C = Φ_k ⋯ Φ_{j+1} C``: one batched
+    application per distance from the node (:func:`_apply`), and no product of two
+    transitions (which would cost ``D / w`` times as much).
     """
-    to_key = transition[1:].clone()  # distance 1: Φ_{j+1}
-    distance = next_key - torch.arange(next_key.shape[0], device=next_key.device)
+    out = _apply(transition, kinds, nodes + 1, cov)
     for d in range(2, int(distance.max()) + 1 if distance.numel() else 0):
-        j = torch.nonzero(distance == d).squeeze(-1)
-        to_key.index_copy_(0, j, to_key[j + 1] @ transition[j + 1])
-    return to_key
+        j = torch.nonzero(distance >= d).squeeze(-1)
+        out.index_copy_(0, j, _apply(transition, kinds, nodes[j] + d, out[j]))
+    return out
+
+
+def _solve_by_key(LU: Tensor, pivots: Tensor, rhs: Tensor, key: Tensor) -> Tensor:
+    """``(P⁻_k)⁻¹ B_j`` ``(n, D, w)`` for nodes ``j`` whose next key is ``key[j]`` ``(n,)`` (sorted,
+    an index into the LU factors ``(k, D, D)``, ``pivots`` ``(k, D)``), ``B`` ``(n, D, w)``.
+
+    The nodes of one key are solved as one system, their columns side by side (padded with
+    zeros to the most nodes a key has), so that no node gathers a copy of its key's factors."""
+    n, D, w = rhs.shape
+    count = torch.bincount(key, minlength=LU.shape[0])
+    position = torch.arange(n, device=key.device) - (count.cumsum(0) - count)[key]  # each node's place in its key's
+    width = int(count.max())
+    side = rhs.new_zeros(LU.shape[0], width, D, w)
+    side[key, position] = rhs
+    solved = torch.linalg.lu_solve(LU, pivots, side.transpose(1, 2).reshape(LU.shape[0], D, width * w))
+    return solved.view(LU.shape[0], D, width, w)[key, :, position]
 
 
 def _factor_predicted(cov: Tensor, t_s: Tensor) -> tuple[Tensor, Tensor]:
@@ -110,12 +171,12 @@ def _node_blocks(keys: Tensor, J: int, D: int) -> list[tuple[int, int]]:
 class _Prepared(NamedTuple):
     """One track's gains and key nodes, ready for the backward pass over its keys."""
 
-    keys: Tensor  # (K,) the key nodes
-    key_pred_cov: Tensor  # (K, D, D) their predicted covariances
+    keys: list[int]  # (K,) the key nodes
+    key_pred_cov: list[Tensor]  # (K) their predicted covariances (D, D)
     slot: Tensor  # (J-1,) each node's next key (an index into keys)
     blocks: list[tuple[int, int]]
     gains: list[Tensor]  # per block: 𝒢_j[:c] (nodes, c, D)
-    key_gains: Tensor  # (K-1, D, D) the key nodes' whole gains
+    key_gains: list[Tensor]  # (K-1) the key nodes' whole gains (D, D)
 
 
 def _prepare(track: FilterTrack, c: int) -> _Prepared:
@@ -124,26 +185,39 @@ def _prepare(track: FilterTrack, c: int) -> _Prepared:
     node_cov = track.node_cov
     keys = torch.nonzero(track.key_nodes()).squeeze(-1)
     slot = torch.searchsorted(keys, torch.arange(J - 1, device=keys.device), right=True)  # each node's next key
-    key_pred_cov = track.key_pred_cov()
-    LU, pivots = _factor_predicted(symmetrize(key_pred_cov), track.t_s[keys.to(track.t_s.device)])
-    # the nodes in blocks of whole runs (each ends at a key node), so that the (nodes, D, D)
-    # products below stay small
+    distance = keys[slot] - torch.arange(J - 1, device=keys.device)
+    # the keys' predicted covariances: the updated nodes', and the last node's filtered one
+    # where no update acted there (views: no (K, D, D) tensor is formed)
+    key_pred_cov = list(track.updated_pred_cov.unbind(0)) + ([] if bool(track.updated[-1]) else [node_cov[-1]])
+    # the nodes in blocks of whole runs (each ends at a key node), so that the (nodes, D, ·)
+    # tensors below stay small; a block [a, b) needs the keys (a, b] (its nodes' next keys,
+    # and its own keys' next ones), which no other block needs: each is factorised there
     blocks = _node_blocks(keys, J, D)
+    bounds = torch.tensor(blocks, device=keys.device).T.contiguous()  # (2, blocks): a, b
+    first_slot, last_slot = slot[bounds[0]].tolist(), slot[bounds[1] - 1].tolist()
+    inner_from, inner_to = torch.searchsorted(keys, bounds).tolist()  # the keys in [a, b)
+    t_keys = track.t_s[keys.to(track.t_s.device)]
     # 𝒢_jᵀ[:, :c] = (P⁻_k)⁻¹ Φ_{j→k} P_j[:, :c] for every node; the key nodes' whole gains
     gains, key_gains = [], []
-    for a, b in blocks:
+    for (a, b), s0, s1, k0, k1 in zip(blocks, first_slot, last_slot, inner_from, inner_to):
         nodes = slice(a, b)
-        to_key = _transitions_to_next_key(track.transition[a : b + 1], keys[slot[nodes]] - a)
-        gains.append(torch.linalg.lu_solve(LU[slot[nodes]], pivots[slot[nodes]],
-                                           to_key @ node_cov[nodes, :, :c]).transpose(-1, -2))
-        inner = keys[(keys >= a) & (keys < b)]
+        LU, pivots = _factor_predicted(symmetrize(torch.stack(key_pred_cov[s0 : s1 + 1])), t_keys[s0 : s1 + 1])
+        transition = track.transition[a : b + 1]
+        kinds = _transition_kinds(transition)
+        local = torch.arange(b - a, device=keys.device)
+        moved = _to_next_key(transition, kinds, node_cov[nodes, :, :c], distance[nodes], local)
+        gains.append(_solve_by_key(LU, pivots, moved, slot[nodes] - s0).transpose(-1, -2))
+        if k1 == k0:
+            continue
+        inner = keys[k0:k1]  # their next keys are k0 + 1 .. k1 (s1 = k1; s0 = k0 + 1 unless a is no key)
         if c == D:
             key_gains.append(gains[-1][inner - a])
         else:
-            key_slot = slot[inner]
-            key_gains.append(torch.linalg.lu_solve(LU[key_slot], pivots[key_slot],
-                                                   to_key[inner - a] @ node_cov[inner]).transpose(-1, -2))
-    return _Prepared(keys, key_pred_cov, slot, blocks, gains, torch.cat(key_gains))
+            moved = _to_next_key(transition, kinds, node_cov[inner], distance[inner], inner - a)
+            own = slice(k0 + 1 - s0, k1 + 1 - s0)
+            key_gains.append(torch.linalg.lu_solve(LU[own], pivots[own], moved).transpose(-1, -2))
+    return _Prepared(keys.tolist(), key_pred_cov, slot, blocks, gains,
+                     [g for block in key_gains for g in block.unbind(0)])
 
 
 #: the most bytes of one (tracks, keys, D, D) tensor the batched backward pass forms at a time
@@ -158,12 +232,12 @@ def _backward_bytes(device: torch.device) -> int:
     return _BACKWARD_BYTES
 
 
-def _backward(tracks: Sequence[FilterTrack], prepared: Sequence[_Prepared]) -> list[tuple[Tensor, Tensor]]:
-    """The residuals ``r_k = mˢ_k - m⁻_k`` ``(K, D)``, ``R_k = Pˢ_k - P⁻_k`` ``(K, D, D)`` at every
-    key node of each track, by the backward recursion over the key nodes. The tracks go
-    together, their keys aligned at their last one (a track with fewer keys is padded in
-    front with zeros, which stay zero), in groups of about :func:`_backward_bytes`."""
-    out: list[tuple[Tensor, Tensor]] = []
+def _backward(tracks: Sequence[FilterTrack], prepared: Sequence[_Prepared]) -> list[tuple[Tensor, list[Tensor]]]:
+    """The residuals ``r_k = mˢ_k - m⁻_k`` ``(K, D)`` and ``R_k = Pˢ_k - P⁻_k`` (``K`` tensors
+    ``(D, D)``) at every key node of each track, by the backward recursion over the key nodes.
+    The tracks go together, their keys aligned at their last one (a track with fewer keys is
+    padded in front with zeros, which stay zero), in groups of about :func:`_backward_bytes`."""
+    out: list[tuple[Tensor, list[Tensor]]] = []
     if not tracks:
         return out
     D = tracks[0].node_mean.shape[-1]
@@ -171,7 +245,7 @@ def _backward(tracks: Sequence[FilterTrack], prepared: Sequence[_Prepared]) -> l
     group: list[int] = []
     longest = 0  # the most keys of a track in the group
     for i in range(len(tracks)):
-        keys = prepared[i].keys.shape[0]
+        keys = len(prepared[i].keys)
         if group and (len(group) + 1) * max(longest, keys) * D * D * 8 > budget:
             out += _backward_group([tracks[j] for j in group], [prepared[j] for j in group])
             group, longest = [], 0
@@ -182,9 +256,15 @@ def _backward(tracks: Sequence[FilterTrack], prepared: Sequence[_Prepared]) -> l
     return out
 
 
-def _backward_group(tracks: Sequence[FilterTrack], prepared: Sequence[_Prepared]) -> list[tuple[Tensor, Tensor]]:
-    counts = [p.keys.shape[0] for p in prepared]
+def _rows(parts: list[Tensor]) -> Tensor:
+    """``parts`` stacked (one part: a view, no copy)."""
+    return parts[0].unsqueeze(0) if len(parts) == 1 else torch.stack(parts)
+
+
+def _backward_group(tracks: Sequence[FilterTrack], prepared: Sequence[_Prepared]) -> list[tuple[Tensor, list[Tensor]]]:
+    counts = [len(p.keys) for p in prepared]
     K = max(counts)
+    zero = tracks[0].node_cov.new_zeros(tracks[0].node_cov.shape[-2:])
 
     def aligned(parts: list[Tensor], length: int) -> Tensor:  # (R, length, ...), each part right-aligned
         if len(parts) == 1 and parts[0].shape[0] == length:
@@ -192,21 +272,28 @@ def _backward_group(tracks: Sequence[FilterTrack], prepared: Sequence[_Prepared]
         return torch.stack([part if part.shape[0] == length else
                             torch.cat((part.new_zeros(length - part.shape[0], *part.shape[1:]), part)) for part in parts])
 
-    # what each key's update changed, m_k - m⁻_k and P_k - P⁻_k: the residuals follow
+    def key_step(i: int) -> tuple[Tensor, Tensor]:
+        """What the aligned key ``i`` of each track changed, ``P_k - P⁻_k``, and its gain (zeros
+        for a track's padding); key by key, each ``(R, D, D)``, so that no ``(R, K, D, D)``
+        tensor is gathered."""
+        jumps, gains = [], []
+        for t, p, n in zip(tracks, prepared, counts):
+            k = i - (K - n)
+            jumps.append(t.node_cov[p.keys[k]] - p.key_pred_cov[k] if k >= 0 else zero)
+            gains.append(p.key_gains[k] if 0 <= k < n - 1 else zero)
+        return _rows(jumps), _rows(gains)
+
     # r_k = (m_k - m⁻_k) + G_k r_next, R_k = (P_k - P⁻_k) + G_k R_next G_kᵀ
     jump_mean = aligned([t.node_mean[p.keys] - t.pred_mean[p.keys] for t, p in zip(tracks, prepared)], K)
-    # the keys' covariances gathered, then the prediction taken off in place: one (keys, D, D) tensor, not two
-    jump_cov = aligned([t.node_cov[p.keys].sub_(p.key_pred_cov) for t, p in zip(tracks, prepared)], K)
-    gains = aligned([p.key_gains for p in prepared], K - 1)  # key k's gain at k (the last key has none)
     residual_mean: list[Tensor] = [jump_mean[:, -1]]
-    residual_cov: list[Tensor] = [jump_cov[:, -1]]
+    residual_cov: list[Tensor] = [key_step(K - 1)[0]]
     for i in range(K - 2, -1, -1):
-        G = gains[:, i]
+        jump_cov, G = key_step(i)
         residual_mean.append(jump_mean[:, i] + (G @ residual_mean[-1].unsqueeze(-1)).squeeze(-1))
-        residual_cov.append(jump_cov[:, i] + G @ residual_cov[-1] @ G.transpose(-1, -2))
+        residual_cov.append(jump_cov + G @ residual_cov[-1] @ G.transpose(-1, -2))
     r_m = torch.stack(residual_mean[::-1], 1)
-    r_P = torch.stack(residual_cov[::-1], 1)
-    return [(r_m[i, K - n:], r_P[i, K - n:]) for i, n in enumerate(counts)]
+    residual_cov.reverse()
+    return [(r_m[i, K - n:], [R[i] for R in residual_cov[K - n:]]) for i, n in enumerate(counts)]
 
 
 def rts_smooth(track: FilterTrack, *, normalize: bool = True, marginal: int | None = None) -> SmoothedTrack:
@@ -258,10 +345,11 @@ def rts_smooth_batch(tracks: Sequence[FilterTrack], *, normalize: bool = True,
         node_mean, node_cov = track.node_mean, track.node_cov
         # every node j < J-1 from its next key's residuals, batched by block
         means, covs = [], []
+        slot = p.slot.tolist()
         for (a, b), G in zip(p.blocks, p.gains):
             nodes = slice(a, b)
             means.append(node_mean[nodes, :c] + (G @ r_m[p.slot[nodes]].unsqueeze(-1)).squeeze(-1))
-            covs.append(node_cov[nodes, :c, :c] + G @ r_P[p.slot[nodes]] @ G.transpose(-1, -2))
+            covs.append(node_cov[nodes, :c, :c] + G @ torch.stack([r_P[k] for k in slot[a:b]]) @ G.transpose(-1, -2))
         mean = torch.cat((*means, node_mean[-1:, :c]))
         cov = torch.cat((*covs, node_cov[-1:, :c, :c]))
         mean, cov = to_final_frame(mean, cov, changes[i])

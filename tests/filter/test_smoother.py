@@ -498,3 +498,50 @@ def test_tracks_smoothed_together_equal_each_chains_batch_posterior(groups, monk
         assert_close_scaled(got.node_cov, alone.node_cov, 1e-12)
     with pytest.raises(ValueError, match="differ in size"):
         rts_smooth_batch([tracks[0], LinearChain(torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64)).chain.finish()])
+
+
+@pytest.mark.parametrize("marginal", [None, 5])
+def test_rts_through_core_copy_and_dense_transitions_equals_batch_posterior(marginal, monkeypatch):
+    """A state of ``CORE_DIM + 7`` entries whose transitions are of each kind the smoother takes
+    apart (the identity outside the leading ``CORE_DIM`` block, as propagation's; rows of the
+    identity, as a window's augmentation; neither), in runs of one to three nodes between
+    updates and over several blocks: the batch posterior, and the kinds as built."""
+    from flowins.filter import smoother
+
+    D = CORE_DIM + 7
+    monkeypatch.setattr(smoother, "_BLOCK_BYTES", 5 * 8 * D * D)
+    gen = torch.Generator().manual_seed(31)
+    eye = torch.eye(D, dtype=F64)
+
+    def core():
+        A = eye.clone()
+        A[:CORE_DIM, :CORE_DIM] += 0.1 * torch.randn(CORE_DIM, CORE_DIM, generator=gen, dtype=F64)
+        return A
+
+    def copy():  # the last 7 entries take the first 7; the 7 before them move up by one
+        rows = list(range(D))
+        rows[D - 7:] = range(7)
+        rows[3:9] = range(4, 10)
+        return eye[rows]
+
+    def dense():
+        return eye + 0.05 * torch.randn(D, D, generator=gen, dtype=F64)
+
+    lc = LinearChain(torch.randn(D, generator=gen, dtype=F64), random_spd(gen, D))
+    kinds = []
+    for run in ((core,), (copy, core), (core, dense, copy), (dense,), (copy, copy, core), (core, core)):
+        for make in run:
+            A = make()
+            # a copy's new entries are copies: give them no noise of their own, as augmentation does
+            Q = random_spd(gen, D, scale=0.02) * (0.0 if make is copy else 1.0)
+            lc.predict(A, Q + (1e-9 * eye if make is copy else 0.0))
+            kinds.append({core: smoother._CORE, copy: smoother._COPY, dense: smoother._DENSE}[make])
+        H = torch.randn(3, D, generator=gen, dtype=F64)
+        lc.measure(H, torch.randn(3, generator=gen, dtype=F64), random_spd(gen, 3, scale=0.2))
+    track = lc.chain.finish()
+    assert smoother._transition_kinds(track.transition[1:])[0].tolist() == kinds
+    got = rts_smooth(track, normalize=False, marginal=marginal)
+    mean_true, cov_true, _, _ = lc.batch_posterior()
+    c = D if marginal is None else marginal
+    assert_close_scaled(got.node_mean, mean_true[:, :c], 1e-8)
+    assert_close_scaled(got.node_cov, cov_true[:, :c, :c], 1e-8)
