@@ -14,7 +14,7 @@ forgetting and augmentation step the filter recorded.
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
 import torch
@@ -172,11 +172,12 @@ class _Prepared(NamedTuple):
     """One track's gains and key nodes, ready for the backward pass over its keys."""
 
     keys: list[int]  # (K,) the key nodes
-    key_pred_cov: list[Tensor]  # (K) their predicted covariances (D, D)
+    key_pred_cov: Tensor  # (U, D, D) the predicted covariances of the keys but the last where no update acted there
     slot: Tensor  # (J-1,) each node's next key (an index into keys)
     blocks: list[tuple[int, int]]
+    block_keys: list[tuple[int, int]]  # per block [a, b): the first and last of its nodes' next keys (slots)
     gains: list[Tensor]  # per block: 𝒢_j[:c] (nodes, c, D)
-    key_gains: list[Tensor]  # (K-1) the key nodes' whole gains (D, D)
+    key_gains: list[Tensor]  # per block: its key nodes' whole gains (keys, D, D), K - 1 in all
 
 
 def _prepare(track: FilterTrack, c: int) -> _Prepared:
@@ -187,8 +188,8 @@ def _prepare(track: FilterTrack, c: int) -> _Prepared:
     slot = torch.searchsorted(keys, torch.arange(J - 1, device=keys.device), right=True)  # each node's next key
     distance = keys[slot] - torch.arange(J - 1, device=keys.device)
     # the keys' predicted covariances: the updated nodes', and the last node's filtered one
-    # where no update acted there (views: no (K, D, D) tensor is formed)
-    key_pred_cov = list(track.updated_pred_cov.unbind(0)) + ([] if bool(track.updated[-1]) else [node_cov[-1]])
+    # where no update acted there (taken block by block: no (K, D, D) tensor is formed)
+    key_pred_cov = track.updated_pred_cov
     # the nodes in blocks of whole runs (each ends at a key node), so that the (nodes, D, ·)
     # tensors below stay small; a block [a, b) needs the keys (a, b] (its nodes' next keys,
     # and its own keys' next ones), which no other block needs: each is factorised there
@@ -201,7 +202,10 @@ def _prepare(track: FilterTrack, c: int) -> _Prepared:
     gains, key_gains = [], []
     for (a, b), s0, s1, k0, k1 in zip(blocks, first_slot, last_slot, inner_from, inner_to):
         nodes = slice(a, b)
-        LU, pivots = _factor_predicted(symmetrize(torch.stack(key_pred_cov[s0 : s1 + 1])), t_keys[s0 : s1 + 1])
+        predicted = key_pred_cov[s0 : s1 + 1]
+        if s1 >= key_pred_cov.shape[0]:
+            predicted = torch.cat((predicted, node_cov[-1:]))
+        LU, pivots = _factor_predicted(symmetrize(predicted), t_keys[s0 : s1 + 1])
         transition = track.transition[a : b + 1]
         kinds = _transition_kinds(transition)
         local = torch.arange(b - a, device=keys.device)
@@ -216,44 +220,7 @@ def _prepare(track: FilterTrack, c: int) -> _Prepared:
             moved = _to_next_key(transition, kinds, node_cov[inner], distance[inner], inner - a)
             own = slice(k0 + 1 - s0, k1 + 1 - s0)
             key_gains.append(torch.linalg.lu_solve(LU[own], pivots[own], moved).transpose(-1, -2))
-    return _Prepared(keys.tolist(), key_pred_cov, slot, blocks, gains,
-                     [g for block in key_gains for g in block.unbind(0)])
-
-
-#: the most bytes of one (tracks, keys, D, D) tensor the batched backward pass forms at a time
-#: on a CPU; on a GPU a sixteenth of its memory (the pass holds about three such tensors, and
-#: there each step of the recursion waits on kernel launches, so fewer, wider groups pay)
-_BACKWARD_BYTES = 256 << 20
-
-
-def _backward_bytes(device: torch.device) -> int:
-    if device.type == "cuda":
-        return torch.cuda.get_device_properties(device).total_memory // 16
-    return _BACKWARD_BYTES
-
-
-def _backward(tracks: Sequence[FilterTrack], prepared: Sequence[_Prepared]) -> list[tuple[Tensor, list[Tensor]]]:
-    """The residuals ``r_k = mˢ_k - m⁻_k`` ``(K, D)`` and ``R_k = Pˢ_k - P⁻_k`` (``K`` tensors
-    ``(D, D)``) at every key node of each track, by the backward recursion over the key nodes.
-    The tracks go together, their keys aligned at their last one (a track with fewer keys is
-    padded in front with zeros, which stay zero), in groups of about :func:`_backward_bytes`."""
-    out: list[tuple[Tensor, list[Tensor]]] = []
-    if not tracks:
-        return out
-    D = tracks[0].node_mean.shape[-1]
-    budget = _backward_bytes(tracks[0].node_mean.device)
-    group: list[int] = []
-    longest = 0  # the most keys of a track in the group
-    for i in range(len(tracks)):
-        keys = len(prepared[i].keys)
-        if group and (len(group) + 1) * max(longest, keys) * D * D * 8 > budget:
-            out += _backward_group([tracks[j] for j in group], [prepared[j] for j in group])
-            group, longest = [], 0
-        group.append(i)
-        longest = max(longest, keys)
-    if group:
-        out += _backward_group([tracks[j] for j in group], [prepared[j] for j in group])
-    return out
+    return _Prepared(keys.tolist(), key_pred_cov, slot, blocks, list(zip(first_slot, last_slot)), gains, key_gains)
 
 
 def _rows(parts: list[Tensor]) -> Tensor:
@@ -261,39 +228,91 @@ def _rows(parts: list[Tensor]) -> Tensor:
     return parts[0].unsqueeze(0) if len(parts) == 1 else torch.stack(parts)
 
 
-def _backward_group(tracks: Sequence[FilterTrack], prepared: Sequence[_Prepared]) -> list[tuple[Tensor, list[Tensor]]]:
+#: ``emit(track, block, residuals)``: a block's residuals ``(r_k, R_k)`` at its keys ``s0 .. s1``
+Emit = Callable[[int, int, list[tuple[Tensor, Tensor]]], None]
+
+
+#: the most bytes of the ``(tracks, keys, D, D)`` tensors of the keys' jumps and gains that the
+#: backward pass gathers at once on a CPU (on a GPU a sixteenth of its memory); above it each key's
+#: are taken as the recursion reaches it, a few operations per track and key instead of one
+_STACKED_BYTES = 256 << 20
+
+
+def _stacked_bytes(device: torch.device) -> int:
+    if device.type == "cuda":
+        return torch.cuda.get_device_properties(device).total_memory // 16
+    return _STACKED_BYTES
+
+
+def _backward(tracks: Sequence[FilterTrack], prepared: Sequence[_Prepared], emit: Emit) -> None:
+    """The residuals ``r_k = mˢ_k - m⁻_k`` ``(D,)`` and ``R_k = Pˢ_k - P⁻_k`` ``(D, D)`` at the key
+    nodes of each track, by the backward recursion over the key nodes, handed to ``emit`` block
+    by block as soon as a block's keys are done (the residuals of the keys no block still
+    needs are let go). The tracks go together, their keys aligned at their last one (a track
+    with fewer keys is padded in front with zeros, which stay zero): one batched step per key
+    of the longest track."""
+    if not tracks:
+        return
     counts = [len(p.keys) for p in prepared]
-    K = max(counts)
-    zero = tracks[0].node_cov.new_zeros(tracks[0].node_cov.shape[-2:])
+    K, R = max(counts), len(tracks)
+    D = tracks[0].node_mean.shape[-1]
+    zero = tracks[0].node_cov.new_zeros(D, D)
+    # the keys' jumps, m_k - m⁻_k and P_k - P⁻_k, and gains G_k, aligned: (R, K, ...)
+    if R * K * D * D * 8 * 2 <= _stacked_bytes(zero.device):
+        def aligned(parts: list[Tensor], length: int) -> Tensor:  # each part right-aligned
+            return _rows([part if part.shape[0] == length else
+                          torch.cat((part.new_zeros(length - part.shape[0], *part.shape[1:]), part)) for part in parts])
 
-    def aligned(parts: list[Tensor], length: int) -> Tensor:  # (R, length, ...), each part right-aligned
-        if len(parts) == 1 and parts[0].shape[0] == length:
-            return parts[0].unsqueeze(0)  # one track: no copy
-        return torch.stack([part if part.shape[0] == length else
-                            torch.cat((part.new_zeros(length - part.shape[0], *part.shape[1:]), part)) for part in parts])
+        index = [torch.tensor(p.keys, device=zero.device) for p in prepared]
+        jump_mean = aligned([t.node_mean[k] - t.pred_mean[k] for t, k in zip(tracks, index)], K)
+        jumps = []
+        for t, p, k in zip(tracks, prepared, index):
+            jump = t.node_cov[k]
+            jump[: p.key_pred_cov.shape[0]] -= p.key_pred_cov
+            jump[p.key_pred_cov.shape[0]:] = 0.0  # the last node's, where no update acted: its filtered covariance
+            jumps.append(jump)
+        jump_cov = aligned(jumps, K)
+        gains = aligned([torch.cat(p.key_gains) if p.key_gains else zero.new_zeros(0, D, D) for p in prepared], K - 1)
 
-    def key_step(i: int) -> tuple[Tensor, Tensor]:
-        """What the aligned key ``i`` of each track changed, ``P_k - P⁻_k``, and its gain (zeros
-        for a track's padding); key by key, each ``(R, D, D)``, so that no ``(R, K, D, D)``
-        tensor is gathered."""
-        jumps, gains = [], []
-        for t, p, n in zip(tracks, prepared, counts):
-            k = i - (K - n)
-            jumps.append(t.node_cov[p.keys[k]] - p.key_pred_cov[k] if k >= 0 else zero)
-            gains.append(p.key_gains[k] if 0 <= k < n - 1 else zero)
-        return _rows(jumps), _rows(gains)
+        def key_step(i: int) -> tuple[Tensor, Tensor, Tensor | None]:
+            return jump_mean[:, i], jump_cov[:, i], gains[:, i] if i < K - 1 else None
+    else:
+        key_gains = [[g for block in p.key_gains for g in block.unbind(0)] for p in prepared]
 
+        def key_step(i: int) -> tuple[Tensor, Tensor, Tensor | None]:
+            jumps_m, jumps_P, G = [], [], []
+            for t, p, n, gains in zip(tracks, prepared, counts, key_gains):
+                k = i - (K - n)
+                node = p.keys[k] if k >= 0 else 0
+                jumps_m.append(t.node_mean[node] - t.pred_mean[node] if k >= 0 else zero[0])
+                jumps_P.append(t.node_cov[node] - p.key_pred_cov[k] if 0 <= k < p.key_pred_cov.shape[0] else zero)
+                G.append(gains[k] if 0 <= k < n - 1 else zero)
+            return _rows(jumps_m), _rows(jumps_P), _rows(G) if i < K - 1 else None
+
+    # where each block is handed over: at the aligned step of its first key
+    hand_over: dict[int, list[tuple[int, int]]] = {}
+    for t, (p, n) in enumerate(zip(prepared, counts)):
+        for block, (first, _) in enumerate(p.block_keys):
+            hand_over.setdefault(first + K - n, []).append((t, block))
+    held: dict[int, tuple[Tensor, Tensor]] = {}  # aligned step -> (r_m, r_P) of every track
+    pending = [len(p.blocks) - 1 for p in prepared]  # each track's next block to hand over (they go back in order)
     # r_k = (m_k - m⁻_k) + G_k r_next, R_k = (P_k - P⁻_k) + G_k R_next G_kᵀ
-    jump_mean = aligned([t.node_mean[p.keys] - t.pred_mean[p.keys] for t, p in zip(tracks, prepared)], K)
-    residual_mean: list[Tensor] = [jump_mean[:, -1]]
-    residual_cov: list[Tensor] = [key_step(K - 1)[0]]
-    for i in range(K - 2, -1, -1):
-        jump_cov, G = key_step(i)
-        residual_mean.append(jump_mean[:, i] + (G @ residual_mean[-1].unsqueeze(-1)).squeeze(-1))
-        residual_cov.append(jump_cov + G @ residual_cov[-1] @ G.transpose(-1, -2))
-    r_m = torch.stack(residual_mean[::-1], 1)
-    residual_cov.reverse()
-    return [(r_m[i, K - n:], [R[i] for R in residual_cov[K - n:]]) for i, n in enumerate(counts)]
+    r_m = r_P = None
+    for i in range(K - 1, -1, -1):
+        m, P, G = key_step(i)
+        r_m, r_P = (m, P) if G is None else (m + (G @ r_m.unsqueeze(-1)).squeeze(-1), P + G @ r_P @ G.transpose(-1, -2))
+        held[i] = (r_m, r_P)
+        if i not in hand_over:
+            continue
+        for t, block in hand_over[i]:
+            first, last = prepared[t].block_keys[block]
+            shift = K - counts[t]
+            emit(t, block, [(held[k + shift][0][t], held[k + shift][1][t]) for k in range(first, last + 1)])
+            pending[t] = block - 1
+        # let go of the steps above every block still to be handed over
+        horizon = max((prepared[t].block_keys[b][1] + K - counts[t] for t, b in enumerate(pending) if b >= 0), default=-1)
+        for step in [k for k in held if k > horizon]:
+            del held[step]
 
 
 def rts_smooth(track: FilterTrack, *, normalize: bool = True, marginal: int | None = None) -> SmoothedTrack:
@@ -339,19 +358,24 @@ def rts_smooth_batch(tracks: Sequence[FilterTrack], *, normalize: bool = True,
         if i not in long:
             out[i] = SmoothedTrack(t.t_s, t.node_mean[:, :c].clone(), t.node_cov[:, :c, :c].clone())
     prepared = [_prepare(tracks[i], c) for i in long]
-    residuals = _backward([tracks[i] for i in long], prepared)
-    for i, p, (r_m, r_P) in zip(long, prepared, residuals):
+    means: list[list[Tensor | None]] = [[None] * len(p.blocks) for p in prepared]
+    covs: list[list[Tensor | None]] = [[None] * len(p.blocks) for p in prepared]
+
+    def emit(t: int, block: int, residuals: list[tuple[Tensor, Tensor]]) -> None:
+        """The nodes of ``block`` of track ``long[t]`` from their next keys' residuals."""
+        p, track = prepared[t], tracks[long[t]]
+        (a, b), G = p.blocks[block], p.gains[block]
+        key = (p.slot[a:b] - p.block_keys[block][0]).tolist()
+        r_m = torch.stack([residuals[k][0] for k in key])
+        r_P = torch.stack([residuals[k][1] for k in key])
+        means[t][block] = track.node_mean[a:b, :c] + (G @ r_m.unsqueeze(-1)).squeeze(-1)
+        covs[t][block] = track.node_cov[a:b, :c, :c] + G @ r_P @ G.transpose(-1, -2)
+
+    _backward([tracks[i] for i in long], prepared, emit)
+    for t, i in enumerate(long):
         track = tracks[i]
-        node_mean, node_cov = track.node_mean, track.node_cov
-        # every node j < J-1 from its next key's residuals, batched by block
-        means, covs = [], []
-        slot = p.slot.tolist()
-        for (a, b), G in zip(p.blocks, p.gains):
-            nodes = slice(a, b)
-            means.append(node_mean[nodes, :c] + (G @ r_m[p.slot[nodes]].unsqueeze(-1)).squeeze(-1))
-            covs.append(node_cov[nodes, :c, :c] + G @ torch.stack([r_P[k] for k in slot[a:b]]) @ G.transpose(-1, -2))
-        mean = torch.cat((*means, node_mean[-1:, :c]))
-        cov = torch.cat((*covs, node_cov[-1:, :c, :c]))
+        mean = torch.cat((*means[t], track.node_mean[-1:, :c]))
+        cov = torch.cat((*covs[t], track.node_cov[-1:, :c, :c]))
         mean, cov = to_final_frame(mean, cov, changes[i])
         if normalize:
             mean = normalize_quaternions(mean)

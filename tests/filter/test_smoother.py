@@ -464,11 +464,13 @@ def test_smoother_gradient_equals_finite_differences_through_runs_and_blocks(mon
     assert abs(float(g_z[1]) - float(fd_z)) <= 1e-6 * max(1.0, abs(float(fd_z)))
 
 
-@pytest.mark.parametrize("groups", ["one", "several"])
-def test_tracks_smoothed_together_equal_each_chains_batch_posterior(groups, monkeypatch):
+@pytest.mark.parametrize("gathered", [True, False])
+@pytest.mark.parametrize("blocks", ["one", "many"])
+def test_tracks_smoothed_together_equal_each_chains_batch_posterior(blocks, gathered, monkeypatch):
     """``rts_smooth_batch``: chains of different lengths, key counts, one node only and a change of
-    frame, smoothed together, each equal to its own dense batch posterior (and, taken apart in
-    groups of at most two tracks' keys, the same)."""
+    frame, smoothed together, each equal to its own dense batch posterior (and the same with the
+    nodes in blocks of a few, each handed over as the recursion passes its keys, and with the
+    keys' jumps and gains taken key by key instead of gathered beforehand)."""
     from flowins.filter import smoother
     from flowins.filter.smoother import rts_smooth_batch
 
@@ -486,8 +488,10 @@ def test_tracks_smoothed_together_equal_each_chains_batch_posterior(groups, monk
         chains.append(lc)
     tracks = [lc.chain.finish() for lc in chains]
     assert sorted(int(t.key_nodes().sum()) for t in tracks) == [1, 1, 2, 7]  # unequal key counts (one track of one node)
-    if groups == "several":
-        monkeypatch.setattr(smoother, "_BACKWARD_BYTES", 2 * 8 * D * D * 8)
+    if blocks == "many":
+        monkeypatch.setattr(smoother, "_BLOCK_BYTES", 2 * 8 * D * D)
+    if not gathered:
+        monkeypatch.setattr(smoother, "_STACKED_BYTES", 0)
     smoothed = rts_smooth_batch(tracks, normalize=False)
     for lc, track, got in zip(chains, tracks, smoothed):
         mean_true, cov_true, _, _ = lc.batch_posterior()
