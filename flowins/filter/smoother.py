@@ -45,8 +45,12 @@ _CORE, _COPY, _DENSE = 0, 1, 2
 
 def _transition_kinds(transition: Tensor) -> tuple[Tensor, Tensor]:
     """Each transition's kind ``(n,)`` and, for :data:`_COPY`, which entry each row copies ``(n, D)``
-    (the whole of ``transition`` ``(n, D, D)`` read once, a third of it again)."""
+    (the whole of ``transition`` ``(n, D, D)`` read once, a third of it again). Below
+    ``D = 2 CORE_DIM`` (the paper's 26 entries) all are taken as dense: there the core is over
+    half of the product, and the kinds would cost more operations than they save."""
     D = transition.shape[-1]
+    if D < 2 * CORE_DIM:
+        return torch.full(transition.shape[:1], _DENSE, device=transition.device), transition[:, 0, :0].long()
     eye = torch.eye(D, dtype=transition.dtype, device=transition.device)
     core = (transition[:, CORE_DIM:, :] == eye[CORE_DIM:]).flatten(1).all(1) & (
         transition[:, :CORE_DIM, CORE_DIM:] == 0).flatten(1).all(1)
@@ -59,41 +63,45 @@ def _transition_kinds(transition: Tensor) -> tuple[Tensor, Tensor]:
     return kind, transition.argmax(-1)
 
 
-def _apply(transition: Tensor, kinds: tuple[Tensor, Tensor], at: Tensor, Y: Tensor) -> Tensor:
-    """``Φ_at Y`` ``(m, D, w)`` for the transitions ``transition[at]`` (``at`` ``(m,)``) of kinds
-    ``kinds`` (:func:`_transition_kinds`): a core transition's leading block times ``Y``'s leading
-    rows (``(CORE_DIM / D)²`` of the dense product), a copy's rows gathered, the others dense."""
+def _apply(transition: Tensor, kinds: tuple[Tensor, Tensor], at: Tensor | slice, Y: Tensor) -> Tensor:
+    """``Φ_at Y`` ``(m, D, w)`` for the transitions ``transition[at]`` (``at``: ``m`` indices or a
+    slice) of kinds ``kinds`` (:func:`_transition_kinds`): a core transition's leading block times
+    ``Y``'s leading rows (``(CORE_DIM / D)²`` of the dense product), a copy's rows gathered, the
+    others dense."""
     kind, row = kinds[0][at], kinds[1]
-    out = Y.clone()
-    for k in (_CORE, _COPY, _DENSE):
-        i = torch.nonzero(kind == k).squeeze(-1)
-        if not i.numel():
-            continue
-        t = at[i]
+
+    def applied(k: int, t: Tensor | slice, y: Tensor) -> Tensor:
         if k == _CORE:
-            part = torch.cat((transition[t, :CORE_DIM, :CORE_DIM] @ Y[i, :CORE_DIM], Y[i, CORE_DIM:]), 1)
-        elif k == _COPY:
-            part = Y[i].gather(1, row[t].unsqueeze(-1).expand(-1, -1, Y.shape[-1]))
-        else:
-            part = transition[t] @ Y[i]
-        out.index_copy_(0, i, part)
+            return torch.cat((transition[t, :CORE_DIM, :CORE_DIM] @ y[:, :CORE_DIM], y[:, CORE_DIM:]), 1)
+        if k == _COPY:
+            return y.gather(1, row[t].unsqueeze(-1).expand(-1, -1, y.shape[-1]))
+        return transition[t] @ y
+
+    present = [k for k, n in enumerate(torch.bincount(kind, minlength=3).tolist()) if n]
+    if len(present) == 1:  # one kind: no gathers of Y
+        return applied(present[0], at, Y)
+    at = torch.arange(at.start, at.stop, device=Y.device) if isinstance(at, slice) else at
+    out = Y.clone()
+    for k in present:
+        i = torch.nonzero(kind == k).squeeze(-1)
+        out.index_copy_(0, i, applied(k, at[i], Y[i]))
     return out
 
 
 def _to_next_key(transition: Tensor, kinds: tuple[Tensor, Tensor], cov: Tensor, distance: Tensor,
-                 nodes: Tensor) -> Tensor:
+                 nodes: Tensor | None = None) -> Tensor:
     """``Φ_{j→k(j)} C_j`` ``(n, D, w)``: the columns ``C_j`` ``(n, D, w)`` of the nodes ``nodes``
-    ``(n,)`` carried to their next key node ``k(j) = j + distance_j``, where ``transition[j]`` is
-    ``Φ_j`` (into node ``j``) and ``kinds`` its :func:`_transition_kinds`.
+    ``(n,)`` (None: ``0 .. n-1``) carried to their next key node ``k(j) = j + distance_j``, where
+    ``transition[j]`` is ``Φ_j`` (into node ``j``) and ``kinds`` its :func:`_transition_kinds`.
 
     The transitions are applied one after another, ``Φ_{j→k} C = Φ_k ⋯ Φ_{j+1} C``: one batched
     application per distance from the node (:func:`_apply`), and no product of two
     transitions (which would cost ``D / w`` times as much).
     """
-    out = _apply(transition, kinds, nodes + 1, cov)
+    out = _apply(transition, kinds, slice(1, cov.shape[0] + 1) if nodes is None else nodes + 1, cov)
     for d in range(2, int(distance.max()) + 1 if distance.numel() else 0):
         j = torch.nonzero(distance >= d).squeeze(-1)
-        out.index_copy_(0, j, _apply(transition, kinds, nodes[j] + d, out[j]))
+        out.index_copy_(0, j, _apply(transition, kinds, (j if nodes is None else nodes[j]) + d, out[j]))
     return out
 
 
@@ -208,8 +216,7 @@ def _prepare(track: FilterTrack, c: int) -> _Prepared:
         LU, pivots = _factor_predicted(symmetrize(predicted), t_keys[s0 : s1 + 1])
         transition = track.transition[a : b + 1]
         kinds = _transition_kinds(transition)
-        local = torch.arange(b - a, device=keys.device)
-        moved = _to_next_key(transition, kinds, node_cov[nodes, :, :c], distance[nodes], local)
+        moved = _to_next_key(transition, kinds, node_cov[nodes, :, :c], distance[nodes])
         gains.append(_solve_by_key(LU, pivots, moved, slot[nodes] - s0).transpose(-1, -2))
         if k1 == k0:
             continue
@@ -235,7 +242,7 @@ Emit = Callable[[int, int, list[tuple[Tensor, Tensor]]], None]
 #: the most bytes of the ``(tracks, keys, D, D)`` tensors of the keys' jumps and gains that the
 #: backward pass gathers at once on a CPU (on a GPU a sixteenth of its memory); above it each key's
 #: are taken as the recursion reaches it, a few operations per track and key instead of one
-_STACKED_BYTES = 256 << 20
+_STACKED_BYTES = 512 << 20
 
 
 def _stacked_bytes(device: torch.device) -> int:

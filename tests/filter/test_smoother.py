@@ -506,13 +506,13 @@ def test_tracks_smoothed_together_equal_each_chains_batch_posterior(blocks, gath
 
 @pytest.mark.parametrize("marginal", [None, 5])
 def test_rts_through_core_copy_and_dense_transitions_equals_batch_posterior(marginal, monkeypatch):
-    """A state of ``CORE_DIM + 7`` entries whose transitions are of each kind the smoother takes
+    """A state of ``CORE_DIM + 21`` entries whose transitions are of each kind the smoother takes
     apart (the identity outside the leading ``CORE_DIM`` block, as propagation's; rows of the
     identity, as a window's augmentation; neither), in runs of one to three nodes between
     updates and over several blocks: the batch posterior, and the kinds as built."""
     from flowins.filter import smoother
 
-    D = CORE_DIM + 7
+    D = CORE_DIM + 21
     monkeypatch.setattr(smoother, "_BLOCK_BYTES", 5 * 8 * D * D)
     gen = torch.Generator().manual_seed(31)
     eye = torch.eye(D, dtype=F64)
