@@ -428,14 +428,18 @@ def test_matrices_whose_batched_pivots_come_out_invalid_are_factorised_alone(mon
         assert torch.equal(LU[i], LU_i) and torch.equal(pivots[i], piv_i)
 
 
-def test_smoother_gradient_equals_finite_differences_through_runs_and_blocks(monkeypatch):
+@pytest.mark.parametrize("gathered", [True, False])
+def test_smoother_gradient_equals_finite_differences_through_runs_and_blocks(gathered, monkeypatch):
     """The smoother is in the training graph: the gradient of a smoothed mean and variance
     with respect to a process noise and a measurement value, through runs of prediction-only
-    nodes (each node's transition to its next key built in place) and several blocks, equals
-    central finite differences."""
+    nodes (each node's columns carried to its next key in place) and several blocks, equals
+    central finite differences, with the keys' jumps and gains gathered beforehand or taken
+    key by key."""
     from flowins.filter import smoother
 
     monkeypatch.setattr(smoother, "_BLOCK_BYTES", 4 * 8 * 3 * 3)
+    if not gathered:
+        monkeypatch.setattr(smoother, "_STACKED_BYTES", 0)
     D = 3
     gen = torch.Generator().manual_seed(8)
     A = [torch.eye(D, dtype=F64) + 0.1 * torch.randn(D, D, generator=gen, dtype=F64) for _ in range(12)]
