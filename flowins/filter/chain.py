@@ -574,12 +574,6 @@ class FilterTrack(_NodeOutputs):
         keys[-1] = True
         return keys
 
-    def key_pred_cov(self) -> Tensor:
-        """``pred_cov`` at :meth:`key_nodes` ``(K, 26, 26)``, without forming ``pred_cov``."""
-        if bool(self.updated[-1]):
-            return self.updated_pred_cov
-        return torch.cat((self.updated_pred_cov, self.node_cov[-1:]))
-
     def in_final_frame(self, *, marginal: int | None = None) -> NodeTrack:
         """The filtered nodes with those before each change of frame re-expressed after it
         (``m ↦ A m + b``, ``P ↦ A P Aᵀ + Q``): each node is still the filter's estimate from
