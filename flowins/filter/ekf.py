@@ -444,7 +444,8 @@ def ekf_update(
                 cov,
                 (w * innovation).reshape(*batch, M * d),
                 (w.unsqueeze(-1) * H).reshape(*batch, M * d, H.shape[-1]),
-                _block_diagonal(_eye(d, cov.dtype, cov.device).expand(*batch, M, d, d) if noise_cov is None else noise_cov),
+                _eye(M * d, cov.dtype, cov.device).expand(*batch, M * d, M * d) if noise_cov is None
+                else _block_diagonal(noise_cov),
             )
     if nll is not None and noise_logdet is not None:
         nll = nll + noise_logdet

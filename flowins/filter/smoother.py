@@ -43,14 +43,15 @@ def rts_gains(track: FilterTrack) -> Tensor:
 _CORE, _COPY, _DENSE = 0, 1, 2
 
 
-def _transition_kinds(transition: Tensor) -> tuple[Tensor, Tensor]:
+def _transition_kinds(transition: Tensor) -> tuple[Tensor, Tensor | None]:
     """Each transition's kind ``(n,)`` and, for :data:`_COPY`, which entry each row copies ``(n, D)``
     (the whole of ``transition`` ``(n, D, D)`` read once, a third of it again). Below
-    ``D = 2 CORE_DIM`` (the paper's 26 entries) all are taken as dense: there the core is over
-    half of the product, and the kinds would cost more operations than they save."""
+    ``D = 2 CORE_DIM`` (the paper's 26 entries) all are taken as dense, with None for the
+    copies: there the core is over half of the product, and the kinds would cost more
+    operations than they save."""
     D = transition.shape[-1]
     if D < 2 * CORE_DIM:
-        return torch.full(transition.shape[:1], _DENSE, device=transition.device), transition[:, 0, :0].long()
+        return torch.full(transition.shape[:1], _DENSE, device=transition.device), None
     eye = torch.eye(D, dtype=transition.dtype, device=transition.device)
     core = (transition[:, CORE_DIM:, :] == eye[CORE_DIM:]).flatten(1).all(1) & (
         transition[:, :CORE_DIM, CORE_DIM:] == 0).flatten(1).all(1)
@@ -63,7 +64,7 @@ def _transition_kinds(transition: Tensor) -> tuple[Tensor, Tensor]:
     return kind, transition.argmax(-1)
 
 
-def _apply(transition: Tensor, kinds: tuple[Tensor, Tensor], at: Tensor | slice, Y: Tensor) -> Tensor:
+def _apply(transition: Tensor, kinds: tuple[Tensor, Tensor | None], at: Tensor | slice, Y: Tensor) -> Tensor:
     """``Φ_at Y`` ``(m, D, w)`` for the transitions ``transition[at]`` (``at``: ``m`` indices or a
     slice) of kinds ``kinds`` (:func:`_transition_kinds`): a core transition's leading block times
     ``Y``'s leading rows (``(CORE_DIM / D)²`` of the dense product), a copy's rows gathered, the
@@ -88,7 +89,7 @@ def _apply(transition: Tensor, kinds: tuple[Tensor, Tensor], at: Tensor | slice,
     return out
 
 
-def _to_next_key(transition: Tensor, kinds: tuple[Tensor, Tensor], cov: Tensor, distance: Tensor,
+def _to_next_key(transition: Tensor, kinds: tuple[Tensor, Tensor | None], cov: Tensor, distance: Tensor,
                  nodes: Tensor | None = None) -> Tensor:
     """``Φ_{j→k(j)} C_j`` ``(n, D, w)``: the columns ``C_j`` ``(n, D, w)`` of the nodes ``nodes``
     ``(n,)`` (None: ``0 .. n-1``) carried to their next key node ``k(j) = j + distance_j``, where
