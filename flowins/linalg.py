@@ -1,4 +1,9 @@
-"""Batched linear algebra split into slices that the device's solvers take.
+"""Batched linear algebra: solver calls split into slices the device takes, and short dot products.
+
+:func:`dot` sums the products of short vectors (2 or 3 entries) entry by entry: torch's
+reduction over a last dimension of 2 or 3 entries (``torch.linalg.vecdot``, ``(a * b).sum(-1)``)
+takes several times as long on the CPU for a few thousand vectors (``benchmarks/bench_flow_filter.py``
+profiles the filter).
 
 cuSOLVER's batched ``eigh`` of 65,536 ``4 x 4`` matrices (the triangulations of 256
 recordings with 256 points each) stopped with ``CUSOLVER_STATUS_INTERNAL_ERROR`` on an
@@ -14,6 +19,22 @@ from collections.abc import Callable
 
 import torch
 from torch import Tensor
+
+#: the longest vectors :func:`dot` sums entry by entry
+SHORT_DOT = 3
+
+
+def dot(a: Tensor, b: Tensor) -> Tensor:
+    """``Σ_i a_i b_i`` over the last dimension (broadcast like ``torch.linalg.vecdot`` of real
+    tensors): entry by entry in order for up to :data:`SHORT_DOT` entries, else ``vecdot``."""
+    n = a.shape[-1]
+    if n != b.shape[-1] or n > SHORT_DOT:
+        return torch.linalg.vecdot(a, b)
+    out = a[..., 0] * b[..., 0]
+    for i in range(1, n):
+        out = out + a[..., i] * b[..., i]
+    return out
+
 
 #: most matrices handed to one batched solver call on CUDA
 CUDA_SLICE = 16384

@@ -1,8 +1,9 @@
-"""Batched linear algebra in slices (flowins.linalg): the slices give the one call's values and gradients."""
+"""Batched linear algebra (flowins.linalg): the slices give the one call's values and gradients; short
+dot products are the in-order sums of their entries' products."""
 import pytest
 import torch
 
-from flowins.linalg import in_slices
+from flowins.linalg import SHORT_DOT, dot, in_slices
 
 
 def _spd(*batch: int, n: int = 4) -> torch.Tensor:
@@ -40,3 +41,25 @@ def test_a_two_input_call_in_slices_pairs_each_slice_with_its_own():
 def test_inputs_of_other_batch_shapes_are_refused():
     with pytest.raises(ValueError, match=r"batch shapes \(3, 5\) and \(3, 4\) differ"):
         in_slices(torch.linalg.solve_triangular, _spd(3, 5), torch.zeros(3, 4, 4, 1), batch_dims=2, limit=2)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, SHORT_DOT + 3])
+def test_dot_is_the_in_order_sum_of_products_broadcast_with_its_gradient(n):
+    g = torch.Generator().manual_seed(n)
+    a = (torch.randn(5, 1, n, generator=g, dtype=torch.float64) * 1e3).requires_grad_()
+    b = torch.randn(4, n, generator=g, dtype=torch.float64).requires_grad_()
+    out = dot(a, b)
+    assert out.shape == (5, 4)
+    # the naive reference: Python floats, added in entry order
+    a_list, b_list, out_list = a.detach().tolist(), b.detach().tolist(), out.detach().tolist()
+    for i in range(5):
+        for j in range(4):
+            total = 0.0
+            for k in range(n):
+                total += a_list[i][0][k] * b_list[j][k]
+            assert abs(out_list[i][j] - total) <= (0.0 if n <= SHORT_DOT else 1e-12 * max(1.0, abs(total)))
+    w = torch.randn(5, 4, generator=g, dtype=torch.float64)
+    grads = torch.autograd.grad((out * w).sum(), (a, b))
+    # d/da_k = b_k, d/db_k = a_k, summed over the broadcast
+    torch.testing.assert_close(grads[0], (w.unsqueeze(-1) * b).sum(1, keepdim=True), rtol=1e-13, atol=0)
+    torch.testing.assert_close(grads[1], (w.unsqueeze(-1) * a).sum(0), rtol=1e-13, atol=1e-12)

@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from flowins.constants import cached_constant
+from flowins.linalg import dot
 
 # Below this squared angle the Taylor series (exact to ~theta^6) replaces the
 # trigonometric expressions; both are accurate there, the series has a finite
@@ -228,7 +229,7 @@ def from_rotation_vector(rotvec: Tensor) -> Tensor:
     """
     if rotvec.shape[-1] != 3:
         raise ValueError(f"rotation vector must have last dimension 3, got shape {tuple(rotvec.shape)}")
-    cs = _half_angle_terms((rotvec * rotvec).sum(-1))
+    cs = _half_angle_terms(dot(rotvec, rotvec))
     return torch.cat((cs[..., :1], cs[..., 1:] * rotvec), dim=-1)
 
 
@@ -312,7 +313,7 @@ def from_rotation_vector_with_jacobian(theta: Tensor) -> tuple[Tensor, Tensor]:
     """
     if theta.shape[-1] != 3:
         raise ValueError(f"rotation vector must have last dimension 3, got shape {tuple(theta.shape)}")
-    csk = _half_angle_terms((theta * theta).sum(-1), derivative=True)
+    csk = _half_angle_terms(dot(theta, theta), derivative=True)
     c, s, k = csk[..., :1], csk[..., 1:2], csk[..., 2:]
     E = torch.cat((c, s * theta), dim=-1)
     # rows (-½ s θᵀ; s I + k θθᵀ) = s [0; I] + (-½ s, k θ) θᵀ

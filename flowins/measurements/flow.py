@@ -49,6 +49,7 @@ from torch.func import jacrev, vmap
 from flowins.constants import cached_constant
 from flowins.geometry import quaternion as quat
 from flowins.geometry.triangulation import camera_matrix, project_homogeneous, solve_dlt, triangulate
+from flowins.linalg import dot
 from flowins.state import STATE, STATE_DIM, split, window_size
 
 
@@ -195,8 +196,7 @@ def camera_pose(q: Tensor, p: Tensor, camera: FlowCamera) -> tuple[Tensor, Tenso
 
 def ray_angle(ray1: Tensor, ray2: Tensor) -> Tensor:
     """Angle (rad) between two rays ``(..., 3)`` (not necessarily unit), stable near 0 and π."""
-    return torch.atan2(torch.linalg.vector_norm(torch.linalg.cross(ray1, ray2), dim=-1),
-                       torch.linalg.vecdot(ray1, ray2))
+    return torch.atan2(torch.linalg.vector_norm(torch.linalg.cross(ray1, ray2), dim=-1), dot(ray1, ray2))
 
 
 def normalise_pixels(uv: Tensor, K: Tensor) -> Tensor:

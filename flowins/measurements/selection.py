@@ -63,8 +63,9 @@ def spread_top_k(score: Tensor, uv_px: Tensor, k: int, *, cell_px: float, mask: 
     members = torch.take_along_dim(order, by_cell, -1)  # grouped position -> point
     if mask is not None:
         rank = torch.where(torch.take_along_dim(mask, members, -1), rank, M)
-    # round first, then score order (by_cell is the position in score order)
-    pick = torch.argsort(torch.add(by_cell, rank, alpha=M), dim=-1)[..., :k]
+    # round first, then score order (by_cell is the position in score order): the keys are
+    # distinct, so the k smallest in order are a full argsort's first k
+    pick = torch.topk(torch.add(by_cell, rank, alpha=M), min(k, M), dim=-1, largest=False).indices
     return torch.take_along_dim(members, pick, -1)
 
 
