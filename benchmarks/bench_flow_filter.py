@@ -18,7 +18,10 @@ Reads the default simulated walk and its dense flow pairs (both cached by
 ``--device cuda`` runs the filter and the smoother on the GPU (``filter.device``), and reads the
 flow that ``evaluate.py flow.device=cuda`` cached (or computes it there). Timings there synchronise the GPU before reading the clock.
 
-The last line is ``RESULT single=<x>x batched=<x>x batch=<B> device=<device>``.
+``filter.workers=N`` (an override) splits the batch over ``N`` worker processes
+(:mod:`flowins.parallel`; the single run stays one process).
+
+The last line is ``RESULT single=<x>x batched=<x>x batch=<B> device=<device> workers=<N>``.
 
     python benchmarks/bench_flow_filter.py [--points 256] [--batch 8] [--reference-s 20] [--repeats 3]
                                            [--breakdown-s 60] [--count-ops-s 20] [--profile-s 0]
@@ -297,7 +300,9 @@ def timed(rec, pairs, config, duration: float, args) -> tuple[float, float | Non
         batched = seconds / wall
         print(f"batch of {args.batch}: {wall:7.2f} s for {seconds:.0f} s of data -> {batched:6.1f}x real time "
               f"({batched / (duration / fast):.2f}x the single run's rate)")
-        if args.stages:
+        if args.stages and config.workers > 1:
+            print(f"  (in {min(config.workers, args.batch)} worker processes: their stages are not timed here)")
+        elif args.stages:
             print("  of which " + ", ".join(f"{name} {t:.2f} s" for name, t in spent.items()))
     return fast, batched
 
@@ -339,6 +344,9 @@ def main() -> None:
     duration = float(rec.imu.t_s[-1] - rec.imu.t_s[0])
     where = (f"on {torch.cuda.get_device_name(config.device)}" if config.device.type == "cuda"
              else f"on the CPU, {torch.get_num_threads()} threads")
+    if config.workers > 1 and config.device.type == "cpu" and args.batch > 1:
+        where += f" (the batch: {min(config.workers, args.batch)} worker processes of one thread)"
+
     print(f"{rec.name}: {duration:.0f} s, {len(pairs)} flow frames, up to {args.points} points each, "
           f"{len(rec.gnss)} GNSS fixes, float64, filter {where}")
 
@@ -347,6 +355,7 @@ def main() -> None:
     if args.repeats > 0:
         fast, batched = timed(rec, pairs, config, duration, args)
 
+    workers = config.workers
     if args.reference_s > 0:
         paper = dataclasses.replace(config, jacobians="autodiff",
                                     flow_update=dataclasses.replace(config.flow_update, sequential=True))
@@ -356,6 +365,8 @@ def main() -> None:
         fast_c, _ = run(imu_c, gnss_c, pairs_c, FlowCamera.from_sequence(rec.sequence), config)
         print(f"paper's way:   {slow:7.2f} s for the first {span:.0f} s -> {span / slow:6.1f}x real time "
               f"(flowins on the same window: {fast_c:.2f} s, {slow / fast_c:.1f}x faster)")
+    # the diagnostics look inside one process: the batch there too
+    config = dataclasses.replace(config, workers=1)
     if args.breakdown_s > 0:
         breakdown(*crop(rec, pairs, args.breakdown_s), FlowCamera.from_sequence(rec.sequence), config)
     if args.count_ops_s > 0:
@@ -367,7 +378,7 @@ def main() -> None:
         short = batch_runs(rec, pairs, camera, args.batch, end_s=args.profile_s, step_s=2.0) if args.batch else None
         profile(*crop(rec, pairs, args.profile_s), camera, config, short)
     print(f"RESULT single={'n/a' if fast is None else f'{duration / fast:.1f}x'} batched={'n/a' if batched is None else f'{batched:.1f}x'} "
-          f"batch={args.batch} device={config.device}")
+          f"batch={args.batch} device={config.device} workers={workers}")
 
 
 if __name__ == "__main__":

@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import KW_ONLY, dataclass, field
@@ -31,6 +32,7 @@ from flowins.measurements.tracks import TrackUpdate, track_frames
 from flowins.measurements.vehicle import VehicleConstraint  # noqa: F401  (registers the kind "vehicle")
 from flowins.measurements.zero_velocity import ZeroVelocity
 from flowins.memory import available_memory_bytes, describe_bytes
+from flowins.parallel import can_start_workers, run_in_processes, split_by_load
 from flowins.state import STATE, STATE_DIM, window_size
 from flowins.start import Start, StartSettings, choose_start
 
@@ -63,6 +65,9 @@ class NavigationConfig:
     #: where the filter, the smoother and their events run (``cpu``, ``cuda``, ``cuda:1``);
     #: the start and the measurements are prepared on the CPU and moved there
     device: torch.device = field(default_factory=lambda: torch.device("cpu"))
+    #: worker processes a batch of several recordings is split over on the CPU (:func:`navigate_batch`,
+    #: :mod:`flowins.parallel`); 1: the batch in this process
+    workers: int = 1
     flow_update: FlowUpdate = field(default_factory=FlowUpdate)
     #: the multi-view update of sparse tracks over a window of cloned poses (``filter.tracks``;
     #: :mod:`flowins.measurements.tracks`); its window 0 (the default) leaves it off
@@ -84,6 +89,8 @@ class NavigationConfig:
                 raise ValueError(f"NavigationConfig.{key}={getattr(self, key)!r}: expected a number > 0")
         if not self.gnss_correlation_s >= 0.0:
             raise ValueError(f"NavigationConfig.gnss_correlation_s={self.gnss_correlation_s!r}: expected a number >= 0")
+        if isinstance(self.workers, bool) or not (isinstance(self.workers, int) and self.workers >= 1):
+            raise ValueError(f"NavigationConfig.workers={self.workers!r}: expected an integer >= 1")
 
     def filter_settings(self) -> dict:
         """The keyword arguments of :func:`~flowins.filter.runner.run_filter` this config sets."""
@@ -345,11 +352,48 @@ def navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig = 
                    progress: bool = False) -> list[NavigationResult]:
     """:func:`navigate` on several recordings in one batched filter pass
     (:func:`~flowins.filter.runner.run_filters`); each result equals its recording's
-    :func:`navigate` up to rounding. One ``config`` serves every run."""
+    :func:`navigate` up to rounding. One ``config`` serves every run.
+
+    With ``config.workers > 1`` on the CPU, and nothing carrying a gradient, the runs are
+    split into that many parts of about equal work (IMU samples and flow frames), each part
+    one batched pass in a worker process of its own (:mod:`flowins.parallel`)."""
+    gradient = carries_gradient(runs, config)
+    if config.workers > 1 and len(runs) > 1 and config.device.type == "cpu" and not gradient:
+        if can_start_workers():
+            return _navigate_in_workers(runs, config=config, progress=progress)
+        log.info("filter: %d runs in this process: it is a daemonic worker, which may not start the "
+                 "filter.workers=%d processes", len(runs), config.workers)
     # without a gradient to carry, inference mode skips autograd's bookkeeping on every
     # one of the filter's many small operations
-    with torch.inference_mode(not carries_gradient(runs, config)):
+    with torch.inference_mode(not gradient):
         return _navigate_batch(runs, config=config, progress=progress)
+
+
+#: a flow frame's share of the work against an IMU sample's (:func:`run_load`): the 300 s walk's
+#: dense frames (10 Hz, 256 points, 100 Hz IMU) take most of its filter pass
+FRAME_LOAD = 30.0
+
+
+def run_load(run: NavigationRun) -> float:
+    """About how much filtering ``run`` takes: its IMU samples and :data:`FRAME_LOAD` per flow
+    frame pair or track frame (splitting a batch over workers evens it out)."""
+    frames = 0 if run.flow is None else len(run.flow)
+    if run.tracks is not None:
+        frames += len(run.tracks.frame_times)
+    return float(run.imu.t_s.shape[0]) + FRAME_LOAD * frames
+
+
+def _navigate_in_workers(runs: Sequence[NavigationRun], *, config: NavigationConfig,
+                         progress: bool) -> list[NavigationResult]:
+    parts = split_by_load([run_load(run) for run in runs], config.workers)
+    log.info("filter: %d runs in %d worker processes (filter.workers=%d)", len(runs), len(parts), config.workers)
+    task = functools.partial(navigate_batch, config=dataclasses.replace(config, workers=1), progress=progress)
+    done = run_in_processes(task, [([runs[i] for i in part],) for part in parts])
+    results: list[NavigationResult | None] = [None] * len(runs)
+    for part, part_results in zip(parts, done):
+        for i, result in zip(part, part_results):
+            results[i] = result
+    return results  # type: ignore[return-value]
 
 
 def _navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig,

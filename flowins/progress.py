@@ -4,10 +4,12 @@ On a terminal (stderr is a TTY) :func:`progress` draws a tqdm bar. In a log file
 or a notebook cell captured to a file, a bar's carriage-return updates become thousands of
 lines; there it logs ``<description>: 30% (90/300 pairs, 12.1 s)`` to the ``flowins``
 logger when each further tenth of the work is done, from ``min_seconds`` (5 s) on: work
-that is done sooner says nothing.
+that is done sooner says nothing. Inside :func:`reported_as` (a worker process,
+:mod:`flowins.parallel`) it always logs, each description preceded by the worker's name.
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import sys
 import time
@@ -18,10 +20,25 @@ T = TypeVar("T")
 
 log = logging.getLogger("flowins")
 
+#: the name progress is reported under (:func:`reported_as`); None: a bar on a terminal
+_REPORTER: str | None = None
+
 
 def is_terminal() -> bool:
     stream = sys.stderr
-    return bool(getattr(stream, "isatty", lambda: False)())
+    return _REPORTER is None and bool(getattr(stream, "isatty", lambda: False)())
+
+
+@contextlib.contextmanager
+def reported_as(name: str) -> Iterator[None]:
+    """While inside, progress is logged as lines ``<name>: <description>: 30% ...``, never a bar
+    (the workers of a process pool share one terminal)."""
+    global _REPORTER
+    saved, _REPORTER = _REPORTER, name
+    try:
+        yield
+    finally:
+        _REPORTER = saved
 
 
 class Progress:
@@ -29,7 +46,8 @@ class Progress:
 
     def __init__(self, *, total: int, description: str, unit: str = "it", enabled: bool = True,
                  terminal: bool | None = None, steps: int = 10, min_seconds: float = 5.0) -> None:
-        self.total, self.description, self.unit = int(total), description, unit
+        self.total, self.unit = int(total), unit
+        self.description = description if _REPORTER is None else f"{_REPORTER}: {description}"
         self.enabled = enabled and self.total > 0
         self.done, self.reported, self.steps, self.min_seconds = 0, 0, steps, min_seconds
         self.start = time.perf_counter()

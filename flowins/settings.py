@@ -268,7 +268,8 @@ def navigation_config(cfg: Mapping[str, Any], imu: ImuModel | None = None) -> Na
         if noise[key] is None:
             raise ValueError(f"filter.{key} is null and no imu preset was given; set filter.{key} or choose imu=...")
     noise.update(acc_scale_walk=cfg["acc_scale_walk"], discretization=cfg["discretization"])
-    simple = ("gnss_noise_scale", "gnss_correlation_s", "output_every", "scheme", "gravity_mps2", "jacobians", "device")
+    simple = ("gnss_noise_scale", "gnss_correlation_s", "output_every", "scheme", "gravity_mps2", "jacobians", "device",
+              "workers")
     groups = ("init", "initial", "gnss_gate", "gnss_recovery", "gnss_heading", "flow", "tracks", "dtype", "measurements")
     known = (*noise, *simple, *groups)
     for key in cfg:

@@ -190,3 +190,39 @@ def test_navigate_warns_before_a_pass_that_may_not_fit(monkeypatch, caplog, reco
     with caplog.at_level("WARNING", logger="flowins.navigation"):
         navigate(NavigationRun(recording.imu, recording.gnss))
     assert not caplog.records
+
+
+def test_a_batch_split_over_worker_processes_gives_each_run_its_own_result_in_order(caplog):
+    """filter.workers=2: three different recordings (so a result in the wrong place shows) give what
+    the batch in this process gives, up to rounding (another batch, one thread)."""
+    from flowins.navigation import navigate_batch
+
+    recs = [synthetic_walk_recording(duration_s=d, seed=s) for d, s in ((6.0, 1), (9.0, 2), (7.0, 3))]
+    runs = [NavigationRun(r.imu, r.gnss) for r in recs]
+    config = NavigationConfig(gnss_heading=HeadingAlignment(enabled=False))
+    here = navigate_batch(runs, config=config)
+    with caplog.at_level("INFO", logger="flowins"):
+        there = navigate_batch(runs, config=dataclasses.replace(config, workers=2))
+    assert any("3 runs in 2 worker processes" in r.getMessage() for r in caplog.records)
+    for i, (a, b) in enumerate(zip(there, here)):
+        assert a.filter.node_mean.shape == b.filter.node_mean.shape
+        torch.testing.assert_close(a.filter.node_mean, b.filter.node_mean, rtol=0, atol=1e-9)
+        torch.testing.assert_close(a.smoother.node_mean, b.smoother.node_mean, rtol=0, atol=1e-8)
+        assert [e["kind"] for e in a.filter.log] == [e["kind"] for e in b.filter.log]
+        assert a.start.index == b.start.index
+        torch.testing.assert_close(a.gnss_enu_m, b.gnss_enu_m, rtol=0, atol=0)
+
+
+def test_a_batch_that_carries_a_gradient_stays_in_this_process_and_workers_must_be_a_count(caplog):
+    from flowins.navigation import navigate_batch
+
+    recs = [synthetic_walk_recording(duration_s=5.0, seed=s) for s in (1, 2)]
+    scale = torch.tensor(1.5, dtype=torch.float64, requires_grad=True)
+    config = NavigationConfig(gnss_noise_scale=scale, gnss_heading=HeadingAlignment(enabled=False), workers=2)
+    with caplog.at_level("INFO", logger="flowins"):
+        results = navigate_batch([NavigationRun(r.imu, r.gnss) for r in recs], config=config)
+    assert all(r.filter.node_mean.requires_grad for r in results)
+    assert not any("worker processes" in r.getMessage() for r in caplog.records)
+    for bad in (0, 1.5, True):
+        with pytest.raises(ValueError, match="NavigationConfig.workers="):
+            NavigationConfig(workers=bad)

@@ -1,0 +1,122 @@
+"""Independent pieces of work in worker processes on the CPU, and splitting work into even parts.
+
+A batched filter pass on the CPU is a long string of small operations: one process keeps
+about one core busy, however many threads it has (they share little of each small
+operation). :func:`~flowins.navigation.navigate_batch` with ``filter.workers=N``
+(``NavigationConfig.workers``) therefore splits a batch of several recordings into ``N`` parts
+of about equal work (:func:`split_by_load`) and filters each part in a process of its own
+(:func:`run_in_processes`), one thread each.
+
+Workers start by ``fork`` on Linux, where they inherit their inputs, and by ``spawn``
+elsewhere, where their inputs are pickled to them and each imports flowins first (a few
+seconds). Results come back as torch's process pool sends them: a tensor's storage moved to
+shared memory and mapped here, not copied through a pipe. The workers' log records,
+progress lines included (under ``worker i/N``), reach the caller's ``flowins`` logger; an
+error in a worker is raised again in the caller, with the worker's traceback as its cause.
+"""
+from __future__ import annotations
+
+import logging
+import logging.handlers
+import multiprocessing
+import pickle
+import sys
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import torch
+
+from flowins import progress
+
+log = logging.getLogger("flowins")
+
+#: what a forked worker reads instead of a pickled copy: ``(fn, parts)`` of the running call
+_INHERITED: tuple[Callable[..., Any], Sequence[tuple]] | None = None
+
+
+def split_by_load(loads: Sequence[float], parts: int) -> list[list[int]]:
+    """The indices of ``loads`` in ``min(parts, len(loads))`` groups of about equal total load,
+    each group in ascending order, the groups by their first index.
+
+    Longest first, each to the group with the least load so far (ties: the lower group);
+    the largest group's load is at most ``4/3 - 1/(3 parts)`` times the best split's
+    (Graham's bound for this rule)."""
+    if parts < 1:
+        raise ValueError(f"split_by_load: parts must be >= 1, got {parts}")
+    if any(not load >= 0.0 for load in loads):
+        raise ValueError(f"split_by_load: loads must be numbers >= 0, got {list(loads)}")
+    count = min(parts, len(loads))
+    groups: list[list[int]] = [[] for _ in range(count)]
+    totals = [0.0] * count
+    for i in sorted(range(len(loads)), key=lambda i: (-loads[i], i)):
+        g = min(range(count), key=lambda g: (totals[g], g))
+        groups[g].append(i)
+        totals[g] += loads[i]
+    return sorted((sorted(group) for group in groups), key=lambda group: group[0])
+
+
+def can_start_workers() -> bool:
+    """Whether this process may start worker processes: not when it is itself a daemonic worker
+    (a process pool's, a data loader's), which Python's multiprocessing forbids."""
+    return not multiprocessing.current_process().daemon
+
+
+def start_method() -> str:
+    """``fork`` on Linux (the inputs are inherited, nothing is pickled to the workers), else ``spawn``."""
+    return "fork" if sys.platform.startswith("linux") else "spawn"
+
+
+def run_in_processes(fn: Callable[..., Any], parts: Sequence[tuple], *, method: str | None = None) -> list[Any]:
+    """``[fn(*args) for args in parts]``, each call in a worker process of its own with one
+    thread; ``fn`` a module-level function (or a ``functools.partial`` of one) whose results
+    pickle. ``method``: ``fork`` | ``spawn`` (None: :func:`start_method`)."""
+    global _INHERITED
+    if not parts:
+        return []
+    method = method or start_method()
+    context = multiprocessing.get_context(method)
+    records = context.Queue()
+    listener = logging.handlers.QueueListener(records, _Forward())
+    forked = method == "fork"
+    tasks = [(i, len(parts), None if forked else pickle.dumps((fn, args), protocol=pickle.HIGHEST_PROTOCOL))
+             for i, args in enumerate(parts)]
+    _INHERITED = (fn, parts) if forked else None
+    listener.start()
+    try:
+        with context.Pool(len(parts), initializer=_start_worker, initargs=(records, log.getEffectiveLevel())) as pool:
+            results = pool.map(_work, tasks, chunksize=1)
+    finally:
+        _INHERITED = None
+        listener.stop()
+        records.close()
+    return results
+
+
+class _Forward(logging.Handler):
+    """Hands a worker's record to the caller's logger of the same name."""
+
+    def handle(self, record: logging.LogRecord) -> bool:
+        logger = logging.getLogger(record.name)
+        if logger.isEnabledFor(record.levelno):
+            logger.handle(record)
+        return True
+
+    def emit(self, record: logging.LogRecord) -> None:  # handle() does the work
+        pass
+
+
+def _start_worker(records: Any, level: int) -> None:
+    """In each worker: one thread, and the ``flowins`` logger's records sent to the caller."""
+    torch.set_num_threads(1)
+    for handler in list(log.handlers):
+        log.removeHandler(handler)
+    log.addHandler(logging.handlers.QueueHandler(records))
+    log.setLevel(level)
+    log.propagate = False
+
+
+def _work(task: tuple[int, int, bytes | None]) -> Any:
+    index, count, payload = task
+    fn, args = (_INHERITED[0], _INHERITED[1][index]) if payload is None else pickle.loads(payload)
+    with progress.reported_as(f"worker {index + 1}/{count}"):
+        return fn(*args)

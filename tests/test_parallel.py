@@ -1,0 +1,103 @@
+"""flowins.parallel: an even split of the work (against the best split, found by brute force), and
+calls in worker processes that return what the calls return here, in order, with their errors and
+log records."""
+import functools
+import itertools
+import logging
+import random
+
+import pytest
+
+from flowins import progress
+from flowins.parallel import run_in_processes, split_by_load
+
+
+def best_split(loads, parts):
+    """The least possible largest group load, over every assignment of the loads to ``parts`` groups."""
+    best = float("inf")
+    for assignment in itertools.product(range(parts), repeat=len(loads)):
+        totals = [0.0] * parts
+        for load, group in zip(loads, assignment):
+            totals[group] += load
+        best = min(best, max(totals))
+    return best
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_split_by_load_uses_every_index_once_within_graham_s_bound_of_the_best_split(seed):
+    rng = random.Random(seed)
+    n, parts = rng.randint(1, 7), rng.randint(1, 3)
+    loads = [rng.choice([rng.uniform(0, 10), float(rng.randint(1, 4))]) for _ in range(n)]
+    groups = split_by_load(loads, parts)
+    assert len(groups) == min(parts, n) and all(groups)
+    assert sorted(i for group in groups for i in group) == list(range(n))
+    assert all(group == sorted(group) for group in groups)
+    assert [group[0] for group in groups] == sorted(group[0] for group in groups)
+    largest = max(sum(loads[i] for i in group) for group in groups)
+    m = len(groups)
+    assert largest <= (4 / 3 - 1 / (3 * m)) * best_split(loads, m) + 1e-9
+
+
+def test_split_by_load_of_equal_loads_deals_them_out_evenly_and_checks_its_arguments():
+    assert split_by_load([5.0] * 8, 2) == [[0, 2, 4, 6], [1, 3, 5, 7]]
+    assert split_by_load([1.0, 9.0, 1.0], 5) == [[0], [1], [2]]
+    with pytest.raises(ValueError, match="parts must be >= 1"):
+        split_by_load([1.0], 0)
+    with pytest.raises(ValueError, match="loads must be numbers >= 0"):
+        split_by_load([1.0, float("nan")], 2)
+
+
+@pytest.mark.parametrize("method", ["fork", "spawn"])
+def test_calls_in_workers_return_what_they_return_here_in_order(method):
+    # a flowins function, so that a spawned worker imports it as this process does
+    parts = [([4.0, 1.0, 3.0, 2.0], 2), ([1.0] * 5, 3), ([7.0], 4)]
+    assert run_in_processes(split_by_load, parts, method=method) == [split_by_load(*args) for args in parts]
+
+
+def test_an_error_in_a_worker_is_raised_here_with_its_message():
+    with pytest.raises(ValueError, match="split_by_load: parts must be >= 1, got 0"):
+        run_in_processes(split_by_load, [([1.0], 1), ([1.0], 0)], method="fork")
+
+
+def _report(name: str, count: int) -> int:
+    logging.getLogger("flowins.test_parallel").warning("warning: %s done", name)
+    for _ in progress.progress(range(count), description="counting", unit="step", min_seconds=0.0):
+        pass
+    return count
+
+
+def test_a_worker_s_log_records_and_progress_lines_reach_this_process(caplog):
+    with caplog.at_level(logging.INFO, logger="flowins"):
+        assert run_in_processes(_report, [("first", 2), ("second", 3)], method="fork") == [2, 3]
+    messages = [r.getMessage() for r in caplog.records]
+    assert "warning: first done" in messages and "warning: second done" in messages
+    # progress in a worker is logged under its name, never drawn as a bar
+    assert any(m.startswith("worker 1/2: counting: 100%") for m in messages)
+    assert any(m.startswith("worker 2/2: counting: 100%") for m in messages)
+
+
+def test_a_worker_runs_one_thread():
+    import torch
+
+    # a forked worker starts with one thread anyway (torch sets it so after a fork); a spawned one would not
+    assert run_in_processes(functools.partial(torch.get_num_threads), [(), ()], method="spawn") == [1, 1]
+
+
+def _nested_batch(count: int) -> str:
+    """In a daemonic worker: a batch asked to use workers runs in the worker itself."""
+    from flowins.data.synthetic import synthetic_walk_recording
+    from flowins.navigation import NavigationConfig, NavigationRun, navigate_batch
+    from flowins.parallel import can_start_workers
+
+    recs = [synthetic_walk_recording(duration_s=4.0, seed=s) for s in range(count)]
+    results = navigate_batch([NavigationRun(r.imu, r.gnss) for r in recs], config=NavigationConfig(workers=2))
+    return f"{can_start_workers()} {len(results)}"
+
+
+def test_a_daemonic_worker_runs_its_batch_itself_instead_of_starting_workers(caplog):
+    from flowins.parallel import can_start_workers
+
+    assert can_start_workers()
+    with caplog.at_level(logging.INFO, logger="flowins"):
+        assert run_in_processes(_nested_batch, [(2,)], method="fork") == ["False 2"]
+    assert any("2 runs in this process: it is a daemonic worker" in r.getMessage() for r in caplog.records)
