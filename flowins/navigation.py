@@ -358,15 +358,24 @@ def navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig = 
     split into that many parts of about equal work (IMU samples and flow frames), each part
     one batched pass in a worker process of its own (:mod:`flowins.parallel`)."""
     gradient = carries_gradient(runs, config)
-    if config.workers > 1 and len(runs) > 1 and config.device.type == "cpu" and not gradient:
-        if can_start_workers():
-            return _navigate_in_workers(runs, config=config, progress=progress)
+    if batch_workers(runs, config) > 1:
+        return _navigate_in_workers(runs, config=config, progress=progress)
+    if config.workers > 1 and len(runs) > 1 and not gradient and config.device.type == "cpu":
         log.info("filter: %d runs in this process: it is a daemonic worker, which may not start the "
                  "filter.workers=%d processes", len(runs), config.workers)
     # without a gradient to carry, inference mode skips autograd's bookkeeping on every
     # one of the filter's many small operations
     with torch.inference_mode(not gradient):
         return _navigate_batch(runs, config=config, progress=progress)
+
+
+def batch_workers(runs: Sequence[NavigationRun], config: NavigationConfig) -> int:
+    """The worker processes :func:`navigate_batch` splits ``runs`` over: ``config.workers`` (at most
+    one per run) on the CPU where nothing carries a gradient and this process may start
+    processes (:func:`~flowins.parallel.can_start_workers`); else 1, the batch in this process."""
+    if config.workers == 1 or len(runs) == 1 or config.device.type != "cpu" or not can_start_workers():
+        return 1
+    return 1 if carries_gradient(runs, config) else min(config.workers, len(runs))
 
 
 #: a flow frame's share of the work against an IMU sample's (:func:`run_load`): the 300 s walk's

@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import logging.handlers
 import multiprocessing
+import os
 import pickle
 import sys
 from collections.abc import Callable, Sequence
@@ -53,6 +54,13 @@ def split_by_load(loads: Sequence[float], parts: int) -> list[list[int]]:
         groups[g].append(i)
         totals[g] += loads[i]
     return sorted((sorted(group) for group in groups), key=lambda group: group[0])
+
+
+def available_cores() -> int:
+    """The CPU cores this process may run on (its affinity where the system says, else all)."""
+    if hasattr(os, "sched_getaffinity"):
+        return max(1, len(os.sched_getaffinity(0)))
+    return max(1, os.cpu_count() or 1)
 
 
 def can_start_workers() -> bool:

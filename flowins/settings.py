@@ -35,6 +35,7 @@ from flowins.measurements.gnss import GnssRecovery
 from flowins.measurements.gnss_heading import HeadingAlignment
 from flowins.measurements.registry import measurement_settings
 from flowins.navigation import NavigationConfig
+from flowins.parallel import available_cores
 from flowins.start import StartSettings
 from flowins.training.parameters import (
     FROZEN_BY_DEFAULT,
@@ -275,9 +276,14 @@ def navigation_config(cfg: Mapping[str, Any], imu: ImuModel | None = None) -> Na
     for key in cfg:
         if key not in known:
             raise ValueError(f"filter.{key}: unknown key; filter takes {', '.join(known)}")
+    values = {key: cfg[key] for key in simple}
+    if isinstance(values["workers"], str):
+        if values["workers"] != "auto":
+            raise ValueError(f"filter.workers={values['workers']!r}: expected an integer >= 1 or auto")
+        values["workers"] = available_cores()
     return build(
         NavigationConfig,
-        {key: cfg[key] for key in simple},
+        values,
         "filter",
         noise=build(ProcessNoise, noise, "filter"),
         initial=build(InitialUncertainty, cfg["initial"], "filter.initial"),

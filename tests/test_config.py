@@ -36,6 +36,15 @@ def test_the_defaults_pass():
     evaluate_settings(_evaluate_config())
 
 
+def test_filter_workers_auto_is_one_per_core_this_process_may_use():
+    import os
+
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    assert _filter().workers == _filter("filter.workers=auto").workers == cores
+    assert _filter("filter.workers=3").workers == 3
+    assert NavigationConfig().workers == 1  # the Python API: one process unless asked
+
+
 @pytest.mark.parametrize("override, message", [
     ("filter.acc_noise=abc", r"filter\.acc_noise='abc': expected a number"),
     ("filter.acc_noise=-1", r"filter\.acc_noise must be finite and >= 0"),
@@ -46,6 +55,8 @@ def test_the_defaults_pass():
     ("filter.gravity_mps2=0", r"filter\.gravity_mps2=0\.0: expected a number > 0"),
     ("filter.dtype=float32", r"filter\.dtype='float32'"),
     ("filter.device=gpu", r"filter\.device='gpu': expected cpu, cuda or cuda:N"),
+    ("filter.workers=0", r"filter\.workers=0: expected an integer >= 1"),
+    ("filter.workers=many", r"filter\.workers='many': expected an integer >= 1 or auto"),
     ("filter.init.mode=bogus", r"filter\.init\.mode='bogus'"),
     ("filter.init.still.min_s=x", r"filter\.init\.still\.min_s='x': expected a number"),
     ("filter.init.still.min_s=-1", r"filter\.init\.still\.min_s must be"),

@@ -34,7 +34,7 @@ from flowins.ins.initialization import forward_axis
 from flowins.jobs.cli import console_logging
 from flowins.measurements.flow import FlowCamera
 from flowins.measurements.vehicle import VehicleSettings, platform_streams
-from flowins.navigation import (NavigationConfig, NavigationResult, NavigationRun, flow_statistics, navigate_batch,
+from flowins.navigation import (NavigationConfig, NavigationResult, NavigationRun, batch_workers, flow_statistics, navigate_batch,
                                 run_warnings, track_statistics)
 from flowins.settings import evaluate_settings, filter_setup
 from flowins.state import STATE, STATE_DIM
@@ -147,7 +147,9 @@ def _combinations(cfg: Mapping[str, Any], recs: list[Recording], nav_cfg: Naviga
         for name in names:
             results[name], seconds[name] = [next(done) for _ in planned[name]], wall / len(runs)
         if len(names) > 1:
-            log.info(f"  {', '.join(names)}: {len(runs)} runs in one batched filter pass on {nav_cfg.device}, {wall:.1f} s")
+            workers = batch_workers(runs, nav_cfg)
+            where = "one batched filter pass" if workers == 1 else f"batched filter passes in {workers} worker processes"
+            log.info(f"  {', '.join(names)}: {len(runs)} runs in {where} on {nav_cfg.device}, {wall:.1f} s")
     rows, metrics = [], {}
     for name, plan in planned.items():
         if isinstance(plan, str):
