@@ -11,6 +11,7 @@ means between them and the filter RMSE of each.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 
 import torch
@@ -42,7 +43,8 @@ def main() -> None:
     recs = [load_recording({**cfg["sequence"], "seed": seed}, quick=True, progress=True) for seed in args.seeds]
     runs = [NavigationRun(rec.imu, rec.gnss, flow=load_flow("dense", rec, cfg, progress=True),
                           camera=FlowCamera.from_sequence(rec.sequence), start_gnss=rec.gnss) for rec in recs]
-    config = filter_setup(cfg, recs, recorded=False).navigation
+    # the batch in this process (filter.workers would give each seed a process of its own)
+    config = dataclasses.replace(filter_setup(cfg, recs, recorded=False).navigation, workers=1)
     rec, run = recs[-1], runs[-1]
 
     def alone(threads: int):

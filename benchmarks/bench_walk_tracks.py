@@ -24,6 +24,7 @@ finished tracks hold of their node chains against the estimate made before the p
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import statistics
 import time
 from pathlib import Path
@@ -56,7 +57,8 @@ def setup(window: int, sparse: str, quick: bool):
     flow = load_tracks(rec, cfg, progress=True) if window else load_flow("sparse", rec, cfg, progress=True)
     if isinstance(flow, str):
         raise SystemExit(f"error: no sparse input for window {window}: {flow}")
-    config = filter_setup(cfg, [rec], recorded=False).navigation
+    # the rows as one batch in this process, whose stages are timed (not filter.workers' processes)
+    config = dataclasses.replace(filter_setup(cfg, [rec], recorded=False).navigation, workers=1)
     runs = [run for name in ROWS for run in _runs(name, cfg, [rec], config, [{"sparse": flow}])]
     return rec, runs, config
 

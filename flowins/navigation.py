@@ -358,9 +358,9 @@ def navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig = 
     split into that many parts of about equal work (IMU samples and flow frames), each part
     one batched pass in a worker process of its own (:mod:`flowins.parallel`)."""
     gradient = carries_gradient(runs, config)
-    if batch_workers(runs, config) > 1:
+    if batch_workers(runs, config, gradient=gradient) > 1:
         return _navigate_in_workers(runs, config=config, progress=progress)
-    if config.workers > 1 and len(runs) > 1 and not gradient and config.device.type == "cpu":
+    if not can_start_workers() and batch_workers(runs, config, gradient=gradient, here=False) > 1:
         log.info("filter: %d runs in this process: it is a daemonic worker, which may not start the "
                  "filter.workers=%d processes", len(runs), config.workers)
     # without a gradient to carry, inference mode skips autograd's bookkeeping on every
@@ -369,13 +369,17 @@ def navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig = 
         return _navigate_batch(runs, config=config, progress=progress)
 
 
-def batch_workers(runs: Sequence[NavigationRun], config: NavigationConfig) -> int:
+def batch_workers(runs: Sequence[NavigationRun], config: NavigationConfig, *, gradient: bool | None = None,
+                  here: bool = True) -> int:
     """The worker processes :func:`navigate_batch` splits ``runs`` over: ``config.workers`` (at most
-    one per run) on the CPU where nothing carries a gradient and this process may start
-    processes (:func:`~flowins.parallel.can_start_workers`); else 1, the batch in this process."""
-    if config.workers == 1 or len(runs) == 1 or config.device.type != "cpu" or not can_start_workers():
+    one per run) on the CPU where nothing carries a gradient (``gradient``; None: look) and,
+    with ``here``, this process may start processes (:func:`~flowins.parallel.can_start_workers`);
+    else 1, the batch in this process."""
+    if min(config.workers, len(runs)) == 1 or config.device.type != "cpu" or (here and not can_start_workers()):
         return 1
-    return 1 if carries_gradient(runs, config) else min(config.workers, len(runs))
+    if carries_gradient(runs, config) if gradient is None else gradient:
+        return 1
+    return min(config.workers, len(runs))
 
 
 #: a flow frame's share of the work against an IMU sample's (:func:`run_load`): the 300 s walk's

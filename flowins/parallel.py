@@ -89,13 +89,15 @@ def run_in_processes(fn: Callable[..., Any], parts: Sequence[tuple], *, method: 
     tasks = [(i, len(parts), None if forked else pickle.dumps((fn, args), protocol=pickle.HIGHEST_PROTOCOL))
              for i, args in enumerate(parts)]
     _INHERITED = (fn, parts) if forked else None
-    listener.start()
     try:
         with context.Pool(len(parts), initializer=_start_worker, initargs=(records, log.getEffectiveLevel())) as pool:
-            results = pool.map(_work, tasks, chunksize=1)
+            listener.start()  # after the workers started: no thread of this one is forked into them
+            try:
+                results = pool.map(_work, tasks, chunksize=1)
+            finally:
+                listener.stop()
     finally:
         _INHERITED = None
-        listener.stop()
         records.close()
     return results
 
