@@ -110,7 +110,8 @@ class FlowPairs:
                 raise ValueError(f"{path}: not a flowins flow-pairs file of format version {FORMAT_VERSION}")
             counts = z["counts"]
             edges = np.concatenate(([0], np.cumsum(counts)))
-            arrays = {k: torch.from_numpy(z[k]).double() for k in (*_REQUIRED, *_OPTIONAL) if k in z}
+            # in row order whatever order the file holds (a file written from column-major points)
+            arrays = {k: torch.from_numpy(np.ascontiguousarray(z[k])).double() for k in (*_REQUIRED, *_OPTIONAL) if k in z}
             points = [
                 FlowPoints(**{k: a[edges[i] : edges[i + 1]] for k, a in arrays.items()})
                 for i in range(len(counts))

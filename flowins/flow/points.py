@@ -86,8 +86,9 @@ def grid_candidates(
 
     v, u = torch.meshgrid(axis(H), axis(W), indexing="ij")
     v, u = v.reshape(-1), u.reshape(-1)
-    flow = flow_px[:, v, u].T
-    sigma = sigma_px[:, v, u].T
+    # (M, 2) rows in memory order: the per-point operations downstream reduce and index along the last dim
+    flow = flow_px[:, v, u].T.contiguous()
+    sigma = sigma_px[:, v, u].T.contiguous()
     bad = ~(torch.isfinite(flow).all(-1) & torch.isfinite(sigma).all(-1) & (sigma > 0).all(-1))
     if bool(bad.any()):
         i = int(torch.nonzero(bad)[0])
@@ -96,5 +97,5 @@ def grid_candidates(
             f"first at (u, v) = ({int(u[i])}, {int(v[i])}): flow {flow[i].tolist()}, σ {sigma[i].tolist()}"
         )
     uv = torch.stack((u, v), -1).to(flow.dtype)
-    extras = [None if x is None else x[:, v, u].T for x in (dropout_unit_px, floor_px)]
+    extras = [None if x is None else x[:, v, u].T.contiguous() for x in (dropout_unit_px, floor_px)]
     return FlowPoints(uv, flow, sigma, *extras)

@@ -50,6 +50,7 @@ def test_grid_candidates_sample_the_field_at_their_pixels():
     u, v = pts.uv1_px[:, 0].long(), pts.uv1_px[:, 1].long()
     assert (u >= 5).all() and (u <= W - 6).all() and (v >= 5).all() and (v <= H - 6).all()
     assert torch.equal(pts.flow_px, field[:, v, u].T) and torch.equal(pts.sigma_px, sigma[:, v, u].T)
+    assert pts.flow_px.is_contiguous() and pts.sigma_px.is_contiguous()  # rows in memory order, as the update reads them
     assert len(torch.unique(u)) == 7 and len(torch.unique(v)) == 5  # every 8 px in the usable 54 x 38
     assert set(torch.diff(torch.unique(u)).tolist()) == {8}
 
@@ -94,19 +95,26 @@ def test_dense_pairs_keep_the_field_in_recording_pixels(scale):
         assert (pts.sigma_px > 0.1 / scale * 0.99).all()
 
 
+@pytest.mark.parametrize("column_major", [False, True])
 @pytest.mark.parametrize("fields", [3, 5])  # with and without the dropout moments
-def test_flow_pairs_round_trip_through_the_cache_file(tmp_path, fields):
+def test_flow_pairs_round_trip_through_the_cache_file(tmp_path, fields, column_major):
     gen = torch.Generator().manual_seed(0)
-    pts = [FlowPoints(*(torch.rand(n, 2, generator=gen, dtype=F64) * 100 for _ in range(fields))) for n in (5, 0, 7)]
+    counts = [5, 7, 6] if column_major else [5, 0, 7]
+    pts = [FlowPoints(*(torch.rand(n, 2, generator=gen, dtype=F64) * 100 for _ in range(fields))) for n in counts]
+    if column_major:  # points laid out (2, M) in memory (a field's samples, transposed): a file in that order
+        pts = [FlowPoints(*(None if x is None else x.T.contiguous().T for x in p)) for p in pts]
     pairs = FlowPairs(torch.tensor([0.0, 0.1, 0.2], dtype=F64), torch.tensor([0.1, 0.2, 0.3], dtype=F64), pts, "dense", "test")
     pairs.save(tmp_path / "p.npz")
-    back = FlowPairs.load(tmp_path / "p.npz")
-    assert back.kind == "dense" and back.description == "test" and [len(p) for p in back.points] == [5, 0, 7]
+    with np.load(tmp_path / "p.npz") as z:
+        assert z["flow_px"].flags.f_contiguous == column_major
+    back = FlowPairs.load(tmp_path / "p.npz")  # read back in row order either way
+    assert back.kind == "dense" and back.description == "test" and [len(p) for p in back.points] == counts
     for a, b in zip(pairs.points, back.points):
         assert sum(x is not None for x in b) == fields
         for x, y in zip(a, b):
             if x is not None:
                 torch.testing.assert_close(y, x.float().double())  # stored as float32
+                assert y.is_contiguous()
     with pytest.raises(ValueError, match="not after its start"):
         FlowPairs(torch.tensor([0.2], dtype=F64), torch.tensor([0.1], dtype=F64), pts[:1], "dense")
 
