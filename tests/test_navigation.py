@@ -226,3 +226,19 @@ def test_a_batch_that_carries_a_gradient_stays_in_this_process_and_workers_must_
     for bad in (0, 1.5, True):
         with pytest.raises(ValueError, match="NavigationConfig.workers="):
             NavigationConfig(workers=bad)
+
+
+def test_workers_started_by_spawn_take_pickled_runs_and_give_their_results(monkeypatch):
+    """The start method off Linux: runs, config and results cross to and from the workers pickled."""
+    import flowins.parallel as parallel
+    from flowins.navigation import navigate_batch
+
+    recs = [synthetic_walk_recording(duration_s=d, seed=s) for d, s in ((5.0, 4), (6.0, 5))]
+    runs = [NavigationRun(r.imu, r.gnss) for r in recs]
+    config = NavigationConfig(gnss_heading=HeadingAlignment(enabled=False))
+    here = navigate_batch(runs, config=config)
+    monkeypatch.setattr(parallel, "start_method", lambda: "spawn")
+    there = navigate_batch(runs, config=dataclasses.replace(config, workers=2))
+    for a, b in zip(there, here):
+        torch.testing.assert_close(a.filter.node_mean, b.filter.node_mean, rtol=0, atol=1e-9)
+        torch.testing.assert_close(a.smoother.node_mean, b.smoother.node_mean, rtol=0, atol=1e-8)
