@@ -358,9 +358,9 @@ def navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig = 
     split into that many parts of about equal work (IMU samples and flow frames), each part
     one batched pass in a worker process of its own (:mod:`flowins.parallel`)."""
     gradient = carries_gradient(runs, config)
-    if batch_workers(runs, config, gradient=gradient) > 1:
-        return _navigate_in_workers(runs, config=config, progress=progress)
-    if not can_start_workers() and batch_workers(runs, config, gradient=gradient, here=False) > 1:
+    if batch_workers(runs, config, gradient=gradient, here=False) > 1:
+        if can_start_workers():
+            return _navigate_in_workers(runs, config=config, progress=progress)
         log.info("filter: %d runs in this process: it is a daemonic worker, which may not start the "
                  "filter.workers=%d processes", len(runs), config.workers)
     # without a gradient to carry, inference mode skips autograd's bookkeeping on every
