@@ -10,7 +10,7 @@
 # A check of the script itself on a CPU: GPU_SH_DEVICE=cpu GPU_SH_QUICK=1 bash benchmarks/gpu.sh
 # (every section on the CPU, the 60 s walk, a batch of 4, one training epoch; the device
 # tests are skipped there). Its figures mean nothing.
-# GPU_SH_SECTIONS="2 5 3 4 6 1" runs only those sections, in that order (default: all seven, in
+# GPU_SH_SECTIONS="2 5 3 4 6 1" runs only those sections, in that order (default: all eight, in
 # order; 3 and 4 need 2's cache, 6 needs 5's). The sections run one at a time: sections 2 and 5
 # side by side on an H200 machine's 16 cores finished neither simulation in 590 s, where
 # section 2's alone takes 97 s.
@@ -23,7 +23,8 @@
 # section 7 142 s; section 3 with nothing cached 196 s; section 5 alone 144 s). Section 7
 # times one training step of a 20 s window on the GPU with GPU_SH_TRAIN_ROWS rows (default 2,8,32; the
 # default training's step has 2: one sequence, two methods), what a larger data.batch_size would cost
-# per step. A section that fails is
+# per step. Section 8 times the triangulation's eigh against the eigh-free solve of
+# bench_triangulation.py on the GPU (256 and 2048 points a call). A section that fails is
 # reported and the others still run; the script then exits with 1, naming the failed sections.
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -48,9 +49,9 @@ fi
 reference=${1:-benchmarks/table1_cpu.json}
 out=$(mktemp -d)
 started=$SECONDS
-sections=${GPU_SH_SECTIONS:-1 2 3 4 5 6 7}
+sections=${GPU_SH_SECTIONS:-1 2 3 4 5 6 7 8}
 for n in $sections; do
-  [[ " 1 2 3 4 5 6 7 " == *" $n "* ]] || { echo "error: GPU_SH_SECTIONS: no section $n (1 to 7)"; exit 1; }
+  [[ " 1 2 3 4 5 6 7 8 " == *" $n "* ]] || { echo "error: GPU_SH_SECTIONS: no section $n (1 to 8)"; exit 1; }
 done
 failed=()
 section() { echo; echo "== [$((SECONDS - started)) s] $*"; }
@@ -129,6 +130,14 @@ s7() {
   # grep -v finding nothing to print is no failure; the benchmark's own exit status is the section's
   python benchmarks/bench_train_ops.py --device "$device" --rows "${GPU_SH_TRAIN_ROWS:-2,8,32}" 2>&1 \
     | { grep --line-buffered -v "read from the cache" || true; }
+}
+
+s8() {
+  section "8. the triangulation: eigh + Newton step against the eigh-free solve (bench_triangulation.py)"
+  local points
+  for points in 256 2048; do
+    python benchmarks/bench_triangulation.py --device "$device" --points "$points" --frames 100 || return
+  done
 }
 
 for n in $sections; do

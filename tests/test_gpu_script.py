@@ -56,7 +56,7 @@ def test_a_capped_training_stops_at_its_limit_and_is_no_failure(tmp_path):
 def test_an_unknown_section_is_refused_before_any_work(tmp_path):
     done, calls = _run(tmp_path, "2 9")
     assert done.returncode == 1
-    assert "error: GPU_SH_SECTIONS: no section 9 (1 to 7)" in done.stdout
+    assert "error: GPU_SH_SECTIONS: no section 9 (1 to 8)" in done.stdout
     assert calls == []  # not even the machine's check
 
 
@@ -83,3 +83,11 @@ def test_a_failing_step_benchmark_fails_its_section(tmp_path):
     failing = FAKE_PYTHON.replace("exit 0", 'case "$*" in *bench_train_ops*) exit 3 ;; esac\nexit 0')
     done, _ = _run(tmp_path, "7", fake=failing)
     assert done.returncode == 1 and "error: section 7 failed" in done.stdout, done.stdout
+
+
+def test_section_8_times_the_triangulation_at_both_sizes_on_the_device(tmp_path):
+    done, calls = _run(tmp_path, "8")
+    assert done.returncode == 0, done.stdout
+    runs = [c for c in calls if "bench_triangulation.py" in c]
+    assert len(runs) == 2 and all("--device cpu" in c for c in runs), calls
+    assert ["--points 256" in runs[0], "--points 2048" in runs[1]] == [True, True], runs

@@ -13,11 +13,11 @@ singular value, batched over any leading dimensions.
 
 It is computed as the eigenvector of the smallest eigenvalue of ``AᵀA``
 (``torch.linalg.eigh``; ``benchmarks/bench_triangulation.py`` times it against
-``torch.linalg.svd`` on batches of ``4 x 4`` matrices) followed by one Newton step whose
-residual ``Aᵀ(A X̃)`` is formed from ``A``, not from ``AᵀA``: ``AᵀA`` squares the
-conditioning, so eigh alone loses digits (errors up to ``ε / conditioning²``); after the
-step the vector is as close to the SVD's as rounding allows (``ε / conditioning``, a
-test holds it there) and ``σ₄ = |A X̃|``.
+``torch.linalg.svd`` and against a solve without ``eigh`` on batches of ``4 x 4`` matrices)
+followed by one Newton step whose residual ``Aᵀ(A X̃)`` is formed from ``A``, not from
+``AᵀA``: ``AᵀA`` squares the conditioning, so eigh alone loses digits (errors up to
+``ε / conditioning²``); after the step the vector is as close to the SVD's as rounding
+allows (``ε / conditioning``, a test holds it there) and ``σ₄ = |A X̃|``.
 
 Conditioning: the rows are formed in normalised image coordinates
 (``K⁻¹ (u, v, 1)``) and with the world origin moved to camera 1's centre
