@@ -96,7 +96,8 @@ def solve_without_eigh(A: torch.Tensor, P1: torch.Tensor, newton: int) -> tuple[
         r = (rows.transpose(-1, -2) @ aX).squeeze(-1) - rho.unsqueeze(-1) * X
         X = X - (W @ r.unsqueeze(-1)).squeeze(-1)
         X = X / torch.linalg.vector_norm(X, dim=-1, keepdim=True).clamp_min(tiny)
-    point = X * torch.sign(torch.linalg.vecdot(X, P1[..., 2, :])).unsqueeze(-1)
+    z1 = torch.linalg.vecdot(X, P1[..., 2, :])  # the sign that puts the point in front of camera 1
+    point = X * torch.copysign(torch.ones_like(z1), z1).unsqueeze(-1)
     rho = (rows @ point.unsqueeze(-1)).square().sum((-1, -2))
     # det(λI - G) = λ⁴ - e₁λ³ + e₂λ² - e₃λ + e₄ = (λ - ρ)(λ³ - b₁λ² + b₂λ - b₃)
     e1 = torch.diagonal(G, dim1=-2, dim2=-1).sum(-1)
@@ -189,12 +190,13 @@ def main() -> None:
             point, S = svd_solve(A, P1)
             free_point, _ = solve_without_eigh(A, P1, args.newton)
             for name, found in (("eigh", solution.point), ("free", free_point)):
-                dist = torch.linalg.vector_norm(found - point, dim=-1)
+                # a non-finite vector counts as infinitely far (max() would pass over a NaN)
+                dist = torch.linalg.vector_norm(found - point, dim=-1).nan_to_num(nan=float("inf"))
                 scaled = dist * solution.conditioning.clamp_min(0.0)
                 worst[name] = [max(worst[name][0], float(dist.max())), max(worst[name][1], float(scaled.max()))]
                 if name == "free":
                     off += int((scaled > 1e-12).sum())
-            worst_s = max(worst_s, float((solution.singular_values - S).abs().max()))
+            worst_s = max(worst_s, float((solution.singular_values - S).abs().nan_to_num(nan=float("inf")).max()))
             min_cond = min(min_cond, float(solution.conditioning.min()))
     where = (torch.cuda.get_device_name(device) if device.type == "cuda" else
              f"the CPU, {torch.get_num_threads()} threads")
