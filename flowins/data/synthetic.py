@@ -219,6 +219,114 @@ def vibrate(t_s: Tensor, acc_mps2: Tensor, gyro_rps: Tensor, vibration: Vibratio
     return acc_mps2 + shake(vibration.acc_mps2), gyro_rps + shake(vibration.gyro_rps)
 
 
+@dataclass(frozen=True)
+class Imperfections:
+    """Real sensors' imperfections the simulator can add (each off by default).
+
+    ``gyro_bias_rps`` / ``acc_bias_mps2``: constant offsets added to every reading (rad/s,
+    m/s²), on top of the :class:`ImuErrors` biases. ``acc_range_mps2`` / ``gyro_range_rps``:
+    readings clipped to ``±`` this (saturation; None: no clip). ``drop_fraction``: the
+    fraction of samples dropped (rows removed), in runs of ``drop_run`` consecutive
+    samples, as a logger that loses packets does."""
+
+    gyro_bias_rps: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    acc_bias_mps2: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    acc_range_mps2: float | None = None
+    gyro_range_rps: float | None = None
+    drop_fraction: float = 0.0
+    drop_run: int = 1
+
+    def __post_init__(self) -> None:
+        def number(value: object) -> bool:
+            return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+        for key in ("gyro_bias_rps", "acc_bias_mps2"):
+            value = getattr(self, key)
+            if not isinstance(value, (tuple, list)) or len(value) != 3 or not all(number(v) for v in value):
+                raise ValueError(f"Imperfections.{key}={value!r}; expected a tuple of 3 finite numbers")
+            object.__setattr__(self, key, tuple(float(v) for v in value))
+        for key in ("acc_range_mps2", "gyro_range_rps"):
+            value = getattr(self, key)
+            if value is not None and not (number(value) and value > 0):
+                raise ValueError(f"Imperfections.{key}={value!r}; expected a finite number > 0 or None (no clip)")
+        if not (number(self.drop_fraction) and 0.0 <= self.drop_fraction < 0.5):
+            raise ValueError(f"Imperfections.drop_fraction={self.drop_fraction!r}; expected 0 <= drop_fraction < 0.5")
+        if isinstance(self.drop_run, bool) or not isinstance(self.drop_run, int) or self.drop_run < 1:
+            raise ValueError(f"Imperfections.drop_run={self.drop_run!r}; expected an integer >= 1")
+
+
+#: added to the seed for the generator of :func:`imperfect` (the recording's own stream stays untouched)
+_IMPERFECTIONS_SEED = 6_700_417
+
+
+def imperfections_generator(seed: int) -> torch.Generator:
+    """The generator :func:`imperfect` draws the dropped rows from, for a recording of ``seed``."""
+    return torch.Generator().manual_seed(seed + _IMPERFECTIONS_SEED)
+
+
+def dropped_runs(n: int, drop_fraction: float, drop_run: int, generator: torch.Generator) -> Tensor:
+    """The kept rows ``(K,)`` (int64, increasing) of ``n`` rows once ``round(drop_fraction n /
+    drop_run)`` runs of ``drop_run`` rows are dropped; no random draw when none is.
+
+    The runs never touch the first or last row and never meet (a kept row between any two):
+    each run with the kept row after it is a block of ``drop_run + 1`` rows placed in rows
+    ``1 .. n-1``; ``k`` such blocks leave ``n - 1 - k (drop_run + 1)`` free rows, and the
+    blocks' places follow from ``k`` distinct draws among ``n - 1 - k drop_run`` slots
+    (sorted draw ``p_i``: block ``i`` starts at row ``1 + p_i + i drop_run``)."""
+    runs = round(drop_fraction * n / drop_run)
+    if runs == 0:
+        return torch.arange(n)
+    slots = n - 1 - runs * drop_run
+    if slots < runs:
+        raise ValueError(f"Imperfections: {runs} runs of drop_run={drop_run} rows (drop_fraction={drop_fraction}) "
+                         f"do not fit apart from each other and from the ends in {n} rows")
+    places = torch.randperm(slots, generator=generator)[:runs].sort().values
+    starts = 1 + places + drop_run * torch.arange(runs)
+    dropped = (starts[:, None] + torch.arange(drop_run)).reshape(-1)
+    keep = torch.ones(n, dtype=torch.bool)
+    keep[dropped] = False
+    return keep.nonzero()[:, 0]
+
+
+def imperfect(t_s: Tensor, acc_mps2: Tensor, gyro_rps: Tensor, imperfections: Imperfections,
+              generator: torch.Generator) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """``(t_s, acc, gyro, kept_rows)``: the readings ``(N, 3)`` with ``imperfections``.
+
+    In order: the constant biases added, the readings clipped to ``±range``, then rows
+    dropped (:func:`dropped_runs`, runs chosen with ``generator``). ``kept_rows`` ``(K,)``
+    indexes the input rows that remain (``arange(N)`` when none is dropped). With the
+    default :class:`Imperfections` the inputs come back as they are and no random number
+    is drawn."""
+    acc, gyro = acc_mps2, gyro_rps
+    if any(imperfections.acc_bias_mps2):
+        acc = acc + torch.tensor(imperfections.acc_bias_mps2, dtype=acc.dtype, device=acc.device)
+    if any(imperfections.gyro_bias_rps):
+        gyro = gyro + torch.tensor(imperfections.gyro_bias_rps, dtype=gyro.dtype, device=gyro.device)
+    if imperfections.acc_range_mps2 is not None:
+        acc = acc.clamp(-imperfections.acc_range_mps2, imperfections.acc_range_mps2)
+    if imperfections.gyro_range_rps is not None:
+        gyro = gyro.clamp(-imperfections.gyro_range_rps, imperfections.gyro_range_rps)
+    n = t_s.shape[0]
+    kept = dropped_runs(n, imperfections.drop_fraction, imperfections.drop_run, generator).to(t_s.device)
+    if kept.shape[0] == n:
+        return t_s, acc, gyro, kept
+    return t_s[kept], acc[kept], gyro[kept], kept
+
+
+def imperfect_truth(errors: dict[str, Tensor], imperfections: Imperfections, kept_rows: Tensor) -> dict[str, Tensor]:
+    """The true IMU errors of :func:`corrupt_imu` after :func:`imperfect`: the constant
+    biases added to ``b_a`` and ``b_w`` ``(N, 3)``, the per-row entries at ``kept_rows``
+    (``T_a`` ``(3,)`` stays). Clipping has no error state: it is not in the truth."""
+    n = errors["b_a"].shape[0]
+    out = dict(errors)
+    for key, bias in (("b_a", imperfections.acc_bias_mps2), ("b_w", imperfections.gyro_bias_rps)):
+        if any(bias):
+            out[key] = out[key] + torch.tensor(bias, dtype=out[key].dtype, device=out[key].device)
+    if kept_rows.shape[0] != n:
+        out = {key: value[kept_rows] if key in ("b_a", "b_w") else value for key, value in out.items()}
+    return out
+
+
 def sample_times(duration_s: float, rate_hz: float, jitter: float, generator: torch.Generator) -> Tensor:
     """Non-equidistant sample times from 0 to about ``duration_s``; ``jitter`` is relative."""
     n = int(round(duration_s * rate_hz))
@@ -287,6 +395,7 @@ def synthetic_walk_recording(
     truth_rate_hz: float = 10.0,
     imu_errors: ImuErrors = ImuErrors(),
     vibration: Vibration = Vibration(),
+    imperfections: Imperfections = Imperfections(),
     walk: WalkConfig | None = None,
     origin: tuple[float, float, float] = (60.1699, 24.9384, 20.0),
     gravity_mps2: float = STANDARD_GRAVITY_MPS2,
@@ -295,8 +404,11 @@ def synthetic_walk_recording(
 
     Each IMU sample is the true specific force and rate at the middle of the
     interval it ends (the sample represents its interval, as an integrating
-    sensor's does), corrupted by :func:`corrupt_imu` and shaken by ``vibration``
-    (:func:`vibrate`). Deterministic in ``seed``.
+    sensor's does), corrupted by :func:`corrupt_imu`, shaken by ``vibration``
+    (:func:`vibrate`) and given ``imperfections`` (:func:`imperfect`; its dropped rows are
+    drawn from a generator of their own, so the rest of the recording, GNSS included, is
+    the one without them). ``imu_errors`` stays the truth of the readings returned: the
+    constant biases added, the rows kept. Deterministic in ``seed``.
     """
     from flowins.data.streams import GnssStream, ImuStream, PoseStream
     from flowins.geometry.geodesy import LocalTangentPlane
@@ -308,6 +420,8 @@ def synthetic_walk_recording(
     f_true, w_true = w.imu(t_mid, gravity_mps2)
     acc, gyro, errors = corrupt_imu(t, f_true, w_true, imu_errors, gen)
     acc, gyro = vibrate(t, acc, gyro, vibration, gen)
+    t_imu, acc, gyro, kept = imperfect(t, acc, gyro, imperfections, imperfections_generator(seed))
+    errors = imperfect_truth(errors, imperfections, kept)
     t_gnss = torch.arange(1.0 / gnss_rate_hz, float(t[-1]), 1.0 / gnss_rate_hz, dtype=torch.float64)
     _, enu, h_acc, v_acc = gnss_track(w, t_gnss, gen)
     plane = LocalTangentPlane(*origin)
@@ -315,7 +429,7 @@ def synthetic_walk_recording(
     lat, lon, alt = plane.to_geodetic(enu - start)  # the walk starts at the origin
     t_truth = torch.arange(0.0, float(t[-1]), 1.0 / truth_rate_hz, dtype=torch.float64)
     return Recording(
-        imu=ImuStream(t, acc, gyro, name="synthetic IMU"),
+        imu=ImuStream(t_imu, acc, gyro, name="synthetic IMU"),
         gnss=GnssStream(t_gnss, lat, lon, alt, h_acc, v_acc, name="synthetic GNSS"),
         truth=PoseStream(t_truth, w.position(t_truth) - start, w.quaternion(t_truth), name="synthetic ground truth"),
         imu_errors=errors,

@@ -139,39 +139,109 @@ def imu_model(cfg: Any, *, recording: bool, sensor: str | None = None) -> ImuMod
         ranges = {key: setting({"imu": cfg}, f"imu.{key}", float | None, minimum=0.0, default=None)
                   for key in ("acc_range_mps2", "gyro_range_rps")}
         return dataclasses.replace(model, **{k: v for k, v in ranges.items() if v is not None})
-    return build(ImuModel, {k: v for k, v in cfg.items() if k not in ("path", "check_consistency")}, "imu")
+    return build(ImuModel, {k: v for k, v in cfg.items() if k not in ("path", "check_consistency", "check_saturation")}, "imu")
 
 
 @dataclass(frozen=True)
 class MeasuredNoise:
-    """White-noise densities measured over a still interval (:func:`still_noise_densities`)."""
+    """White-noise densities measured over a still interval (:func:`still_noise_densities`).
 
-    acc_noise: float  # m/s²/√Hz, RMS over the axes
+    Attributes:
+        acc_noise, gyro_noise: the white floor (m/s²/√Hz, rad/s/√Hz) of the quietest axis.
+        acc_axes, gyro_axes: the floor of each axis.
+        acc_raw, gyro_raw: the standard deviation times √Δt (RMS over the axes): what the
+            floor would be if all the variance were white noise; far above the floor, the
+            still start vibrates.
+        trusted: False when the floor can't be told from the vibration (``reason`` says why).
+    """
+
+    acc_noise: float  # m/s²/√Hz
     gyro_noise: float  # rad/s/√Hz
     samples: int
     start_s: float
     end_s: float
+    acc_axes: tuple[float, float, float] = (math.nan,) * 3
+    gyro_axes: tuple[float, float, float] = (math.nan,) * 3
+    acc_raw: float = math.nan
+    gyro_raw: float = math.nan
+    trusted: bool = True
+    reason: str = ""
+
+
+def white_floor(t_s: Any, x: Any, *, trim: float = 6.0, min_hz: float | None = None) -> tuple[Any, Any]:
+    """Per column of ``x`` ``(N, C)``: the white-noise density ``N`` (unit/√Hz) under a
+    vibration, and whether the vibration covers the floor at every frequency.
+
+    A still platform's vibration moves it back and forth: the integral of what it adds to the
+    readings (a velocity or an angle) stays bounded, while white noise's integral grows as
+    ``N √t``. In the readings' spectrum vibration therefore vanishes toward low frequencies
+    (readings that are the differences of a bounded, white integral have the spectrum
+    ``∝ sin²(π f Δt)``, which is ``∝ f²`` at low frequencies), and white noise is flat. The
+    spectrum is the periodogram of the readings less a straight line in time (Hann window,
+    two-sided, so white noise of density ``N`` reads ``N²``), from ``min_hz`` (3 bins) to
+    below Nyquist; it is fitted as ``N² (1 + r sin²(π f Δt))`` by Whittle's likelihood (each
+    bin an exponential variable about the model), ``N²`` in closed form for each ``r`` of a
+    grid from 0 to ``1 / sin²(π f_min Δt)`` (the vibration may not exceed the floor at the
+    lowest frequency fitted). Bins more than ``trim`` times the model (tones; an exponential variable is that
+    far out once in 400) are left out and the fit repeated. The second value is True where the
+    fitted ``r`` sits at the grid's end: the floor is then only an upper bound."""
+    import torch
+
+    t = torch.as_tensor(t_s, dtype=torch.float64)
+    x = torch.as_tensor(x, dtype=torch.float64)
+    n = x.shape[0]
+    dt = float(torch.diff(t).median())
+    tau = (t - t.mean()) / max(float(t[-1] - t[0]), 1e-12)
+    design = torch.stack((torch.ones_like(tau), tau), -1)
+    x = x - design @ torch.linalg.lstsq(design, x).solution
+    window = torch.hann_window(n, periodic=False, dtype=torch.float64)
+    power = torch.fft.rfft(x * window[:, None], dim=0).abs() ** 2 * dt / float((window * window).sum())
+    f = torch.fft.rfftfreq(n, dt).to(torch.float64)
+    low = 3.0 / (n * dt) if min_hz is None else min_hz
+    keep = (f >= low) & (f < f[-1])
+    power, f = power[keep], f[keep]
+    rise = torch.sin(math.pi * f * dt) ** 2
+    rates = torch.cat((torch.zeros(1, dtype=torch.float64),
+                       torch.logspace(-6, 0, 121, dtype=torch.float64) / float(rise[0])))
+    shape = 1.0 + rates[:, None] * rise[None, :]  # (R, K)
+    floors, covered = [], []
+    for column in power.T:
+        use = torch.ones_like(column, dtype=torch.bool)
+        for _ in range(10):
+            m = use.to(column.dtype)
+            level = (column / shape * m).sum(-1) / m.sum()  # (R,)
+            nll = (torch.log(shape) * m).sum(-1) + m.sum() * torch.log(level)
+            best = int(nll.argmin())
+            now = column / (level[best] * shape[best]) <= trim
+            if bool((now == use).all()):
+                break
+            use = now
+        floors.append(float(level[best]) ** 0.5)
+        covered.append(best == rates.shape[0] - 1)
+    return floors, covered
 
 
 def still_noise_densities(t_s: Any, acc_mps2: Any, gyro_rps: Any, end: int) -> MeasuredNoise:
-    """The white-noise densities of rows ``[0, end)`` of a still IMU: per axis, the standard
-    deviation about a straight line in time (what is left of a slow bias drift or settling
-    tilt), times ``√Δt`` (the density of white noise sampled every ``Δt``, the median step),
-    then the RMS over the three axes. Needs ``end >= 10``."""
+    """The white-noise densities of rows ``[0, end)`` of a still IMU, vibration or not: the
+    white floor of each axis (:func:`white_floor`) and, as the sensor's, the quietest axis's
+    (vibration only adds, and a sensor's axes share one noise figure). Untrusted when every
+    axis of a sensor is covered by vibration down to the lowest frequency. Needs ``end >= 10``."""
     import torch
 
     if end < 10:
         raise ValueError(f"still_noise_densities: {end} still samples; need at least 10")
     t = torch.as_tensor(t_s, dtype=torch.float64)[:end]
     dt = float(torch.diff(t).median())
-    tau = t - t.mean()
-    design = torch.stack((torch.ones_like(tau), tau), -1)
-
-    def density(x: Any) -> float:
+    out: dict[str, Any] = {}
+    reasons = []
+    for key, x in (("acc", acc_mps2), ("gyro", gyro_rps)):
         x = torch.as_tensor(x, dtype=torch.float64)[:end]
-        coef = torch.linalg.lstsq(design, x).solution
-        residual = x - design @ coef
-        variance = (residual * residual).sum(0) / (end - 2)  # two fitted parameters per axis
-        return float(torch.sqrt(variance.mean() * dt))
-
-    return MeasuredNoise(density(acc_mps2), density(gyro_rps), end, float(t[0]), float(t[-1]))
+        floors, covered = white_floor(t, x)
+        out[f"{key}_axes"] = tuple(floors)
+        out[f"{key}_noise"] = min(floors)
+        out[f"{key}_raw"] = float((x - x.mean(0)).pow(2).mean().sqrt()) * math.sqrt(dt)
+        if all(covered):
+            what = "accelerometer" if key == "acc" else "gyroscope"
+            reasons.append(f"the {what}'s vibration covers its white noise down to {3.0 / (end * dt):.2g} Hz")
+    return MeasuredNoise(samples=end, start_s=float(t[0]), end_s=float(t[-1]), trusted=not reasons,
+                         reason="; ".join(reasons), **out)

@@ -105,3 +105,44 @@ def test_a_simulated_car_drive_passes_and_in_deg_per_s_is_named():
     assert gyro_consistency(imu.t_s, imu.acc_mps2, imu.gyro_rps).consistent
     wrong = gyro_consistency(imu.t_s, imu.acc_mps2, imu.gyro_rps * (180.0 / math.pi))
     assert not wrong.consistent and wrong.fix == "deg/s"
+
+
+@pytest.mark.parametrize("bias", [(0.08, 0.0, 0.0), (0.0, -0.08, 0.0), (-0.002, 0.021, 0.077)])
+def test_a_constant_bias_is_no_fault_and_is_recovered(bias):
+    """A still start, then a walk: the readings as they are fail (a 0.08 rad/s bias tilts the
+    prediction by 4.6° a second), less the bias they pass, and the bias removed is the true one."""
+    t, acc, gyro = walk_readings(duration_s=60.0)
+    b = torch.tensor(bias, dtype=F64)
+    result = gyro_consistency(t, acc, gyro + b)
+    assert result.consistent and result.fix is None
+    if result.bias_rps is not None:  # a bias about gravity (z on a walk) tilts nothing: no verdict needed
+        assert "still start" in result.bias_source
+        # the horizontal axes are seen by the tilt; z (about gravity) only by the still start
+        assert torch.allclose(torch.tensor(result.bias_rps, dtype=F64)[:2], b[:2], atol=3e-3)
+    wrong = gyro_consistency(t, acc, (gyro + b) * (180.0 / math.pi))
+    assert not wrong.consistent and wrong.fix == "deg/s"
+
+
+def test_the_bias_is_fitted_without_a_still_start():
+    """A platform rocking from its first sample (no still start) with a bias on every axis: the
+    fit over the windows alone finds the bias that tilts gravity (x, y; gravity is z)."""
+    t, acc, gyro = rocking_readings(amplitude_rad=math.radians(3.0))
+    b = torch.tensor([0.09, -0.07, 0.0], dtype=F64)
+    result = gyro_consistency(t, acc, gyro + b)
+    assert result.consistent and result.fix is None
+    # bias_rps set: the readings as they are failed, and the verdict is on them less the bias
+    assert result.bias_rps is not None and result.bias_source == "fitted over every window"
+    assert torch.allclose(torch.tensor(result.bias_rps, dtype=F64)[:2], b[:2], atol=2e-3)
+
+
+def test_the_fitted_bias_matches_the_truth_under_white_noise():
+    """fit_gyro_bias against the bias that was added, from a start of zero, on the walk's noisy
+    readings: within 2 mrad/s on the axes the tilt sees."""
+    from flowins.ins.consistency import _Windows, fit_gyro_bias
+
+    t, acc, gyro = walk_readings(duration_s=60.0, seed=3)
+    b = torch.tensor([-0.05, 0.06, 0.0], dtype=F64)
+    fitted = fit_gyro_bias(t, acc, gyro + b, _Windows(50, 100, 50), start_rps=torch.zeros(3, dtype=F64))
+    assert torch.allclose(fitted[:2], b[:2], atol=2e-3)
+    # the readings without bias: the fit stays at zero
+    assert fit_gyro_bias(t, acc, gyro, _Windows(50, 100, 50), start_rps=torch.zeros(3, dtype=F64))[:2].abs().max() < 2e-3

@@ -98,7 +98,8 @@ def _still_walk(acc_density: float = 0.003, gyro_density: float = 2e-4, *, still
 
 
 def test_still_noise_densities_recover_white_noise_under_a_drift():
-    """σ √Δt of white noise, with a linear drift and an offset per axis removed first."""
+    """σ √Δt of white noise per axis, with a linear drift and an offset per axis removed
+    first; the sensor's figure is the quietest axis's."""
     import torch
 
     from flowins.ins.imu_model import still_noise_densities
@@ -109,11 +110,55 @@ def test_still_noise_densities_recover_white_noise_under_a_drift():
     acc = sigma * torch.randn(t.shape[0], 3, generator=gen, dtype=torch.float64) + 9.8 + 0.01 * t.unsqueeze(-1)
     gyro = 0.001 * torch.randn(t.shape[0], 3, generator=gen, dtype=torch.float64) + 1e-4 * t.unsqueeze(-1)
     m = still_noise_densities(t, acc, gyro, end=t.shape[0])
-    assert m.acc_noise == pytest.approx(float(sigma.square().mean().sqrt()) * math.sqrt(0.005), rel=0.03)
-    assert m.gyro_noise == pytest.approx(0.001 * math.sqrt(0.005), rel=0.03)
-    assert (m.samples, m.start_s) == (t.shape[0], 0.0)
+    for got, want in zip(m.acc_axes, sigma * math.sqrt(0.005)):
+        assert got == pytest.approx(float(want), rel=0.1)
+    assert m.acc_noise == min(m.acc_axes)
+    # the quietest of three axes of one density: low by a little (the least of three estimates)
+    assert m.gyro_noise == pytest.approx(0.001 * math.sqrt(0.005), rel=0.1)
+    assert m.trusted and (m.samples, m.start_s) == (t.shape[0], 0.0)
+    # with white noise only, all of the variance is white: the raw figure agrees
+    assert m.gyro_raw == pytest.approx(0.001 * math.sqrt(0.005), rel=0.06)
     with pytest.raises(ValueError, match="need at least 10"):
         still_noise_densities(t, acc, gyro, end=5)
+
+
+@pytest.mark.parametrize("vibration_mps2", [0.2, 0.5, 0.8])
+def test_vibration_on_the_still_start_does_not_pass_for_white_noise(vibration_mps2):
+    """A simulated walk at 200 Hz whose still start vibrates (rotor-like tones, accelerometer std
+    0.2-0.8 m/s²): the raw variance reads several times the simulator's true white noise, the
+    floor stays within 2× of it."""
+    from flowins.data.synthetic import ImuErrors, Vibration, WalkConfig, synthetic_walk_recording
+    from flowins.ins.imu_model import still_noise_densities
+
+    truth = ImuErrors()
+    for seed in (0, 1):
+        imu = synthetic_walk_recording(duration_s=20.0, seed=seed, imu_rate_hz=200.0, walk=WalkConfig(duration_s=20.0),
+                                       vibration=Vibration(vibration_mps2, vibration_mps2 / 20, until_s=5.0)).imu
+        m = still_noise_densities(imu.t_s, imu.acc_mps2, imu.gyro_rps, 980)  # 4.9 s, all of it vibrating
+        assert m.acc_raw > 3 * truth.acc_noise and m.gyro_raw > 2.5 * truth.gyro_noise
+        assert 0.5 < m.acc_noise / truth.acc_noise < 2.0 and 0.5 < m.gyro_noise / truth.gyro_noise < 2.0
+
+
+@pytest.mark.parametrize("seed", [1, 3, 4])
+def test_white_floor_fits_a_known_spectrum(seed):
+    """White noise plus a random walk's increments, whose spectrum rises as f² (the model), and
+    a strong tone: the floor is the white part."""
+    import torch
+
+    from flowins.ins.imu_model import white_floor
+
+    gen = torch.Generator().manual_seed(seed)
+    dt = 0.005
+    t = torch.arange(0.0, 20.0, dt, dtype=torch.float64)
+    white = 0.02 * torch.randn(t.shape[0], 1, generator=gen, dtype=torch.float64)
+    # first differences of white noise: a bounded integral, spectrum ∝ sin²(π f Δt) (the model)
+    bounded = torch.diff(0.1 * torch.randn(t.shape[0] + 1, 1, generator=gen, dtype=torch.float64), dim=0)
+    tone = 1.0 * torch.sin(2 * math.pi * 37.0 * t).unsqueeze(-1)
+    floors, covered = white_floor(t, torch.cat((white, white + bounded, white + tone), -1))
+    for floor in floors:
+        assert floor == pytest.approx(0.02 * math.sqrt(dt), rel=0.2)
+    assert floors[1] < 0.3 * float((white + bounded).std()) * math.sqrt(dt)  # the raw figure is far off
+    assert covered == [False, False, False]
 
 
 def _auto_cfg(**overrides):
@@ -139,21 +184,32 @@ def test_a_recording_that_names_no_imu_gets_the_noise_of_its_still_start():
     imu = resolve_imu(_auto_cfg(), [_Rec(_still_walk())], recorded=True)
     phone = resolve_imu(_auto_cfg(still_noise=False), [_Rec(_still_walk())], recorded=True)
     assert phone.name == "phone"
-    assert imu.name == "measured" and imu.inflation == 10.0
-    assert imu.acc_noise == pytest.approx(0.003, rel=0.1) and imu.gyro_noise == pytest.approx(2e-4, rel=0.1)
+    # a sensor as quiet as the preset's inflated figures: the preset's densities stand
+    assert imu.name == "measured" and imu.inflation == 1.0
+    assert (imu.acc_noise, imu.gyro_noise) == (phone.acc_noise * phone.inflation, phone.gyro_noise * phone.inflation)
+    assert "phone's, above the measured" in imu.source
+    # a noisier sensor: its measured floor × imu.still_noise_inflation, above the preset's
+    noisy = resolve_imu(_auto_cfg(), [_Rec(_still_walk(0.03, 2e-3))], recorded=True)
+    assert noisy.acc_noise == pytest.approx(0.3, rel=0.1) and noisy.gyro_noise == pytest.approx(0.02, rel=0.1)
     # what a still start can't measure stays the fallback preset's
     assert (imu.acc_bias_walk, imu.gyro_bias_walk, imu.gyro_range_rps) == (
         phone.acc_bias_walk, phone.gyro_bias_walk, phone.gyro_range_rps)
     assert "walk/imu.csv 0.00–" in imu.source and "× 10" in imu.source
     # two recordings: the RMS of their densities
-    both = resolve_imu(_auto_cfg(), [_Rec(_still_walk()), _Rec(_still_walk(0.006, 4e-4, seed=3))], recorded=True)
-    assert both.acc_noise == pytest.approx(math.sqrt((0.003**2 + 0.006**2) / 2), rel=0.1)
+    both = resolve_imu(_auto_cfg(), [_Rec(_still_walk(0.03, 2e-3)), _Rec(_still_walk(0.02, 1.5e-3, seed=3))],
+                       recorded=True)
+    assert both.acc_noise == pytest.approx(10 * math.sqrt((0.03**2 + 0.02**2) / 2), rel=0.1)
+    # one without a still start long enough: left out, and named
+    one = resolve_imu(_auto_cfg(), [_Rec(_still_walk(0.03, 2e-3)), _Rec(_still_walk(0.06, 4e-3, still_s=1.0))],
+                      recorded=True)
+    assert one.acc_noise == pytest.approx(0.3, rel=0.1) and "not measured on walk/imu.csv: still for" in one.source
 
 
 def test_a_short_still_start_a_named_sensor_or_the_simulated_walk_keep_their_presets():
     from flowins.settings import resolve_imu
 
-    assert resolve_imu(_auto_cfg(), [_Rec(_still_walk(still_s=1.0))], recorded=True).name == "phone"
+    short = resolve_imu(_auto_cfg(), [_Rec(_still_walk(still_s=1.0))], recorded=True)
+    assert short.name == "phone" and "the still start's noise is not measured (walk/imu.csv: still for" in short.source
     assert resolve_imu(_auto_cfg(), [_Rec(_still_walk(), "simulated_walk")], recorded=True).name == "simulated_walk"
     assert resolve_imu(_auto_cfg(), [_Rec(_still_walk())], recorded=False).name == "simulated_walk"
     with pytest.raises(ValueError, match="imu.still_noise_inflation"):

@@ -30,7 +30,8 @@ from flowins.data.sequence import Sequence
 from flowins.data.simulate.gnss import GnssErrors, simulate_fixes
 from flowins.data.simulate.scenario import SIMULATOR_CODE, open_simulation, seal_simulation
 from flowins.data.streams import GnssStream, ImuStream, PoseStream
-from flowins.data.synthetic import ImuErrors, body_readings, corrupt_imu, increment_imu, sample_times
+from flowins.data.synthetic import (ImuErrors, Imperfections, body_readings, corrupt_imu, imperfect, imperfect_truth,
+                                    imperfections_generator, increment_imu, sample_times)
 from flowins.geometry import quaternion as quat
 from flowins.geometry.geodesy import LocalTangentPlane
 from flowins.constants import STANDARD_GRAVITY_MPS2
@@ -65,8 +66,12 @@ class DriveConfig:
     groundtruth_rate_hz: float = 10.0
     origin: tuple[float, float, float] = (49.0110, 8.4164, 115.0)  # Karlsruhe, ellipsoidal height
     gravity_mps2: float = STANDARD_GRAVITY_MPS2
+    #: constant biases, clipping and dropped rows of the IMU (none by default)
+    imperfections: Imperfections = Imperfections()
 
     def __post_init__(self) -> None:
+        if not isinstance(self.imperfections, Imperfections):
+            raise ValueError(f"DriveConfig.imperfections={self.imperfections!r}; expected an Imperfections")
         if self.duration_s < 20.0:
             raise ValueError(f"DriveConfig.duration_s={self.duration_s}; expected >= 20 s")
         if not 0.0 <= self.outage_s < self.duration_s - 10.0:
@@ -150,12 +155,17 @@ def default_drive_dir(config: DriveConfig) -> Path:
 
 
 def drive_sequence(config: DriveConfig = DriveConfig()) -> tuple[Sequence, dict[str, Tensor]]:
-    """The drive as a :class:`Sequence` (IMU, GNSS, ground truth) and its true IMU errors."""
+    """The drive as a :class:`Sequence` (IMU, GNSS, ground truth) and its true IMU errors.
+
+    ``config.imperfections`` apply to the IMU as in the walk (:func:`~flowins.data.synthetic.imperfect`,
+    dropped rows drawn from a generator of their own); the true errors are those of the rows kept."""
     gen = torch.Generator().manual_seed(config.seed)
     drive = Drive(config)
     t = sample_times(config.duration_s, config.imu_rate_hz, config.imu_jitter, gen)
     f_true, w_true = increment_imu(drive, t, config.gravity_mps2)
     acc, gyro, imu_truth = corrupt_imu(t, f_true, w_true, config.imu_errors, gen)
+    t_imu, acc, gyro, kept = imperfect(t, acc, gyro, config.imperfections, imperfections_generator(config.seed))
+    imu_truth = imperfect_truth(imu_truth, config.imperfections, kept)
     t_end = float(t[-1])
     t_gnss = torch.arange(0.5 / config.gnss_rate_hz, t_end, 1.0 / config.gnss_rate_hz, dtype=torch.float64)
     errors = GnssErrors(rate_hz=config.gnss_rate_hz, min_acc_m=config.gnss_sigma_m, max_acc_m=config.gnss_sigma_m,
@@ -176,7 +186,7 @@ def drive_sequence(config: DriveConfig = DriveConfig()) -> tuple[Sequence, dict[
     }
     metadata["name"] = f"simulated drive (seed {config.seed})"  # the folder's name is the cache key
     sequence = Sequence(
-        ImuStream(t, acc, gyro, name="simulated car IMU"),
+        ImuStream(t_imu, acc, gyro, name="simulated car IMU"),
         name=metadata["name"],
         gnss=GnssStream(t_gnss[keep], lat, lon, alt, h_acc[keep], v_acc[keep], name="simulated GNSS"),
         groundtruth=PoseStream(t_gt, drive.position(t_gt), drive.quaternion(t_gt), name="simulated ground truth"),
