@@ -10,9 +10,9 @@ one value ``M`` and stay there while the motion lasts. For each sensor, axis and
     at the limit while it lasts (a clipped peak is a plateau, not a spike);
 (c) the readings pile up at ``M`` instead of thinning out toward it:
     ``#{x = M} > pile_up · #{M - δ <= x < M}`` (mirrored on the min side; ``pile_up`` = 2), with
-    ``δ = max(0.05 |M - median(x)|, 1.5 q)`` and ``q`` the axis' quantisation step, the
+    ``δ = max(0.005 |M - median(x)|, 1.5 q)`` and ``q`` the axis' quantisation step, the
     smallest positive difference between its sorted distinct values (a real sensor's
-    16-bit LSB; for unquantised readings ``q`` is tiny and the 5 % term rules).
+    16-bit LSB; for unquantised readings ``q`` is tiny and the 0.5 % term rules: float readings repeat only at a clip).
 
 (c) is what tells a clip from a quantised sensor. A still, quantised gyroscope reads a
 few levels of noise: its top level repeats and forms runs, so (a) and (b) hold, but the
@@ -148,7 +148,7 @@ def find_saturation(t_s: Any, acc_mps2: Any, gyro_rps: Any, *, min_count: int = 
                 count = int(at.sum())
                 if count < min_count:
                     continue
-                delta = max(0.05 * float((top - sign * median).abs()), 1.5 * q)
+                delta = max(0.005 * float((top - sign * median).abs()), 1.5 * q)
                 below = int(((y >= top - delta) & (y < top)).sum())
                 if count <= pile_up * below:
                     continue
