@@ -11,9 +11,10 @@ clean set with realistic imperfections, and what the filter scores with them.
    0.08 rad/s on one axis, through the job's IMU resolution and the filter: horizontal RMSE.
 3. **Noise from a vibrating still start**: walks whose 5 s still start vibrates (accelerometer
    std 0.2-0.8 m/s²): the measured white floor against the simulator's, and the filter's RMSE
-   with the measured model (``imu=auto`` on a recording that names no IMU) and with ``phone``.
+   with the measured model (``imu=auto`` on a recording that names no IMU), with ``phone``, and
+   with the floor itself × 1 and × 10 (no preset below it).
 
-    python benchmarks/bench_imu_checks.py [/tmp/gtsam/gtsam/Data ...] [--seeds 2] [--skip-filter]
+    python benchmarks/bench_imu_checks.py [/tmp/gtsam/gtsam/Data ...] [--seeds 2] [--sections 1 2 3] [--rate 200]
 
 A folder holding ``KittiEquivBiasedImu.txt`` (the gtsam 4.3.0 wheel's ``gtsam/Data``) is read
 as that file (t, dt, ax, ay, az, wx, wy, wz); any other folder through ``flowins.data.folder``.
@@ -151,7 +152,7 @@ def _auto():
 
 
 def bias_score(seeds: int) -> None:
-    from flowins.data.synthetic import WalkConfig
+    from flowins.data.synthetic import Imperfections, WalkConfig, synthetic_walk_recording
     from flowins.settings import resolve_imu
 
     print("\n2. 120 s walk with GNSS, 2 s still start, imu=auto as for a recording that names its sensor "
@@ -159,8 +160,6 @@ def bias_score(seeds: int) -> None:
     for seed in range(seeds):
         cells = []
         for bias in ((0.0, 0.0, 0.0), (0.08, 0.0, 0.0), (0.0, 0.0, 0.08)):
-            from flowins.data.synthetic import Imperfections, synthetic_walk_recording
-
             rec = synthetic_walk_recording(duration_s=120.0, seed=seed, walk=WalkConfig(duration_s=120.0, stationary_s=2.0),
                                            imperfections=Imperfections(gyro_bias_rps=bias))
             model = resolve_imu(_auto(), [_Rec(rec.imu, "simulated_walk")], recorded=True)  # the checks run here
@@ -168,39 +167,47 @@ def bias_score(seeds: int) -> None:
         print(f"   seed {seed}: " + ", ".join(cells))
 
 
-def noise_score(seeds: int) -> None:
+def noise_score(seeds: int, rate_hz: float) -> None:
+    import dataclasses
+
     from flowins.data.synthetic import ImuErrors
     from flowins.ins.imu_model import still_noise_densities
     from flowins.ins.initialization import still_interval
     from flowins.settings import resolve_imu
 
     truth = ImuErrors()
-    print(f"\n3. vibrating still start (5 s), 120 s walk with GNSS at 200 Hz; simulator's white noise acc "
+    print(f"\n3. vibrating still start (5 s), 120 s walk with GNSS at {rate_hz:g} Hz; simulator's white noise acc "
           f"{truth.acc_noise:g}, gyro {truth.gyro_noise:g}")
     for vibration in (0.2, 0.5, 0.8):
         for seed in range(seeds):
-            rec = _walk(seed, rate_hz=200.0, vibration=vibration)
+            rec = _walk(seed, rate_hz=rate_hz, vibration=vibration)
             imu = rec.imu
             still = still_interval(imu.t_s, imu.acc_mps2, imu.gyro_rps)
             m = still_noise_densities(imu.t_s, imu.acc_mps2, imu.gyro_rps, still.end)
             auto = resolve_imu(_auto(), [_Rec(imu)], recorded=True)
             phone = resolve_imu(_auto() | {"still_noise": False}, [_Rec(imu)], recorded=True)
-            print(f"   std {vibration} m/s², seed {seed}: still {still.duration_s:.1f} s, floor acc "
-                  f"{m.acc_noise / truth.acc_noise:.2f}× gyro {m.gyro_noise / truth.gyro_noise:.2f}× the truth (all "
-                  f"variance as white: {m.acc_raw / truth.acc_noise:.1f}×, {m.gyro_raw / truth.gyro_noise:.1f}×); "
-                  f"RMSE {auto.name} {_score(rec, auto):.2f} m, phone {_score(rec, phone):.2f} m")
+            bare = [dataclasses.replace(phone, acc_noise=m.acc_noise, gyro_noise=m.gyro_noise, inflation=k)
+                    for k in (1.0, 10.0)]
+            print(f"   std {vibration} m/s², seed {seed}: still {still.duration_s:.1f} s ({'' if m.trusted else 'not '}"
+                  f"trusted), floor acc {m.acc_noise / truth.acc_noise:.2f}× gyro {m.gyro_noise / truth.gyro_noise:.2f}× "
+                  f"the truth (all variance as white: {m.acc_raw / truth.acc_noise:.1f}×, "
+                  f"{m.gyro_raw / truth.gyro_noise:.1f}×); RMSE {auto.name} {_score(rec, auto):.2f} m, phone "
+                  f"{_score(rec, phone):.2f} m, floor × 1 {_score(rec, bare[0]):.2f} m, × 10 {_score(rec, bare[1]):.2f} m")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("paths", nargs="*", type=Path, help="real IMU folders (KITTI from gtsam's wheel, flowins folders)")
     parser.add_argument("--seeds", type=int, default=2)
-    parser.add_argument("--skip-filter", action="store_true", help="only the checks (section 1)")
+    parser.add_argument("--sections", type=int, nargs="+", default=[1, 2, 3], choices=[1, 2, 3])
+    parser.add_argument("--rate", type=float, default=200.0, help="IMU rate of section 3's walks (Hz)")
     args = parser.parse_args()
-    checks(args.paths, args.seeds)
-    if not args.skip_filter:
+    if 1 in args.sections:
+        checks(args.paths, args.seeds)
+    if 2 in args.sections:
         bias_score(args.seeds)
-        noise_score(args.seeds)
+    if 3 in args.sections:
+        noise_score(args.seeds, args.rate)
 
 
 if __name__ == "__main__":

@@ -26,9 +26,9 @@ from flowins.config import bounded, build, check_device, check_target, setting
 from flowins.data.streams import ImuStream
 from flowins.filter.ekf import Gate
 from flowins.ins.consistency import gyro_consistency
-from flowins.ins.saturation import find_saturation
 from flowins.ins.imu_model import ImuModel, imu_model, still_noise_densities
 from flowins.ins.initialization import InitialUncertainty, still_interval
+from flowins.ins.saturation import find_saturation
 from flowins.ins.mechanization import ProcessNoise
 from flowins.measurements.flow_update import FlowUpdate
 from flowins.measurements.tracks import TrackUpdate
@@ -348,10 +348,10 @@ def measured_imu(imu_cfg: Mapping[str, Any], recordings: Sequence[SensorRecordin
     preset's) inflated densities: a still start sees the sensor's white noise but none of the
     errors a preset's inflation covers (scale, misalignment, vibration in motion, timing), so
     the measurement raises the preset's densities for a noisier sensor and never lowers them.
-    The bias walks and ranges are ``fallback``'s. ``fallback`` is returned as it is when ``imu.still_noise`` is
-    false, and with the reasons in its ``source`` when no recording starts still for long
-    enough with a white floor to measure (a start whose vibration covers it); the source of a
-    measured model names the recordings left out and why."""
+    The bias walks and ranges are ``fallback``'s. ``fallback`` is returned as it is when
+    ``imu.still_noise`` is false, and with the reasons in its ``source`` when no recording
+    starts still for long enough with a white floor to measure (a start whose vibration
+    covers it); the source of a measured model names the recordings left out and why."""
     enabled = setting({"imu": imu_cfg}, "imu.still_noise", bool, default=True)
     min_s = setting({"imu": imu_cfg}, "imu.still_noise_min_s", float, minimum=0.0, default=2.0)
     inflation = setting({"imu": imu_cfg}, "imu.still_noise_inflation", float, minimum=1e-12, default=10.0)
@@ -377,22 +377,17 @@ def measured_imu(imu_cfg: Mapping[str, Any], recordings: Sequence[SensorRecordin
     gyro = math.sqrt(sum(m.gyro_noise**2 for _, m in measured) / len(measured))
     where = "; ".join(f"{name} {m.start_s:.2f}–{m.end_s:.2f} s ({m.samples} samples; all variance as white noise "
                       f"would read acc {m.acc_raw:.3g}, gyro {m.gyro_raw:.3g})" for name, m in measured)
-    floor = fallback.noise()
-    acc_used, gyro_used = max(acc * inflation, floor["acc_noise"]), max(gyro * inflation, floor["gyro_noise"])
-
-    def which(used: float, measured: float) -> str:
-        return "measured" if used == measured * inflation else f"{fallback.name}'s, above the measured"
-
+    preset = fallback.noise()
+    used = {key: (value * inflation, "measured") if value * inflation >= preset[key] else
+            (preset[key], f"{fallback.name}'s, above the measured")
+            for key, value in (("acc_noise", acc), ("gyro_noise", gyro))}
+    (acc_used, acc_from), (gyro_used, gyro_from) = used["acc_noise"], used["gyro_noise"]
     source = (f"white-noise floor measured over the still start ({where}): acc {acc:.3g} m/s²/√Hz, gyro {gyro:.3g} "
               f"rad/s/√Hz, × {inflation:g} (imu.still_noise_inflation); the filter takes acc {acc_used:.3g} "
-              f"({which(acc_used, acc)}) and gyro {gyro_used:.3g} ({which(gyro_used, gyro)}); walks and ranges of "
-              f"{fallback.name}" + (f"; not measured on {'; '.join(refused)}" if refused else ""))
+              f"({acc_from}) and gyro {gyro_used:.3g} ({gyro_from}); walks and ranges of {fallback.name}"
+              + (f"; not measured on {'; '.join(refused)}" if refused else ""))
     return dataclasses.replace(fallback, name="measured", acc_noise=acc_used, gyro_noise=gyro_used, inflation=1.0,
                                source=source)
-
-
-def _bias(b: tuple[float, float, float]) -> str:
-    return "(" + ", ".join(f"{x:.3g}" for x in b) + ")"
 
 
 def check_saturation(stream: Any) -> None:
@@ -412,8 +407,8 @@ def check_gyro_consistency(stream: Any) -> None:
     result = gyro_consistency(stream.t_s, stream.acc_mps2, stream.gyro_rps)
     if result.consistent:
         if result.bias_rps is not None:
-            log.info(f"{stream.name}: the gyroscope agrees with the accelerometer less a constant bias of "
-                     f"{_bias(result.bias_rps)} rad/s ({result.bias_source})")
+            log.info(f"{stream.name}: the gyroscope agrees with the accelerometer less {result.describe_bias()} "
+                     f"({result.bias_source})")
         return
     hint = ("the readings look like deg/s: convert them to rad/s (× π/180)" if result.fix == "deg/s" else
             "check the gyroscope's unit (rad/s expected) and that its axes are the accelerometer's")

@@ -33,6 +33,7 @@ import torch
 from torch import Tensor
 
 from flowins.geometry import quaternion
+from flowins.ins.initialization import still_interval
 
 
 @dataclass(frozen=True)
@@ -61,15 +62,17 @@ class GyroConsistency:
     bias_rps: tuple[float, float, float] | None = None
     bias_source: str = ""
 
+    def describe_bias(self) -> str:
+        """``"a constant bias of (x, y, z) rad/s"``; "" without one."""
+        if self.bias_rps is None:
+            return ""
+        return "a constant bias of (" + ", ".join(f"{b:.3g}" for b in self.bias_rps) + ") rad/s"
+
     def describe(self) -> str:
-        less = "" if self.bias_rps is None else f" less a constant bias of {_vector(self.bias_rps)} rad/s"
+        less = "" if self.bias_rps is None else " less " + self.describe_bias()
         return (f"over {self.windows} windows the gravity direction the gyroscope{less} predicts is off by "
                 f"{math.degrees(self.gyro_error_rad):.1f}° (median), against {math.degrees(self.still_error_rad):.1f}° "
                 "for no rotation at all")
-
-
-def _vector(v: tuple[float, float, float]) -> str:
-    return "(" + ", ".join(f"{x:.3g}" for x in v) + ")"
 
 
 @dataclass(frozen=True)
@@ -161,8 +164,6 @@ def fit_gyro_bias(t: Tensor, acc: Tensor, gyro: Tensor, w: _Windows, *, start_rp
 
 def _still_mean(t: Tensor, acc: Tensor, gyro: Tensor, min_s: float) -> Tensor | None:
     """The mean rate over the recording's still start (at least ``min_s``), else None."""
-    from flowins.ins.initialization import still_interval
-
     still = still_interval(t, acc, gyro)
     if still.end < 10 or still.duration_s < min_s or still.end >= t.shape[0]:
         return None

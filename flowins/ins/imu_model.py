@@ -139,7 +139,8 @@ def imu_model(cfg: Any, *, recording: bool, sensor: str | None = None) -> ImuMod
         ranges = {key: setting({"imu": cfg}, f"imu.{key}", float | None, minimum=0.0, default=None)
                   for key in ("acc_range_mps2", "gyro_range_rps")}
         return dataclasses.replace(model, **{k: v for k, v in ranges.items() if v is not None})
-    return build(ImuModel, {k: v for k, v in cfg.items() if k not in ("path", "check_consistency", "check_saturation")}, "imu")
+    checks = ("path", "check_consistency", "check_saturation")
+    return build(ImuModel, {k: v for k, v in cfg.items() if k not in checks}, "imu")
 
 
 @dataclass(frozen=True)
@@ -168,7 +169,7 @@ class MeasuredNoise:
     reason: str = ""
 
 
-def white_floor(t_s: Any, x: Any, *, trim: float = 6.0, min_hz: float | None = None) -> tuple[Any, Any]:
+def white_floor(t_s: Any, x: Any, *, trim: float = 6.0) -> tuple[list[float], list[bool]]:
     """Per column of ``x`` ``(N, C)``: the white-noise density ``N`` (unit/√Hz) under a
     vibration, and whether the vibration covers the floor at every frequency.
 
@@ -178,12 +179,12 @@ def white_floor(t_s: Any, x: Any, *, trim: float = 6.0, min_hz: float | None = N
     (readings that are the differences of a bounded, white integral have the spectrum
     ``∝ sin²(π f Δt)``, which is ``∝ f²`` at low frequencies), and white noise is flat. The
     spectrum is the periodogram of the readings less a straight line in time (Hann window,
-    two-sided, so white noise of density ``N`` reads ``N²``), from ``min_hz`` (3 bins) to
-    below Nyquist; it is fitted as ``N² (1 + r sin²(π f Δt))`` by Whittle's likelihood (each
-    bin an exponential variable about the model), ``N²`` in closed form for each ``r`` of a
-    grid from 0 to ``1 / sin²(π f_min Δt)`` (the vibration may not exceed the floor at the
-    lowest frequency fitted). Bins more than ``trim`` times the model (tones; an exponential variable is that
-    far out once in 400) are left out and the fit repeated. The second value is True where the
+    two-sided, so white noise of density ``N`` reads ``N²``), from its third bin to below
+    Nyquist; it is fitted as ``N² (1 + r sin²(π f Δt))`` by Whittle's likelihood (each bin an
+    exponential variable about the model), ``N²`` in closed form for each ``r`` of a grid from
+    0 to ``1 / sin²(π f_min Δt)`` (the vibration may not exceed the floor at the lowest
+    frequency fitted). Bins more than ``trim`` times the model (tones; an exponential
+    variable is that far out once in 400) are left out and the fit repeated. The second value is True where the
     fitted ``r`` sits at the grid's end: the floor is then only an upper bound."""
     import torch
 
@@ -197,8 +198,7 @@ def white_floor(t_s: Any, x: Any, *, trim: float = 6.0, min_hz: float | None = N
     window = torch.hann_window(n, periodic=False, dtype=torch.float64)
     power = torch.fft.rfft(x * window[:, None], dim=0).abs() ** 2 * dt / float((window * window).sum())
     f = torch.fft.rfftfreq(n, dt).to(torch.float64)
-    low = 3.0 / (n * dt) if min_hz is None else min_hz
-    keep = (f >= low) & (f < f[-1])
+    keep = (f >= 3.0 / (n * dt)) & (f < f[-1])
     power, f = power[keep], f[keep]
     rise = torch.sin(math.pi * f * dt) ** 2
     rates = torch.cat((torch.zeros(1, dtype=torch.float64),
