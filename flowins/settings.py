@@ -80,6 +80,8 @@ class SequenceSettings:
     path: str | None = None
     max_imu_gap_s: float = bounded(0.2, minimum=1e-6)
     crop: bool = False
+    #: imu_to_camera's rotation against the gyroscope and the flow (flowins/flow/mounting.py)
+    check_mounting: bool = True
     start_s: float | None = bounded(None, minimum=0.0)
     end_s: float | None = bounded(None, minimum=1e-6)
     duration_s: float = bounded(300.0, minimum=1.0)

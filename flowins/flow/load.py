@@ -15,6 +15,7 @@ from flowins.cache import cache_root
 from flowins.config import instantiate
 from flowins.data.load import Recording
 from flowins.data.sequence import Tracks
+from flowins.flow.mounting import MountingCheck, check_mounting
 from flowins.flow.pairs import FlowPairs, cache_key, cached, dense_pairs, ideal_pixels, sparse_pairs, track_pairs
 
 log = logging.getLogger("flowins")
@@ -59,6 +60,27 @@ def load_flow(kind: str, rec: Recording, cfg: Mapping[str, Any], *, progress: bo
     if rate is not None:
         pairs = pairs.at_dropout_rate(float(rate))
     return pairs.undistorted(seq.camera)
+
+
+def check_camera_mounting(rec: Recording, flows: Mapping[str, FlowPairs | Tracks | str | None]) -> MountingCheck | None:
+    """``imu_to_camera``'s rotation against the gyroscope and the first of ``flows`` there is
+    (``sparse``, then ``dense``; tracks as pairs of consecutive frames):
+    :func:`~flowins.flow.mounting.check_mounting`. Printed: a warning when the calibration
+    looks wrong (also added to ``rec.warnings``, which ``metrics.json`` keeps), else one
+    line. None without flow or calibration."""
+    seq = rec.sequence
+    flow = next((f for f in (flows.get("sparse"), flows.get("dense")) if isinstance(f, (FlowPairs, Tracks))), None)
+    if flow is None or seq.camera is None or seq.imu_to_camera is None:
+        return None
+    pairs = track_pairs(flow, sigma_px=1.0) if isinstance(flow, Tracks) else flow
+    result = check_mounting(rec.imu.t_s, rec.imu.gyro_rps, pairs, seq.camera.K, seq.imu_to_camera.rotation_wxyz)
+    if result.warn:
+        line = f"{rec.name}: {result.describe()}; sequence.check_mounting=false skips this check"
+        log.warning("warning: %s", line)
+        rec.warnings.append(line)
+    else:
+        log.info(f"camera mounting: {result.describe()}")
+    return result
 
 
 TRACKS_FORMAT = 1

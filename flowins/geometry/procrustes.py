@@ -1,9 +1,10 @@
-"""The rotation about the vertical that best maps one set of horizontal points onto another.
+"""Rotations that best map one set of points or vectors onto another (Procrustes, Wahba).
 
 For centred points ``x̃ᵢ``, ``ỹᵢ`` and weights ``wᵢ`` the angle maximising
 ``Σ wᵢ ỹᵢᵀ R(θ) x̃ᵢ`` is ``θ = atan2(Σ wᵢ (x̃ᵢ × ỹᵢ), Σ wᵢ x̃ᵢ · ỹᵢ)`` (planar Procrustes),
 with the weighted centres ``c = Σ wᵢ xᵢ / Σ wᵢ``. Used by the evaluation's 4-DoF alignment
-and by the GNSS heading alignment.
+and by the GNSS heading alignment. :func:`wahba_rotation` is the 3-D rotation between two
+sets of vectors (the camera mounting check, :mod:`flowins.flow.mounting`).
 """
 from __future__ import annotations
 
@@ -47,3 +48,21 @@ def rotation_2d(theta_rad: Tensor) -> Tensor:
     """``R(θ)`` ``(..., 2, 2)``, counter-clockwise about the vertical."""
     c, s = torch.cos(theta_rad), torch.sin(theta_rad)
     return torch.stack((torch.stack((c, -s), -1), torch.stack((s, c), -1)), -2)
+
+
+def wahba_rotation(source: Tensor, target: Tensor, weights: Tensor | None = None, *,
+                   prior: Tensor | None = None, prior_weight: float = 0.0) -> Tensor:
+    """The rotation ``R`` ``(3, 3)`` minimising ``Σ wᵢ |tᵢ - R sᵢ|² + prior_weight · θ²(R, prior)``
+    for vectors ``source``, ``target`` ``(N, 3)`` (Wahba's problem; no centring).
+
+    With ``B = Σ wᵢ tᵢ sᵢᵀ + prior_weight · prior / 2`` (``θ² ≈ 3 - tr(priorᵀ R)`` near the
+    prior) the optimum over SO(3) is ``U diag(1, 1, det(U Vᵀ)) Vᵀ`` for ``B = U S Vᵀ``: the
+    data decide the directions they excite and the prior the rest."""
+    w = torch.ones_like(source[..., 0]) if weights is None else weights
+    B = (w.unsqueeze(-1) * target).transpose(-1, -2) @ source
+    if prior is not None and prior_weight > 0:
+        B = B + 0.5 * prior_weight * prior
+    U, _, Vh = torch.linalg.svd(B)
+    d = torch.linalg.det(U @ Vh)
+    D = torch.diag(torch.stack((torch.ones_like(d), torch.ones_like(d), d)))
+    return U @ D @ Vh

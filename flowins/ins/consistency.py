@@ -22,7 +22,8 @@ residuals ``ĝ_b × g_b``, Cauchy weights, so that windows whose accelerations h
 little). A constant bias cannot reproduce a scale error: a deg/s gyroscope still fails, and when
 the readings × π/180 (less their own fitted bias) pass, the readings are named deg/s. A swapped
 pair of axes is not caught on a walk: its sway is too small a tilt for the swap to predict
-worse than no rotation by the margin.
+worse than no rotation by the margin (where there is flow, :mod:`flowins.flow.mounting` names
+mirrored gyroscope axes).
 """
 from __future__ import annotations
 

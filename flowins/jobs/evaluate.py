@@ -28,7 +28,7 @@ from flowins.evaluation.metrics import truth_extent_problem
 from flowins.evaluation.motion import vehicle_hint
 from flowins.evaluation.report import Row, format_table
 from flowins.data.sequence import Tracks
-from flowins.flow.load import load_flow, load_tracks, uses_tracks
+from flowins.flow.load import check_camera_mounting, load_flow, load_tracks, uses_tracks
 from flowins.flow.pairs import FlowPairs, read_frame, run_provider
 from flowins.ins.initialization import forward_axis
 from flowins.jobs.cli import console_logging
@@ -67,6 +67,9 @@ def run(cfg: Mapping[str, Any]) -> list[Row]:
     configured_flow, cfg = cfg["flow"], {**cfg, "flow": setup.flow}
     nav_cfg = setup.navigation
     flows = [_flows(cfg, rec) for rec in recs]
+    if settings.sequence.check_mounting:
+        for rec, rec_flows in zip(recs, flows):
+            check_camera_mounting(rec, rec_flows)
     unscored = [truth_extent_problem(rec.truth) for rec in recs]  # a ground truth that can't score a track, or None
     for problem in dict.fromkeys(u for u in unscored if u):
         log.warning("warning: %s", problem)

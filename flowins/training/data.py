@@ -17,8 +17,9 @@ import pytorch_lightning as pl
 import torch
 from torch.utils.data import DataLoader, Dataset, DistributedSampler
 
+from flowins.config import setting
 from flowins.data.load import load_recording
-from flowins.flow.load import load_flow, load_tracks, uses_tracks
+from flowins.flow.load import check_camera_mounting, load_flow, load_tracks, uses_tracks
 from flowins.flow.pairs import FlowPairs
 from flowins.measurements.flow import FlowCamera
 from flowins.measurements.vehicle import platform_streams
@@ -72,6 +73,8 @@ def load_training_sequence(
             if isinstance(flow, str):
                 raise ValueError(f"{rec.name}: {kind} flow unavailable: {flow}")
             pairs[kind] = flow
+    if setting(cfg, "sequence.check_mounting", bool):
+        check_camera_mounting(rec, {"sparse": tracks or pairs["sparse"], "dense": pairs["dense"]})
     return TrainingSequence(rec.name, rec.imu, rec.gnss, rec.truth, FlowCamera.from_sequence(rec.sequence),
                             pairs["dense"], pairs["sparse"], tracks, rec.sensor, platform_streams(rec.platform))
 

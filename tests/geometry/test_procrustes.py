@@ -46,3 +46,23 @@ def test_the_spread_is_the_weighted_sum_of_squared_centred_distances():
     centre = (w.unsqueeze(-1) * source).sum(0) / w.sum()
     expected = float((w * ((source - centre) ** 2).sum(-1)).sum())
     assert math.isclose(float(planar_rotation(source, source, w).spread), expected, rel_tol=1e-14)
+
+
+def test_wahba_recovers_a_rotation_and_a_prior_fills_only_what_the_data_leave():
+    from flowins.geometry import quaternion as quat
+    from flowins.geometry.procrustes import wahba_rotation
+
+    gen = torch.Generator().manual_seed(3)
+    R = quat.to_matrix(quat.from_rotation_vector(torch.tensor([0.4, -1.9, 0.7], dtype=F64)))
+    source = torch.randn(12, 3, generator=gen, dtype=F64)
+    torch.testing.assert_close(wahba_rotation(source, source @ R.T), R, atol=1e-12, rtol=0)
+    # a reflection is never returned: mirrored targets still give a rotation
+    mirrored = wahba_rotation(source, -(source @ R.T))
+    assert abs(float(torch.linalg.det(mirrored)) - 1.0) < 1e-12
+    # vectors along one axis a fix R a only; a prior that agrees with them is returned as it is
+    a = torch.tensor([0.0, 0.6, 0.8], dtype=F64)
+    along = torch.linspace(-1.0, 1.0, 9, dtype=F64).unsqueeze(-1) * a
+    twist = quat.to_matrix(quat.from_rotation_vector(0.9 * (R @ a)))
+    prior = twist @ R
+    torch.testing.assert_close(wahba_rotation(along, along @ R.T, prior=prior, prior_weight=1e-3), prior,
+                               atol=1e-9, rtol=0)

@@ -18,6 +18,8 @@ import torch
 from torch import Tensor
 
 from flowins.data.sequence import PinholeCamera, Tracks
+from flowins.geometry import quaternion as quat
+from flowins.geometry.camera import RigidTransform
 
 
 def scatter_landmarks(centres_m: Tensor, count: int, *, radius_m: float, height_m: tuple[float, float],
@@ -51,6 +53,23 @@ def landmark_tracks(t_s: Tensor, R_wc: Tensor, c_w: Tensor, K: Tensor, image_siz
     seen &= (uv[..., 1] >= 0) & (uv[..., 1] <= H - 1)
     frame, landmark = torch.nonzero(seen, as_tuple=True)  # row-major: grouped by frame
     return Tracks(t_s[frame], landmark, uv[frame, landmark], name=name, image_size=(H, W))
+
+
+def tracks_along(t_s: Tensor, q_wb: Tensor, p_w: Tensor, imu_to_camera: RigidTransform, K: Tensor,
+                 image_size: tuple[int, int], *, count: int, ahead_m: float, radius_m: float,
+                 height_m: tuple[float, float], noise_px: float, generator: torch.Generator,
+                 name: str = "simulated tracks") -> Tracks:
+    """:func:`landmark_tracks` of a body moving through the poses ``q_wb`` ``(F, 4)`` (body→world),
+    ``p_w`` ``(F, 3)`` at frame times ``t_s`` with a camera mounted as ``imu_to_camera``
+    (``x_cam = R_ci x_imu + t``): ``count`` landmarks scattered within ``radius_m`` of the points
+    ``ahead_m`` in front of the camera along the way."""
+    R_ci = quat.to_matrix(torch.as_tensor(imu_to_camera.rotation_wxyz, dtype=p_w.dtype))
+    R_wc = quat.to_matrix(q_wb) @ R_ci.T
+    c_w = p_w - (R_wc @ torch.as_tensor(imu_to_camera.translation_m, dtype=p_w.dtype).unsqueeze(-1)).squeeze(-1)
+    landmarks = scatter_landmarks(c_w + ahead_m * R_wc[:, :, 2], count, radius_m=radius_m, height_m=height_m,
+                                  generator=generator)
+    return landmark_tracks(t_s, R_wc, c_w, K, image_size, landmarks, noise_px=noise_px, generator=generator,
+                           name=name)
 
 
 @dataclass(frozen=True)
