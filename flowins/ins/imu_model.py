@@ -148,7 +148,8 @@ class MeasuredNoise:
     """White-noise densities measured over a still interval (:func:`still_noise_densities`).
 
     Attributes:
-        acc_noise, gyro_noise: the white floor (m/s²/√Hz, rad/s/√Hz) of the quietest axis.
+        acc_noise, gyro_noise: the white floor (m/s²/√Hz, rad/s/√Hz) of the quietest axis, by
+            its one-σ upper bound.
         acc_axes, gyro_axes: the floor of each axis.
         acc_raw, gyro_raw: the standard deviation times √Δt (RMS over the axes): what the
             floor would be if all the variance were white noise; far above the floor, the
@@ -169,7 +170,7 @@ class MeasuredNoise:
     reason: str = ""
 
 
-def white_floor(t_s: Any, x: Any, *, trim: float = 6.0) -> tuple[list[float], list[bool]]:
+def white_floor(t_s: Any, x: Any, *, trim: float = 6.0) -> tuple[list[float], list[bool], list[float]]:
     """Per column of ``x`` ``(N, C)``: the white-noise density ``N`` (unit/√Hz) under a
     vibration, and whether the vibration covers the floor at every frequency.
 
@@ -184,8 +185,11 @@ def white_floor(t_s: Any, x: Any, *, trim: float = 6.0) -> tuple[list[float], li
     exponential variable about the model), ``N²`` in closed form for each ``r`` of a grid from
     0 to ``1 / sin²(π f_min Δt)`` (the vibration may not exceed the floor at the lowest
     frequency fitted). Bins more than ``trim`` times the model (tones; an exponential
-    variable is that far out once in 400) are left out and the fit repeated. The second value is True where the
-    fitted ``r`` sits at the grid's end: the floor is then only an upper bound."""
+    variable is that far out once in 400) are left out and the fit repeated. The second value
+    is True where the fitted ``r`` sits at the grid's end: the floor is then only an upper
+    bound. The third is the number of bins the floor rests on, ``Σ 1 / (1 + r sin²)²`` over
+    the bins kept (a floor measured where vibration dominates all but a few bins is uncertain:
+    its relative σ is about ``1 / √bins``)."""
     import torch
 
     t = torch.as_tensor(t_s, dtype=torch.float64)
@@ -204,7 +208,7 @@ def white_floor(t_s: Any, x: Any, *, trim: float = 6.0) -> tuple[list[float], li
     rates = torch.cat((torch.zeros(1, dtype=torch.float64),
                        torch.logspace(-6, 0, 121, dtype=torch.float64) / float(rise[0])))
     shape = 1.0 + rates[:, None] * rise[None, :]  # (R, K)
-    floors, covered = [], []
+    floors, covered, bins = [], [], []
     for column in power.T:
         use = torch.ones_like(column, dtype=torch.bool)
         for _ in range(10):
@@ -218,14 +222,18 @@ def white_floor(t_s: Any, x: Any, *, trim: float = 6.0) -> tuple[list[float], li
             use = now
         floors.append(float(level[best]) ** 0.5)
         covered.append(best == rates.shape[0] - 1)
-    return floors, covered
+        bins.append(float((use.to(column.dtype) / shape[best] ** 2).sum()))
+    return floors, covered, bins
 
 
 def still_noise_densities(t_s: Any, acc_mps2: Any, gyro_rps: Any, end: int) -> MeasuredNoise:
     """The white-noise densities of rows ``[0, end)`` of a still IMU, vibration or not: the
     white floor of each axis (:func:`white_floor`) and, as the sensor's, the quietest axis's
-    (vibration only adds, and a sensor's axes share one noise figure). Untrusted when every
-    axis of a sensor is covered by vibration down to the lowest frequency. Needs ``end >= 10``."""
+    (vibration only adds, and a sensor's axes share one noise figure) by its one-σ upper
+    bound ``N (1 + 1 / √bins)``: a floor that rests on a few bins below a strong vibration is
+    uncertain, and the least of three uncertain floors is low by chance (a filter told too
+    little noise trusts itself too much). Untrusted when every axis of a sensor is covered by
+    vibration down to the lowest frequency. Needs ``end >= 10``."""
     import torch
 
     if end < 10:
@@ -236,9 +244,9 @@ def still_noise_densities(t_s: Any, acc_mps2: Any, gyro_rps: Any, end: int) -> M
     reasons = []
     for key, x in (("acc", acc_mps2), ("gyro", gyro_rps)):
         x = torch.as_tensor(x, dtype=torch.float64)[:end]
-        floors, covered = white_floor(t, x)
+        floors, covered, bins = white_floor(t, x)
         out[f"{key}_axes"] = tuple(floors)
-        out[f"{key}_noise"] = min(floors)
+        out[f"{key}_noise"] = min(f * (1.0 + 1.0 / math.sqrt(max(b, 1.0))) for f, b in zip(floors, bins))
         out[f"{key}_raw"] = float((x - x.mean(0)).pow(2).mean().sqrt()) * math.sqrt(dt)
         if all(covered):
             what = "accelerometer" if key == "acc" else "gyroscope"

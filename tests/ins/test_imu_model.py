@@ -112,8 +112,8 @@ def test_still_noise_densities_recover_white_noise_under_a_drift():
     m = still_noise_densities(t, acc, gyro, end=t.shape[0])
     for got, want in zip(m.acc_axes, sigma * math.sqrt(0.005)):
         assert got == pytest.approx(float(want), rel=0.1)
-    assert m.acc_noise == min(m.acc_axes)
-    # the quietest of three axes of one density: low by a little (the least of three estimates)
+    # the quietest axis by its one-σ upper bound: thousands of bins, a few per cent above its floor
+    assert min(m.acc_axes) < m.acc_noise < 1.05 * min(m.acc_axes)
     assert m.gyro_noise == pytest.approx(0.001 * math.sqrt(0.005), rel=0.1)
     assert m.trusted and (m.samples, m.start_s) == (t.shape[0], 0.0)
     # with white noise only, all of the variance is white: the raw figure agrees
@@ -122,21 +122,26 @@ def test_still_noise_densities_recover_white_noise_under_a_drift():
         still_noise_densities(t, acc, gyro, end=5)
 
 
+@pytest.mark.parametrize("rate_hz", [100.0, 200.0])
 @pytest.mark.parametrize("vibration_mps2", [0.2, 0.5, 0.8])
-def test_vibration_on_the_still_start_does_not_pass_for_white_noise(vibration_mps2):
-    """A simulated walk at 200 Hz whose still start vibrates (rotor-like tones, accelerometer std
-    0.2-0.8 m/s²): the raw variance reads several times the simulator's true white noise, the
-    floor stays within 2× of it."""
+def test_vibration_on_the_still_start_does_not_pass_for_white_noise(vibration_mps2, rate_hz):
+    """A simulated walk at 100 or 200 Hz whose still start vibrates (rotor-like tones,
+    accelerometer std 0.2-0.8 m/s²): the raw variance reads several times the simulator's true
+    white noise, the floor stays within 2× of it at 200 Hz. At 100 Hz the tones, sampled at
+    jittered times, alias into a broadband, white-like part that no spectrum can tell from the
+    sensor's: there the floor is never below half the truth (the one-σ upper bound keeps a
+    floor that rests on a few bins from reading low) and stays below the raw figure."""
     from flowins.data.synthetic import ImuErrors, Vibration, WalkConfig, synthetic_walk_recording
     from flowins.ins.imu_model import still_noise_densities
 
     truth = ImuErrors()
     for seed in (0, 1):
-        imu = synthetic_walk_recording(duration_s=20.0, seed=seed, imu_rate_hz=200.0, walk=WalkConfig(duration_s=20.0),
+        imu = synthetic_walk_recording(duration_s=20.0, seed=seed, imu_rate_hz=rate_hz, walk=WalkConfig(duration_s=20.0),
                                        vibration=Vibration(vibration_mps2, vibration_mps2 / 20, until_s=5.0)).imu
-        m = still_noise_densities(imu.t_s, imu.acc_mps2, imu.gyro_rps, 980)  # 4.9 s, all of it vibrating
+        m = still_noise_densities(imu.t_s, imu.acc_mps2, imu.gyro_rps, round(4.9 * rate_hz))  # all of it vibrating
         assert m.acc_raw > 3 * truth.acc_noise and m.gyro_raw > 2.5 * truth.gyro_noise
-        assert 0.5 < m.acc_noise / truth.acc_noise < 2.0 and 0.5 < m.gyro_noise / truth.gyro_noise < 2.0
+        high = 2.0 if rate_hz == 200.0 else m.acc_raw / truth.acc_noise
+        assert 0.5 < m.acc_noise / truth.acc_noise < high and 0.5 < m.gyro_noise / truth.gyro_noise < 2.0
 
 
 @pytest.mark.parametrize("seed", [1, 3, 4])
@@ -154,11 +159,13 @@ def test_white_floor_fits_a_known_spectrum(seed):
     # first differences of white noise: a bounded integral, spectrum ∝ sin²(π f Δt) (the model)
     bounded = torch.diff(0.1 * torch.randn(t.shape[0] + 1, 1, generator=gen, dtype=torch.float64), dim=0)
     tone = 1.0 * torch.sin(2 * math.pi * 37.0 * t).unsqueeze(-1)
-    floors, covered = white_floor(t, torch.cat((white, white + bounded, white + tone), -1))
+    floors, covered, bins = white_floor(t, torch.cat((white, white + bounded, white + tone), -1))
     for floor in floors:
         assert floor == pytest.approx(0.02 * math.sqrt(dt), rel=0.2)
     assert floors[1] < 0.3 * float((white + bounded).std()) * math.sqrt(dt)  # the raw figure is far off
     assert covered == [False, False, False]
+    # white noise rests on every bin kept; the rising column on fewer
+    assert bins[0] > 0.9 * (t.shape[0] // 2 - 3) and bins[1] < bins[0]
 
 
 def _auto_cfg(**overrides):
