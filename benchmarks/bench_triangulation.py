@@ -1,20 +1,22 @@
-"""The flow model's triangulation: eigh of AᵀA plus a Newton step, against an eigh-free solve
-and torch.linalg.svd.
+"""The flow model's triangulation (eigenvectors plus a Newton step; eigh on the CPU, one-sided
+Jacobi on a GPU), against an eigh-free adjugate solve and torch.linalg.svd.
 
 Builds ``--points`` two-view DLT systems per frame (random rigs in camera 1's frame,
 points 5-20 m away, ``--baseline`` m apart, flow noise ``--noise`` in normalised
 coordinates) and prints, in one run, milliseconds per frame for
 
-* flowins: :func:`flowins.geometry.triangulation.solve_dlt` (eigh + Newton step);
+* eigh: :func:`flowins.geometry.triangulation.solve_dlt` with ``eigen="eigh"``
+  (``torch.linalg.eigh`` of ``AᵀA``, then one Newton step): what flowins runs on the CPU;
+* Jacobi: ``eigen="jacobi"``, a fixed number of sweeps of plane rotations of ``A``'s columns
+  (elementwise operations only: no LAPACK call, no wait on a GPU), then the same step:
+  what flowins runs on a GPU;
 * without eigh (:func:`solve_without_eigh`): the start from the adjugate of ``AᵀA`` and
-  ``--newton`` Newton steps, each with the inverse of a ``4 x 4`` matrix in closed form: only
-  elementwise operations and products of small matrices, no LAPACK call and no wait on a GPU;
+  ``--newton`` Newton steps, each with the inverse of a ``4 x 4`` matrix in closed form;
 * reference: ``torch.linalg.svd`` of the same equilibrated matrices;
 
 their ratios, and how far each null vector is from the SVD's (largest distance, and largest
-distance times the conditioning, which is what rounding bounds; the eigh-free solve also
-counts the points beyond ``1e-12`` by that measure: the Newton steps did not reach the
-smallest singular vector there). ``--device cuda`` runs all three on the GPU (timings
+distance times the conditioning, which is what rounding bounds; each solve also counts the
+points beyond ``1e-12`` by that measure). ``--device cuda`` runs all on the GPU (timings
 synchronise it before reading the clock).
 
     python benchmarks/bench_triangulation.py [--points 256] [--frames 200] [--baseline 0.1] [--noise 1e-3]
@@ -178,39 +180,42 @@ def main() -> None:
         parser.error(str(error))
     data = [(A.to(device), P1.to(device)) for A, P1 in frames(args.frames, args.points, args.baseline, args.noise)]
     with torch.inference_mode():
-        ours = timed_ms(lambda item: solve_dlt(*item), data, device)
+        ours = timed_ms(lambda item: solve_dlt(*item, eigen="eigh"), data, device)
+        jacobi = timed_ms(lambda item: solve_dlt(*item, eigen="jacobi"), data, device)
         free = timed_ms(lambda item: solve_without_eigh(*item, args.newton), data, device)
         reference = timed_ms(lambda item: svd_solve(*item), data, device)
-        worst = {"eigh": [0.0, 0.0], "free": [0.0, 0.0]}
+        worst = {"flowins": [0.0, 0.0], "jacobi": [0.0, 0.0], "free": [0.0, 0.0]}
+        off = {"flowins": 0, "jacobi": 0, "free": 0}
         worst_s = 0.0
-        off = 0
         min_cond = float("inf")
         for A, P1 in data:
-            solution = solve_dlt(A, P1)
+            solution = solve_dlt(A, P1, eigen="eigh")
             point, S = svd_solve(A, P1)
             free_point, _ = solve_without_eigh(A, P1, args.newton)
-            for name, found in (("eigh", solution.point), ("free", free_point)):
+            jacobi_point = solve_dlt(A, P1, eigen="jacobi").point
+            for name, found in (("flowins", solution.point), ("jacobi", jacobi_point), ("free", free_point)):
                 # a non-finite vector counts as infinitely far (max() would pass over a NaN)
                 dist = torch.linalg.vector_norm(found - point, dim=-1).nan_to_num(nan=float("inf"))
                 scaled = dist * solution.conditioning.clamp_min(0.0)
                 worst[name] = [max(worst[name][0], float(dist.max())), max(worst[name][1], float(scaled.max()))]
-                if name == "free":
-                    off += int((scaled > 1e-12).sum())
+                off[name] += int((scaled > 1e-12).sum())
             worst_s = max(worst_s, float((solution.singular_values - S).abs().nan_to_num(nan=float("inf")).max()))
             min_cond = min(min_cond, float(solution.conditioning.min()))
     where = (torch.cuda.get_device_name(device) if device.type == "cuda" else
              f"the CPU, {torch.get_num_threads()} threads")
     print(f"{args.frames} frames of {args.points} points, baseline {args.baseline} m, noise {args.noise}, "
           f"float64, on {where}; smallest conditioning {min_cond:.1e}")
-    print(f"flowins (eigh + Newton step):   {ours:.3f} ms per frame")
     steps = f"{args.newton} Newton step{'' if args.newton == 1 else 's'}"
-    print(f"without eigh ({steps}): {free:.3f} ms per frame  -> {free / ours:.2f}x flowins' time")
-    print(f"torch.linalg.svd:               {reference:.3f} ms per frame  -> {reference / ours:.2f}x flowins' time")
-    print(f"largest distance to the SVD's null vector: flowins {worst['eigh'][0]:.1e} (times the conditioning "
-          f"{worst['eigh'][1]:.1e}), without eigh {worst['free'][0]:.1e} ({worst['free'][1]:.1e}; "
-          f"{off} of {args.frames * args.points} points beyond 1e-12); "
-          f"flowins' largest singular-value difference {worst_s:.1e}")
-
+    print(f"flowins runs {'Jacobi' if device.type == 'cuda' else 'eigh'} on this device")
+    print(f"eigh + Newton step:             {ours:.3f} ms per frame")
+    print(f"Jacobi + Newton step:           {jacobi:.3f} ms per frame  -> {jacobi / ours:.2f}x eigh's time")
+    print(f"without eigh ({steps}): {free:.3f} ms per frame  -> {free / ours:.2f}x eigh's time")
+    print(f"torch.linalg.svd:               {reference:.3f} ms per frame  -> {reference / ours:.2f}x eigh's time")
+    total = args.frames * args.points
+    for name, label in (("flowins", "eigh"), ("jacobi", "Jacobi"), ("free", "without eigh")):
+        print(f"{label}: largest distance to the SVD's null vector {worst[name][0]:.1e} (times the conditioning "
+              f"{worst[name][1]:.1e}), {off[name]} of {total} points beyond 1e-12")
+    print(f"eigh's largest singular-value difference {worst_s:.1e}")
 
 if __name__ == "__main__":
     main()

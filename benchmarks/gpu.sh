@@ -23,8 +23,8 @@
 # section 7 142 s; section 3 with nothing cached 196 s; section 5 alone 144 s). Section 7
 # times one training step of a 20 s window on the GPU with GPU_SH_TRAIN_ROWS rows (default 2,8,32; the
 # default training's step has 2: one sequence, two methods), what a larger data.batch_size would cost
-# per step. Section 8 times the triangulation's eigh against the eigh-free solve of
-# bench_triangulation.py on the GPU (256 and 2048 points a call). A section that fails is
+# per step. Section 8 times the triangulation's eigh against Jacobi (what the GPU runs) and the
+# adjugate solve of bench_triangulation.py on the GPU (256 and 2048 points a call). A section that fails is
 # reported and the others still run; the script then exits with 1, naming the failed sections.
 set -uo pipefail
 cd "$(dirname "$0")/.."

@@ -3,7 +3,7 @@ dot products are the in-order sums of their entries' products."""
 import pytest
 import torch
 
-from flowins.linalg import SHORT_DOT, dot, in_slices
+from flowins.linalg import SHORT_DOT, dot, in_slices, jacobi_right_singular
 
 
 def _spd(*batch: int, n: int = 4) -> torch.Tensor:
@@ -63,3 +63,36 @@ def test_dot_is_the_in_order_sum_of_products_broadcast_with_its_gradient(n):
     # d/da_k = b_k, d/db_k = a_k, summed over the broadcast
     torch.testing.assert_close(grads[0], (w.unsqueeze(-1) * b).sum(1, keepdim=True), rtol=1e-13, atol=0)
     torch.testing.assert_close(grads[1], (w.unsqueeze(-1) * a).sum(0), rtol=1e-13, atol=1e-12)
+
+
+@pytest.mark.parametrize("batch", [(), (1,), (3, 2)])
+@pytest.mark.parametrize("rows", [4, 12])
+def test_jacobi_right_singular_is_the_svd(batch, rows):
+    """Against torch.linalg.svd: singular values to rounding, V orthonormal, A V's columns
+    orthogonal, and the null vector of a nearly rank-deficient matrix to rounding."""
+    gen = torch.Generator().manual_seed(rows)
+    A = torch.randn(*batch, rows, 4, generator=gen, dtype=torch.float64)
+    A[..., 3] = A[..., 0] - 2.0 * A[..., 1] + 1e-9 * A[..., 3]  # σ₄ / σ₁ ≈ 1e-9
+    sigma_sq, V = jacobi_right_singular(A)
+    _, S, Vh = torch.linalg.svd(A)
+    assert sigma_sq.shape == (*batch, 4) and V.shape == (*batch, 4, 4)
+    torch.testing.assert_close(sigma_sq.sqrt(), S.flip(-1), atol=1e-14, rtol=0)
+    eye = torch.eye(4, dtype=torch.float64)
+    torch.testing.assert_close(V.transpose(-1, -2) @ V, eye.expand_as(V), atol=1e-14, rtol=0)
+    B = A @ V
+    off = B.transpose(-1, -2) @ B - torch.diag_embed(sigma_sq)
+    assert float(off.abs().max()) < 1e-13 * float(sigma_sq.max())
+    null, reference = V[..., 0], Vh[..., -1, :]
+    distance = torch.minimum((null - reference).norm(dim=-1), (null + reference).norm(dim=-1))
+    assert float(distance.max()) < 1e-13
+
+
+def test_jacobi_right_singular_of_orthogonal_or_equal_columns_is_finite_with_its_gradient():
+    """Columns already orthogonal, two of equal norm, and a zero column: every rotation is
+    the identity (``t = 0``), values and gradients finite."""
+    A = torch.tensor([[2.0, 0.0, 0.0, 0.0], [0.0, 2.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 0.0]],
+                     dtype=torch.float64, requires_grad=True)
+    sigma_sq, V = jacobi_right_singular(A)
+    torch.testing.assert_close(sigma_sq, torch.tensor([0.0, 1.0, 4.0, 4.0], dtype=torch.float64))
+    (sigma_sq.sum() + V[..., 0].abs().sum()).backward()
+    assert bool(torch.isfinite(A.grad).all())

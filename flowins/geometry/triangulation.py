@@ -11,13 +11,17 @@ For cameras ``P₁, P₂`` ``(3, 4)`` and pixels ``(u₁, v₁)``, ``(u₂, v₂
 in the least-squares sense: ``X̃`` is the right singular vector of the smallest
 singular value, batched over any leading dimensions.
 
-It is computed as the eigenvector of the smallest eigenvalue of ``AᵀA``
-(``torch.linalg.eigh``; ``benchmarks/bench_triangulation.py`` times it against
-``torch.linalg.svd`` and against a solve without ``eigh`` on batches of ``4 x 4`` matrices)
-followed by one Newton step whose residual ``Aᵀ(A X̃)`` is formed from ``A``, not from
-``AᵀA``: ``AᵀA`` squares the conditioning, so eigh alone loses digits (errors up to
-``ε / conditioning²``); after the step the vector is as close to the SVD's as rounding
-allows (``ε / conditioning``, a test holds it there) and ``σ₄ = |A X̃|``.
+It is computed from the eigenvectors of ``AᵀA`` followed by one Newton step whose residual
+``Aᵀ(A X̃)`` is formed from ``A``, not from ``AᵀA``: ``AᵀA`` squares the conditioning, so the
+eigenvectors alone lose digits (errors up to ``ε / conditioning²``); after the step the
+vector is as close to the SVD's as rounding allows (``ε / conditioning``, a test holds it
+there, also at a 1 mm baseline) and ``σ₄ = |A X̃|``. The eigenvectors come from
+``torch.linalg.eigh`` on the CPU and from one-sided Jacobi rotations of ``A``'s columns on a
+GPU (:func:`flowins.linalg.jacobi_right_singular`: a fixed number of sweeps of elementwise
+updates, no LAPACK call and no wait on the device, so the flow update can be captured as one
+CUDA graph; cuSOLVER's ``eigh`` reads its error flag back to the host). Jacobi costs several
+times ``eigh`` in eager mode on the CPU; both give the same point to rounding.
+``benchmarks/bench_triangulation.py`` times both against ``torch.linalg.svd``.
 
 Conditioning: the rows are formed in normalised image coordinates
 (``K⁻¹ (u, v, 1)``) and with the world origin moved to camera 1's centre
@@ -37,7 +41,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from flowins.linalg import in_slices
+from flowins.linalg import in_slices, jacobi_right_singular
 
 
 class Triangulation(NamedTuple):
@@ -71,8 +75,8 @@ class DltSolution(NamedTuple):
     conditioning: Tensor  # (...,) (σ₃ - σ₄) / σ₁
     rows: Tensor  # (..., 4, 4) the equilibrated matrix A / |rows|
     row_norm: Tensor  # (..., 4) the row norms divided out
-    eigenvalues: Tensor  # (..., 4) of rowsᵀ rows, ascending: ≈ σ₄², σ₃², σ₂², σ₁²
-    eigenvectors: Tensor  # (..., 4, 4) their columns (column 0 before the Newton step)
+    eigenvalues: Tensor  # (..., 4) of rowsᵀ rows, ascending: σ₄², σ₃², σ₂², σ₁²
+    eigenvectors: Tensor  # (..., 4, 4) their columns, the right singular vectors (column 0 before the Newton step)
     residual: Tensor  # (..., 4) rows @ point
     residual_sq: Tensor  # (...,) σ₄² = |rows @ point|²
 
@@ -89,15 +93,21 @@ class DltSolution(NamedTuple):
         return torch.cat((top, self.point.unsqueeze(-2)), -2)
 
 
-def solve_dlt(A: Tensor, P1: Tensor | None = None) -> DltSolution:
-    """The smallest right singular vector of the row-equilibrated ``A`` ``(..., 4, 4)``, its
+def solve_dlt(A: Tensor, P1: Tensor | None = None, *, eigen: str = "auto") -> DltSolution:
+    """The smallest right singular vector of the row-equilibrated ``A`` ``(..., m, 4)``, its
     sign chosen so that the point is in front of camera ``P1`` ``(..., 3, 4)`` (None: ``[I | 0]``;
-    see the module doc for how it is computed)."""
+    see the module doc for how it is computed). ``eigen``: ``"eigh"``, ``"jacobi"`` or
+    ``"auto"`` (Jacobi on a GPU, ``eigh`` elsewhere)."""
+    if eigen not in ("auto", "eigh", "jacobi"):
+        raise ValueError(f"solve_dlt: eigen must be 'auto', 'eigh' or 'jacobi', got {eigen!r}")
     tiny = torch.finfo(A.dtype).tiny
     norm = torch.linalg.vector_norm(A, dim=-1).clamp_min(tiny**0.5)
     rows = A / norm.unsqueeze(-1)  # equilibrate the rows (the solution is invariant)
-    gram = rows.transpose(-1, -2) @ rows
-    lam, V = in_slices(torch.linalg.eigh, gram, batch_dims=gram.ndim - 2)  # ascending
+    if eigen == "jacobi" or (eigen == "auto" and rows.is_cuda):
+        lam, V = jacobi_right_singular(rows)  # σ² ascending, the right singular vectors
+    else:
+        gram = rows.transpose(-1, -2) @ rows
+        lam, V = in_slices(torch.linalg.eigh, gram, batch_dims=gram.ndim - 2)  # ascending
     # Newton step X ← X - Σᵢ vᵢ vᵢᵀ (AᵀA X) / (σᵢ² - σ₄²) over the other three eigenvectors,
     # with vᵢᵀ AᵀA X = (A vᵢ)·(A X) from A itself; the gap is at least rounding (the rows have
     # unit norm, so σ₁² >= 1): a degenerate point stays finite

@@ -1,4 +1,6 @@
 """Two-view DLT triangulation against known geometry and finite differences."""
+import functools
+
 import pytest
 import torch
 
@@ -70,10 +72,12 @@ def test_triangulation_gradient_matches_finite_differences():
     assert torch.autograd.gradcheck(euclidean, (p2.clone().requires_grad_(), x2.clone().requires_grad_()))
 
 
+@pytest.mark.parametrize("eigen", ["eigh", "jacobi"])
 @pytest.mark.parametrize("baseline", [1.0, 1e-3])
-def test_eigh_with_newton_step_equals_the_svd_null_vector(baseline):
-    """solve_dlt (eigh of AᵀA, one Newton step) against torch.linalg.svd of the same
-    equilibrated matrix, on noisy points down to a small baseline (ill-conditioned)."""
+def test_eigenvectors_with_newton_step_equal_the_svd_null_vector(baseline, eigen):
+    """solve_dlt (eigh of AᵀA, or one-sided Jacobi of A; one Newton step) against
+    torch.linalg.svd of the same equilibrated matrix, on noisy points down to a small
+    baseline (ill-conditioned)."""
     from flowins.geometry.triangulation import dlt_matrix, solve_dlt
 
     gen = torch.Generator().manual_seed(4)
@@ -83,12 +87,32 @@ def test_eigh_with_newton_step_equals_the_svd_null_vector(baseline):
     x1, _ = project_homogeneous(P1, Xh)
     x2, _ = project_homogeneous(P2, Xh)
     x2 = x2 + 3e-4 * torch.randn(500, 2, generator=gen, dtype=F64)
-    solution = solve_dlt(dlt_matrix(P1, P2, x1, x2), P1)
+    solution = solve_dlt(dlt_matrix(P1, P2, x1, x2), P1, eigen=eigen)
     _, S, Vh = torch.linalg.svd(solution.rows)
     reference = Vh[..., -1, :] * torch.sign((Vh[..., -1, :] * solution.point).sum(-1, keepdim=True))
     if baseline < 1:
         assert float(solution.conditioning.min()) < 1e-4  # ill-conditioned points among them
-    # either method's rounding error is ~ eps / conditioning; eigh alone is ~ eps / conditioning²
+    # either method's rounding error is ~ eps / conditioning; eigh of AᵀA alone is ~ eps / conditioning²
     bound = 2e-14 / solution.conditioning
     assert ((solution.point - reference).norm(dim=-1) <= bound).all()
     assert ((solution.singular_values - S).abs().max(-1).values <= bound).all()
+
+
+@pytest.mark.parametrize("eigen", ["eigh", "jacobi"])
+def test_solve_dlt_is_one_graph(eigen):
+    """No graph break (no ``.item()``, no data-dependent branch): ``torch.compile(fullgraph=True)``
+    with a backend that needs no compiler, equal to eager; the GPU's Jacobi equals eigh."""
+    from flowins.geometry.triangulation import dlt_matrix, solve_dlt
+
+    gen = torch.Generator().manual_seed(5)
+    R1, p1, R2, p2, X = random_rig(gen, (64,), baseline=0.1)
+    P1, P2 = camera_matrix(R1, p1 - p1), camera_matrix(R2, p2 - p1)
+    Xh = torch.cat((X - p1, torch.ones(64, 1, dtype=F64)), -1)
+    A = dlt_matrix(P1, P2, project_homogeneous(P1, Xh)[0], project_homogeneous(P2, Xh)[0])
+    torch._dynamo.reset()
+    compiled = torch.compile(functools.partial(solve_dlt, eigen=eigen), fullgraph=True, backend="eager")
+    for got, want in zip(compiled(A, P1), solve_dlt(A, P1, eigen=eigen)):
+        torch.testing.assert_close(got, want, atol=0, rtol=0)
+    jacobi, eigh = solve_dlt(A, P1, eigen="jacobi"), solve_dlt(A, P1, eigen="eigh")
+    torch.testing.assert_close(jacobi.point, eigh.point, atol=1e-12, rtol=0)
+    torch.testing.assert_close(jacobi.conditioning, eigh.conditioning, atol=1e-12, rtol=0)
