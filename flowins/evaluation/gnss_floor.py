@@ -116,7 +116,7 @@ def offset_estimates(
             nis = block_nis(P, innovation.unsqueeze(-2), H.unsqueeze(-3), zeros.unsqueeze(-3))
             accept = gate is None or float(nis.sum()) <= gate
             if accept:
-                mean, P = joseph_update(mean, P, innovation, H, zeros)
+                mean, P, _ = joseph_update(mean, P, innovation, H, zeros)
         else:
             # the first fix sets b + s z; b's variance is then s², z's 1, and they are
             # perfectly anti-correlated (only their sum is known)

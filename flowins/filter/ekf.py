@@ -10,10 +10,18 @@ Sec. "Information Fusion" eq. update step):
                  m = m⁻ + K v,  P = D P⁻ Dᵀ + K H_r R H_rᵀ Kᵀ,  D = I - K H_x
 
 followed by quaternion re-normalisation of the mean and symmetrisation of ``P``.
+
+**No wait on the device.** Every factorisation is a ``cholesky_ex`` / ``solve_ex`` whose
+error flag stays a tensor: an update returns ``failed`` (``(...,)`` bool: the covariance
+could not be factorised even with the largest jitter, or a solve met a singular matrix) and
+the caller decides when to read it (:func:`raise_if_failed`). On a GPU or under
+``torch.compile`` the jitter ladder of :func:`_cholesky_psd` is one batched call, so an update
+is one graph with no read-back; on the CPU in eager mode, where a read costs nothing, the
+ladder stops at the first jitter every matrix takes (the same factors).
 """
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import NamedTuple
@@ -170,11 +178,39 @@ class UpdateResult(NamedTuple):
     #: (..., M) each block's innovation negative log-likelihood ``½ (NIS + log det S)`` (without
     #: the constant ``½ d log 2π``), before the gate; None unless asked for (``likelihood=True``)
     nll: Tensor | None = None
+    #: (...,) bool: a factorisation failed (see the module doc); None: nothing was factorised
+    failed: Tensor | None = None
+
+
+class Posterior(NamedTuple):
+    """An update's Gaussian and whether a factorisation failed on the way (``(...,)`` bool)."""
+
+    mean: Tensor  # (..., D)
+    cov: Tensor  # (..., D, D)
+    failed: Tensor  # (...,)
+
+
+def raise_if_failed(failed: Tensor | None, what: str, rows: Sequence[int] | None = None) -> None:
+    """A ``ValueError`` naming ``what`` and the batch rows where ``failed`` holds (``rows``: the
+    run each entry of ``failed`` is; default its index). A read of one flag from the device:
+    call it where the pass may wait."""
+    if failed is None or not bool(failed.any()):
+        return
+    rows = [i if rows is None else rows[i] for i in torch.nonzero(failed.reshape(-1))[:, 0].tolist()]
+    raise ValueError(f"{what}: the state covariance is not positive semi-definite (its Cholesky factorisation "
+                     f"failed even with a jitter of 1e-6 of its largest variance) in batch row(s) {rows[:10]}"
+                     + (" ..." if len(rows) > 10 else ""))
+
+
+def _waits_cost(t: Tensor) -> bool:
+    """Whether reading a flag back from ``t``'s device would cost: on a GPU, or under ``torch.compile``
+    (a read breaks the graph)."""
+    return t.is_cuda or torch.compiler.is_compiling()
 
 
 def joseph_update(
     mean: Tensor, cov: Tensor, innovation: Tensor, H: Tensor, noise_cov: Tensor
-) -> tuple[Tensor, Tensor]:
+) -> Posterior:
     """One Kalman update in Joseph form for a stacked measurement of dimension ``n``.
 
     Args:
@@ -187,33 +223,44 @@ def joseph_update(
     Ht = H.transpose(-1, -2)
     PHt = cov @ Ht
     S = symmetrize(H @ PHt + noise_cov)
-    K = torch.linalg.solve(S, PHt.transpose(-1, -2)).transpose(-1, -2)
+    K, info = torch.linalg.solve_ex(S, PHt.transpose(-1, -2))
+    K = K.transpose(-1, -2)
     eye = _eye(cov.shape[-1], cov.dtype, cov.device)
     D = eye - K @ H
     new_cov = D @ cov @ D.transpose(-1, -2) + K @ noise_cov @ K.transpose(-1, -2)
     new_mean = mean + (K @ innovation.unsqueeze(-1)).squeeze(-1)
-    return new_mean, symmetrize(new_cov)
+    return Posterior(new_mean, symmetrize(new_cov), info != 0)
 
 
-def _cholesky_psd(cov: Tensor) -> Tensor:
-    """A Cholesky factor of a positive semi-definite ``cov`` ``(..., D, D)``: a jitter of
-    ``1e-16`` of the largest variance (rounding level), raised by 100x for each matrix
-    whose factorisation fails (``P`` is singular right after the pose copy, up to its
-    nugget); each matrix of a batch gets the jitter it alone would get."""
+#: the jitters, as fractions of the largest variance, a covariance's factorisation tries in turn
+_JITTERS = (1e-16, 1e-14, 1e-12, 1e-10, 1e-8, 1e-6)
+
+
+def _cholesky_psd(cov: Tensor) -> tuple[Tensor, Tensor]:
+    """``(F, failed)``: a Cholesky factor of a positive semi-definite ``cov`` ``(..., D, D)``
+    with the first jitter of :data:`_JITTERS` (times the largest variance) its factorisation
+    takes (``P`` is singular right after the pose copy, up to its nugget), each matrix of a
+    batch the jitter it alone would get; ``failed`` ``(...,)`` where none does (``F`` then
+    from the largest). Where a read-back costs (:func:`_waits_cost`) all jitters are factorised
+    in one batched call; elsewhere the ladder stops at the first jitter every matrix takes."""
     eye = _eye(cov.shape[-1], cov.dtype, cov.device)
     scale = cov.diagonal(dim1=-2, dim2=-1).amax(-1, keepdim=True).unsqueeze(-1).detach().clamp_min(torch.finfo(cov.dtype).tiny)
-    F, info = torch.linalg.cholesky_ex(cov + scale * _scaled_eye(cov.shape[-1], 1e-16, cov.dtype, cov.device))
-    for exponent in range(-14, -5, 2):
+    if _waits_cost(cov):
+        levels = torch.tensor(_JITTERS, dtype=cov.dtype, device=cov.device).view(-1, *([1] * cov.ndim))
+        factors, info = torch.linalg.cholesky_ex(cov.unsqueeze(0) + (levels * scale) * eye)  # (J, ..., D, D)
+        ok = info == 0
+        first = torch.where(ok.any(0), ok.to(torch.uint8).argmax(0), len(_JITTERS) - 1)
+        F = torch.take_along_dim(factors, first[None, ..., None, None], 0)[0]
+        return F, ~ok.any(0)
+    F, info = torch.linalg.cholesky_ex(cov + scale * _scaled_eye(cov.shape[-1], _JITTERS[0], cov.dtype, cov.device))
+    for jitter in _JITTERS[1:]:
         if not bool(info.any()):
-            return F
+            break
         failed = info != 0
-        retry, info_retry = torch.linalg.cholesky_ex(cov + (10.0**exponent * scale) * eye)
+        retry, info_retry = torch.linalg.cholesky_ex(cov + (jitter * scale) * eye)
         F = torch.where(failed[..., None, None], retry, F)
         info = torch.where(failed, info_retry, info)
-    if not bool(info.any()):
-        return F
-    raise ValueError("scalar_update: the state covariance is not positive semi-definite "
-                     "(Cholesky failed even with a jitter of 1e-6 of its largest variance)")
+    return F, info != 0
 
 
 @cached_constant
@@ -228,7 +275,7 @@ def _scaled_eye(n: int, factor: float, dtype: torch.dtype, device: torch.device)
 
 def scalar_update(
     mean: Tensor, cov: Tensor, innovation: Tensor, H: Tensor, noise_var: Tensor
-) -> tuple[Tensor, Tensor]:
+) -> Posterior:
     """The stacked update of ``M`` independent scalar measurements, in ``D x D`` algebra.
 
     Args:
@@ -250,17 +297,17 @@ def scalar_update(
     """
     Ht_Rinv = (H / noise_var.unsqueeze(-1)).transpose(-1, -2)  # (..., D, M)
     eye = _eye(cov.shape[-1], cov.dtype, cov.device)
-    F = _cholesky_psd(cov)
+    F, failed = _cholesky_psd(cov)
     FtHtR = F.transpose(-1, -2) @ Ht_Rinv  # (..., D, M)
-    W = torch.linalg.cholesky(eye + FtHtR @ (H @ F))
+    W, info = torch.linalg.cholesky_ex(eye + FtHtR @ (H @ F))  # eigenvalues >= 1: fails only on NaN
     gain = F @ torch.cholesky_solve(FtHtR, W)  # (..., D, M)
     D = eye - gain @ H
     new_cov = D @ cov @ D.transpose(-1, -2) + (gain * noise_var.unsqueeze(-2)) @ gain.transpose(-1, -2)
     new_mean = mean + (gain @ innovation.unsqueeze(-1)).squeeze(-1)
-    return new_mean, symmetrize(new_cov)
+    return Posterior(new_mean, symmetrize(new_cov), failed | (info != 0))
 
 
-def information_update(mean: Tensor, cov: Tensor, information: Tensor, projected: Tensor) -> tuple[Tensor, Tensor]:
+def information_update(mean: Tensor, cov: Tensor, information: Tensor, projected: Tensor) -> Posterior:
     """The update of measurements given by their information ``G = Σᵢ Hᵢᵀ Rᵢ⁻¹ Hᵢ`` ``(..., D, D)``
     and ``b = Σᵢ Hᵢᵀ Rᵢ⁻¹ vᵢ`` ``(..., D)``, in ``D x D`` algebra (:func:`scalar_update` for
     blocks of any size and full noise).
@@ -274,14 +321,14 @@ def information_update(mean: Tensor, cov: Tensor, information: Tensor, projected
     block rejected) the covariance stays ``P`` exactly (``B Bᵀ`` would give it back rounded).
     """
     eye = _eye(cov.shape[-1], cov.dtype, cov.device)
-    F = _cholesky_psd(cov)
+    F, failed = _cholesky_psd(cov)
     Ft = F.transpose(-1, -2)
-    L = torch.linalg.cholesky(symmetrize(eye + Ft @ information @ F))
+    L, info = torch.linalg.cholesky_ex(symmetrize(eye + Ft @ information @ F))  # eigenvalues >= 1
     Bt = torch.linalg.solve_triangular(L, Ft, upper=False)  # Bᵀ = L⁻¹ Fᵀ
     B = Bt.transpose(-1, -2)
     new_mean = mean + (B @ (Bt @ projected.unsqueeze(-1))).squeeze(-1)
     nothing = (information == 0).flatten(-2).all(-1)
-    return new_mean, torch.where(nothing[..., None, None], cov, symmetrize(B @ Bt))
+    return Posterior(new_mean, torch.where(nothing[..., None, None], cov, symmetrize(B @ Bt)), failed | (info != 0))
 
 
 def block_information(innovation: Tensor, H: Tensor, noise_cov: Tensor | None) -> tuple[Tensor, Tensor]:
@@ -293,7 +340,7 @@ def block_information(innovation: Tensor, H: Tensor, noise_cov: Tensor | None) -
     if noise_cov is None:
         Rinv_H = H.flatten(-3, -2)
     else:
-        Rinv = torch.cholesky_inverse(torch.linalg.cholesky(symmetrize(noise_cov)))
+        Rinv = torch.cholesky_inverse(torch.linalg.cholesky_ex(symmetrize(noise_cov))[0])
         Rinv_H = (Rinv @ H).flatten(-3, -2)  # (..., M d, D): the sums over blocks are one product each
     G = H.flatten(-3, -2).transpose(-1, -2) @ Rinv_H
     return G, (Rinv_H.transpose(-1, -2) @ innovation.flatten(-2).unsqueeze(-1)).squeeze(-1)
@@ -308,7 +355,7 @@ def block_nis(cov: Tensor, innovation: Tensor, H: Tensor, noise_cov: Tensor | No
     if innovation.shape[-1] == 1:  # scalars: S_i = h_i P h_iᵀ + r_i without M tiny solves
         return innovation[..., 0] ** 2 / _scalar_innovation_variance(cov, H, noise_cov)
     S = _block_innovation_cov(cov, H, noise_cov)
-    return (innovation * torch.linalg.solve(S, innovation.unsqueeze(-1)).squeeze(-1)).sum(-1)
+    return (innovation * torch.linalg.solve_ex(S, innovation.unsqueeze(-1))[0].squeeze(-1)).sum(-1)
 
 
 def block_nll(cov: Tensor, innovation: Tensor, H: Tensor, noise_cov: Tensor | None) -> tuple[Tensor, Tensor]:
@@ -328,7 +375,7 @@ def block_nll(cov: Tensor, innovation: Tensor, H: Tensor, noise_cov: Tensor | No
         nis = innovation[..., 0] ** 2 / S
         return nis, 0.5 * (nis + torch.log(S))
     S = _block_innovation_cov(cov, H, noise_cov)
-    L = in_slices(torch.linalg.cholesky, S, batch_dims=S.ndim - 2)
+    L = in_slices(torch.linalg.cholesky_ex, S, batch_dims=S.ndim - 2)[0]
     white = torch.linalg.solve_triangular(L, innovation.unsqueeze(-1), upper=False).squeeze(-1)
     nis = (white * white).sum(-1)
     return nis, 0.5 * nis + torch.log(L.diagonal(dim1=-2, dim2=-1)).sum(-1)
@@ -411,6 +458,7 @@ def ekf_update(
         )
     gate = gate or Gate(mode="off")
     dof = innovation.shape[-1] if dof is None else dof
+    failed = None
     if sequential:
         nis_list, weight_list, nll_list = [], [], []
         prior_mean = mean
@@ -423,6 +471,7 @@ def ekf_update(
             dof_i = dof if not isinstance(dof, Tensor) else dof[..., i : i + 1]
             result = ekf_update(mean, cov, innovation=v, H=Hi, noise_cov=Ri, gate=gate, likelihood=likelihood, dof=dof_i)
             mean, cov = result.mean, result.cov
+            failed = result.failed if failed is None else failed | result.failed
             nis_list.append(result.nis)
             weight_list.append(result.weight)
             nll_list.append(result.nll)
@@ -434,12 +483,14 @@ def ekf_update(
         w = weight.unsqueeze(-1)
         *batch, M, d = innovation.shape
         if d == 1:  # independent scalars (the epipolar flow update): D x D algebra
-            mean, cov = scalar_update(mean, cov, (w * innovation)[..., 0], (w.unsqueeze(-1) * H)[..., 0, :],
-                                      torch.ones_like(innovation[..., 0]) if noise_cov is None else noise_cov[..., 0, 0])
+            mean, cov, failed = scalar_update(mean, cov, (w * innovation)[..., 0], (w.unsqueeze(-1) * H)[..., 0, :],
+                                              torch.ones_like(innovation[..., 0]) if noise_cov is None
+                                              else noise_cov[..., 0, 0])
         elif M * d > H.shape[-1]:
-            mean, cov = information_update(mean, cov, *block_information(w * innovation, w.unsqueeze(-1) * H, noise_cov))
+            mean, cov, failed = information_update(mean, cov,
+                                                   *block_information(w * innovation, w.unsqueeze(-1) * H, noise_cov))
         else:
-            mean, cov = joseph_update(
+            mean, cov, failed = joseph_update(
                 mean,
                 cov,
                 (w * innovation).reshape(*batch, M * d),
@@ -451,4 +502,4 @@ def ekf_update(
         nll = nll + noise_logdet
     if normalize is not None:
         mean = normalize(mean)
-    return UpdateResult(mean, cov, nis, weight, nll)  # each branch's covariance is already symmetrised
+    return UpdateResult(mean, cov, nis, weight, nll, failed)  # each branch's covariance is already symmetrised

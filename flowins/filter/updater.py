@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 
 from flowins.filter.chain import BatchChain, ChainBuilder
-from flowins.filter.ekf import Gate, UpdateResult, ekf_update
+from flowins.filter.ekf import Gate, UpdateResult, ekf_update, raise_if_failed
 from flowins.state import normalize_quaternions
 
 
@@ -76,6 +76,7 @@ def update(
     keep = likelihood and chain.likelihood
     result = _step(chain.mean, chain.cov, H=H, residual=residual, noise_cov=noise_cov, gate=gate,
                    sequential=sequential, valid=valid, likelihood=keep, dof=dof, noise_logdet=noise_logdet)
+    raise_if_failed(result.failed, f"update ({info.get('kind', 'measurement')})", [chain.row])
     if keep:
         chain.add_likelihood(*_likelihood(result, residual.shape[-1] if dof is None else dof))
     if info:
@@ -150,6 +151,7 @@ def step_rows(
     keep = likelihood and chain.likelihood
     result = _step(mean, cov, H=H, residual=residual, noise_cov=noise_cov, gate=gate, sequential=sequential,
                    valid=valid, likelihood=keep, dof=dof, noise_logdet=noise_logdet)
+    raise_if_failed(result.failed, "update", rows)
     if keep:
         chain.add_likelihood(rows, *_likelihood(result, residual.shape[-1] if dof is None else dof))
     return result

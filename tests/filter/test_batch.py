@@ -109,7 +109,7 @@ def test_runs_of_different_dtypes_are_refused():
         run_filters([run, other], noise=NOISE)
 
 
-def test_the_cholesky_jitter_one_covariance_needs_leaves_the_others_of_the_batch_alone():
+def test_the_cholesky_jitter_one_covariance_needs_leaves_the_others_of_the_batch_alone(monkeypatch):
     from flowins.filter.ekf import _cholesky_psd
 
     gen = torch.Generator().manual_seed(1)
@@ -119,9 +119,20 @@ def test_the_cholesky_jitter_one_covariance_needs_leaves_the_others_of_the_batch
     # an eigenvalue of -1e-15 of the largest: the first jitter (1e-16) fails, the second works
     bad = Q @ torch.diag(torch.tensor([1.0, 0.5, 0.2, 0.1, 0.05, -1e-15], dtype=F64)) @ Q.T
     assert int(torch.linalg.cholesky_ex(bad + 1e-16 * torch.eye(6, dtype=F64))[1]) != 0
-    both = _cholesky_psd(torch.stack((good, bad)))
-    assert torch.equal(both[0], _cholesky_psd(good)) and torch.equal(both[1], _cholesky_psd(bad))
+    both, failed = _cholesky_psd(torch.stack((good, bad)))
+    assert not bool(failed.any())
+    assert torch.equal(both[0], _cholesky_psd(good)[0]) and torch.equal(both[1], _cholesky_psd(bad)[0])
     assert not torch.equal(both[0], torch.linalg.cholesky(good + 1e-14 * good.diagonal().max() * torch.eye(6, dtype=F64)))
+    # the ladder in one batched call (a GPU, torch.compile) gives the same factors
+    monkeypatch.setattr("flowins.filter.ekf._waits_cost", lambda t: True)
+    at_once, failed = _cholesky_psd(torch.stack((good, bad)))
+    assert torch.equal(at_once, both) and not bool(failed.any())
+    # a covariance no jitter rescues (an eigenvalue of -1e-3 of the largest) is flagged, not raised
+    worse = Q @ torch.diag(torch.tensor([1.0, 0.5, 0.2, 0.1, 0.05, -1e-3], dtype=F64)) @ Q.T
+    for waits in (True, False):
+        monkeypatch.setattr("flowins.filter.ekf._waits_cost", lambda t, waits=waits: waits)
+        _, failed = _cholesky_psd(torch.stack((good, worse)))
+        assert failed.tolist() == [False, True]
 
 
 @pytest.mark.parametrize("flush_bytes, capacity", [(None, None), (1, None), (1, 1), (100_000, 3)])

@@ -48,7 +48,7 @@ def test_scalar_update_equals_the_textbook_update(batch):
     H = torch.randn(*batch, M, D, generator=gen, dtype=F64)
     z = torch.randn(*batch, M, generator=gen, dtype=F64)
     r = 0.1 + torch.rand(*batch, M, generator=gen, dtype=F64)
-    mean, cov = scalar_update(m, P, z - (H @ m.unsqueeze(-1)).squeeze(-1), H, r)
+    mean, cov, _ = scalar_update(m, P, z - (H @ m.unsqueeze(-1)).squeeze(-1), H, r)
     flat = lambda t, k: t.reshape(-1, *t.shape[len(batch):])  # noqa: E731
     for i in range(max(1, math.prod(batch))):
         mi, Pi = textbook_update(flat(m, 1)[i], flat(P, 2)[i], flat(z, 1)[i], flat(H, 2)[i], torch.diag(flat(r, 1)[i]))
@@ -76,8 +76,9 @@ def test_scalar_update_with_a_singular_covariance_is_as_exact_as_joseph():
         exact_mean = torch.tensor([float(e) for e in K * vm], dtype=F64)
         Pp = (mpmath.eye(D) - K * Hm) * Pm
         exact_cov = torch.tensor([[float(Pp[i, j]) for j in range(D)] for i in range(D)], dtype=F64)
-    mean, cov = scalar_update(m, P, v, H, r)
-    mean_j, cov_j = joseph_update(m, P, v, H, torch.diag(r))
+    mean, cov, failed = scalar_update(m, P, v, H, r)
+    assert not bool(failed)
+    mean_j, cov_j, _ = joseph_update(m, P, v, H, torch.diag(r))
     err, err_j = float((mean - exact_mean).abs().max()), float((mean_j - exact_mean).abs().max())
     assert err <= 2.0 * err_j + 1e-12 and err < 1e-8  # the mean is ~1e-3: the problem's own conditioning
     assert float((cov - exact_cov).abs().max()) <= 10.0 * float((cov_j - exact_cov).abs().max()) + 1e-15
@@ -94,7 +95,7 @@ def test_joseph_update_equals_textbook(seed):
     R = random_spd(gen, n, scale=0.3)
     z = torch.randn(n, generator=gen, dtype=F64)
     expected_m, expected_P = textbook_update(m, P, z, H, R)
-    got_m, got_P = joseph_update(m, P, z - H @ m, H, R)
+    got_m, got_P, _ = joseph_update(m, P, z - H @ m, H, R)
     torch.testing.assert_close(got_m, expected_m, rtol=0, atol=1e-10)
     torch.testing.assert_close(got_P, expected_P, rtol=0, atol=1e-10)
 
@@ -544,3 +545,31 @@ def test_whitened_blocks_give_the_textbook_update_and_its_likelihood(M, d, seque
         nis_i = innovation[i] @ torch.linalg.inv(S_i) @ innovation[i]
         torch.testing.assert_close(result.nis[i], nis_i, rtol=1e-10, atol=1e-12)
         torch.testing.assert_close(result.nll[i], 0.5 * (nis_i + torch.logdet(S_i)), rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("d, M", [(1, 12), (2, 3), (3, 8)])
+def test_a_gated_update_is_one_graph_equal_to_eager(d, M):
+    """Scalar blocks (D x D algebra), a few stacked blocks (Joseph form) and many blocks
+    (information form) under ``torch.compile(fullgraph=True)`` with a backend that needs no
+    compiler: no graph break (no read-back of a flag, no data-dependent branch), the jitter
+    ladder as one batched call, the same posterior as eager; a singular prior included."""
+    gen = torch.Generator().manual_seed(d * 10 + M)
+    D = 9
+    P = random_spd(gen, D, scale=4.0).expand(2, D, D).clone()
+    copy = torch.cat((torch.eye(6, dtype=F64), torch.eye(6, dtype=F64)[:3]))
+    P[1] = copy @ random_spd(gen, 6, scale=4.0) @ copy.T  # rank 6: the first jitter fails
+    mean = torch.randn(2, D, generator=gen, dtype=F64)
+    H = torch.randn(2, M, d, D, generator=gen, dtype=F64)
+    v = torch.randn(2, M, d, generator=gen, dtype=F64)
+    R = 0.5 * torch.eye(d, dtype=F64).expand(2, M, d, d)
+    gate = Gate(mode="hard", probability=0.99)
+
+    def step(mean, cov, v, H, R):
+        return ekf_update(mean, cov, innovation=v, H=H, noise_cov=R, gate=gate)
+
+    torch._dynamo.reset()
+    compiled = torch.compile(step, fullgraph=True, backend="eager")
+    got, want = compiled(mean, P, v, H, R), step(mean, P, v, H, R)
+    assert got.failed.tolist() == want.failed.tolist() == [False, False]
+    for a, b in zip(got[:4], want[:4]):
+        torch.testing.assert_close(a, b, atol=1e-12, rtol=0)

@@ -168,7 +168,7 @@ def test_aligned_prior_covariance_is_the_prior_conditioned_on_its_heading_then_r
     fit, cond = _fit(sigma=0.15, var=2.5), 1e-3
     aligned = _rotate_state(x, fit)
     cov = aligned_prior_covariance(x, P, aligned, fit, condition_sigma_rad=cond)
-    _, Pc = joseph_update(x, P, torch.zeros(1, dtype=F64), h.reshape(1, -1), torch.full((1, 1), cond**2, dtype=F64))
+    _, Pc, _ = joseph_update(x, P, torch.zeros(1, dtype=F64), h.reshape(1, -1), torch.full((1, 1), cond**2, dtype=F64))
     A, _ = heading_transform(fit)
     torch.testing.assert_close(cov, A @ Pc @ A.T + heading_noise(aligned, fit), rtol=1e-9, atol=1e-12)
     v = float(h @ P @ h)
