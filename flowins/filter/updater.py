@@ -74,11 +74,11 @@ def update(
         raise ValueError(f"update: residual must be (M, d) for one run, got {tuple(residual.shape)} "
                          "(update_rows updates rows of a batch)")
     keep = likelihood and chain.likelihood
-    result = _step(chain.mean, chain.cov, H=H, residual=residual, noise_cov=noise_cov, gate=gate,
-                   sequential=sequential, valid=valid, likelihood=keep, dof=dof, noise_logdet=noise_logdet)
+    result = gated_update(chain.mean, chain.cov, H=H, residual=residual, noise_cov=noise_cov, gate=gate,
+                          sequential=sequential, valid=valid, likelihood=keep, dof=dof, noise_logdet=noise_logdet)
     raise_if_failed(result.failed, f"update ({info.get('kind', 'measurement')})", [chain.row])
     if keep:
-        chain.add_likelihood(*_likelihood(result, residual.shape[-1] if dof is None else dof))
+        chain.add_likelihood(*likelihood_sums(result, residual.shape[-1] if dof is None else dof))
     if info:
         nis, accepted = _summary(result, valid).tolist()
         info = {**info, "nis": nis, "accepted": accepted}
@@ -149,11 +149,11 @@ def step_rows(
                          f"got {tuple(residual.shape)}")
     mean, cov = chain.newest(rows) if prior is None else prior
     keep = likelihood and chain.likelihood
-    result = _step(mean, cov, H=H, residual=residual, noise_cov=noise_cov, gate=gate, sequential=sequential,
-                   valid=valid, likelihood=keep, dof=dof, noise_logdet=noise_logdet)
+    result = gated_update(mean, cov, H=H, residual=residual, noise_cov=noise_cov, gate=gate, sequential=sequential,
+                          valid=valid, likelihood=keep, dof=dof, noise_logdet=noise_logdet)
     raise_if_failed(result.failed, "update", rows)
     if keep:
-        chain.add_likelihood(rows, *_likelihood(result, residual.shape[-1] if dof is None else dof))
+        chain.add_likelihood(rows, *likelihood_sums(result, residual.shape[-1] if dof is None else dof))
     return result
 
 
@@ -181,10 +181,12 @@ def commit_rows(
     chain.log_rows([rows[i] for i in skipped], [infos[i] for i in skipped])
 
 
-def _step(mean: Tensor, cov: Tensor, *, H: Tensor, residual: Tensor, noise_cov: Tensor | None, gate: Gate | None,
-          sequential: bool, valid: Tensor | None, likelihood: bool, dof: Tensor | None = None,
-          noise_logdet: Tensor | None = None) -> UpdateResult:
-    """The gated update; the weight of invalid blocks set to zero."""
+def gated_update(mean: Tensor, cov: Tensor, *, H: Tensor, residual: Tensor, noise_cov: Tensor | None,
+                 gate: Gate | None, sequential: bool, valid: Tensor | None, likelihood: bool,
+                 dof: Tensor | None = None, noise_logdet: Tensor | None = None) -> UpdateResult:
+    """The gated update of the prior ``(mean, cov)`` with the state's quaternions re-normalised,
+    the weight of invalid blocks set to zero: a pure function of tensors (no chain, nothing
+    read back; its ``failed`` flags for the caller to read)."""
     if valid is not None and valid.shape != residual.shape[:-1]:
         raise ValueError(f"update: valid must be {tuple(residual.shape[:-1])} (one flag per block of the "
                          f"residual {tuple(residual.shape)}), got {tuple(valid.shape)}")
@@ -193,7 +195,7 @@ def _step(mean: Tensor, cov: Tensor, *, H: Tensor, residual: Tensor, noise_cov: 
     return result if valid is None else result._replace(weight=result.weight * valid)
 
 
-def _likelihood(result: UpdateResult, dim: int | Tensor) -> tuple[Tensor, Tensor]:
+def likelihood_sums(result: UpdateResult, dim: int | Tensor) -> tuple[Tensor, Tensor]:
     """``(nll, count)`` ``(...)``: the gate-weighted block likelihoods and scalar measurements
     (``dim`` the blocks' dimension, or each block's degrees of freedom ``(..., M)``)."""
     kept = result.weight.detach()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -12,10 +13,10 @@ from torch import Tensor
 from flowins.constants import cached_constant
 from flowins.filter.augmentation import augment_pose_rows
 from flowins.filter.chain import BatchChain, ChainBuilder
-from flowins.filter.ekf import Gate
-from flowins.filter.updater import commit_rows, step_rows
+from flowins.filter.ekf import Gate, UpdateResult, raise_if_failed
+from flowins.filter.updater import commit_rows, gated_update, likelihood_sums
 from flowins.flow.points import FlowPoints
-from flowins.measurements.flow import FlowCamera, epipolar_update, flow_measurements
+from flowins.measurements.flow import FlowCamera, FlowMeasurements, epipolar_update, flow_measurements
 from flowins.measurements.selection import select_points
 from flowins.state import STATE
 
@@ -199,13 +200,12 @@ def _flow_update(chain: BatchChain, rows: list[int], frames: list[FlowFrame]) ->
     # in the first iteration: no update) and that iteration's counts
     x_i = mean
     for iteration in range(u.iterations):
-        m = flow_measurements(x_i, points.flow_px, points.uv1_px, camera, mask=mask, min_parallax_px=min_parallax,
-                              jacobians=first.jacobians)
-        upd = epipolar_update(m, sigma, parallax_inflation=u.parallax_inflation)
-        innovation = upd.innovation if iteration == 0 else upd.innovation - (upd.H @ (mean - x_i)[:, None, :, None]).squeeze(-1)
-        # the likelihood of the prior's prediction: the first iteration's only
-        step = step_rows(chain, rows, H=upd.H, residual=innovation, noise_cov=upd.noise_cov, gate=u.gate,
-                         sequential=u.sequential, valid=m.valid, likelihood=iteration == 0, prior=(mean, cov))
+        it = flow_iteration(x_i, mean, cov, points, camera, mask, min_parallax, update=u, jacobians=first.jacobians,
+                            first=iteration == 0, likelihood=iteration == 0 and chain.likelihood)
+        raise_if_failed(it.result.failed, "flow update", rows)
+        if iteration == 0 and chain.likelihood:  # the likelihood of the prior's prediction: the first iteration's only
+            chain.add_likelihood(rows, *likelihood_sums(it.result, 1))
+        m, step = it.measurements, it.result
         counts_now = torch.stack((m.valid.sum(-1), m.n_degenerate, m.n_behind, m.n_low_parallax), -1)
         accepted = step.weight.sum(-1)
         if iteration == 0:
@@ -231,6 +231,30 @@ def _flow_update(chain: BatchChain, rows: list[int], frames: list[FlowFrame]) ->
     commit_rows(chain, rows, new_mean, new_cov, logs, updated=done)
     for b, frame, log in zip(rows, frames, logs):
         frame._recover(chain.row(b), valid=log["valid"], accepted=log["accepted"])
+
+
+class FlowIteration(NamedTuple):
+    """One step of a flow frame's (iterated) update (:func:`flow_iteration`)."""
+
+    measurements: FlowMeasurements  # linearised at the step's point
+    result: UpdateResult  # the gated update of the prior
+
+
+def flow_iteration(x_i: Tensor, mean: Tensor, cov: Tensor, points: FlowPoints, camera: FlowCamera,
+                   mask: Tensor | None, min_parallax_px: Tensor, *, update: FlowUpdate, jacobians: str = "analytic",
+                   first: bool = True, likelihood: bool = False) -> FlowIteration:
+    """A frame's flow points ``(r, M, 2)`` (``σ`` the noise used) linearised at ``x_i`` ``(r, D)``
+    and applied to the prior ``(mean, cov)`` as scalar epipolar measurements, gated
+    (:func:`~flowins.filter.updater.gated_update`); ``first``: ``x_i`` is the prior's mean (the
+    innovation needs no shift). A pure function of tensors with no read-back: without a
+    gradient, ``torch.compile(fullgraph=True)`` takes it whole (a test holds it)."""
+    m = flow_measurements(x_i, points.flow_px, points.uv1_px, camera, mask=mask, min_parallax_px=min_parallax_px,
+                          jacobians=jacobians)
+    upd = epipolar_update(m, points.sigma_px, parallax_inflation=update.parallax_inflation)
+    innovation = upd.innovation if first else upd.innovation - (upd.H @ (mean - x_i)[:, None, :, None]).squeeze(-1)
+    result = gated_update(mean, cov, H=upd.H, residual=innovation, noise_cov=upd.noise_cov, gate=update.gate,
+                          sequential=update.sequential, valid=m.valid, likelihood=likelihood)
+    return FlowIteration(m, result)
 
 
 def stack_points(points: list[FlowPoints], *, like: Tensor) -> tuple[FlowPoints, Tensor | None]:
