@@ -86,12 +86,6 @@ class DltSolution(NamedTuple):
         top = self.eigenvalues[..., 1:].flip(-1).clamp_min(0.0).sqrt()
         return torch.cat((top, self.residual_sq.sqrt().unsqueeze(-1)), -1)
 
-    @property
-    def right_vectors(self) -> Tensor:
-        """``(..., 4, 4)`` Vᴴ: rows are the right singular vectors, descending (the last is ``point``)."""
-        top = self.eigenvectors[..., 1:].flip(-1).transpose(-1, -2)
-        return torch.cat((top, self.point.unsqueeze(-2)), -2)
-
 
 def solve_dlt(A: Tensor, P1: Tensor | None = None, *, eigen: str = "auto") -> DltSolution:
     """The smallest right singular vector of the row-equilibrated ``A`` ``(..., m, 4)``, its

@@ -256,7 +256,12 @@ def test_a_checkpoint_keeps_the_configured_flow_and_takes_only_a_learned_rate(tm
     assert same.flow == spynet and "(the configured flow)" in describe_flow(same.flow, spynet)
     moments = {**spynet, "mc_mode": "moments"}
     assert filter_setup({**cfg, "flow": moments}, [], recorded=False, checkpoint=kept).flow == moments
-    dis = {"_target_": "flowins.flow.classical.DisProvider"}
+    # a provider with no dropout keeps its config; the target is one that builds
+    from flowins.config import instantiate
+    from flowins.flow.classical import DISProvider
+
+    dis = {"_target_": "flowins.flow.classical.DISProvider"}
+    assert isinstance(instantiate(dis, "flow"), DISProvider)
     assert filter_setup({**cfg, "flow": dis}, [], recorded=False, checkpoint=learned).flow == dis
 
 

@@ -42,7 +42,6 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from flowins.flow.base import mc_statistics
 from flowins.flow.flownet2.networks import (
     DROPOUT_OPTIONS,
     FlowNetC,
@@ -282,10 +281,6 @@ class FlowNet2(FlowNet2CSS):
         run-once path must equal; for tests and benchmarks)."""
         n = self.passes if passes is None else int(passes)
         return torch.stack([self(inputs) for _ in range(n)])
-
-    def mc_predict(self, inputs: Tensor, passes: int | None = None, *, floor: float = 0.0) -> tuple[Tensor, Tensor]:
-        """Mean flow and per-pixel standard deviation over the passes, each ``(B, 2, H, W)`` px."""
-        return mc_statistics(self.mc_samples(inputs, passes), floor=floor)
 
 
 #: NVIDIA's model names -> classes
