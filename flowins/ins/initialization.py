@@ -31,7 +31,7 @@ class InitialUncertainty:
 
     position_m: float = 0.01
     velocity_mps: float = 0.05
-    roll_pitch_rad: float = math.radians(2.0)
+    roll_pitch_rad: float = 0.035  # 2°
     yaw_rad: float = math.pi
     acc_bias_mps2: float = 0.1
     gyro_bias_rps: float = 2e-3
