@@ -1,5 +1,5 @@
 """How much memory a device has free: what a long filter pass checks itself against before it
-starts (:func:`flowins.navigation.memory_warning`)."""
+starts (:func:`flowins.filter.runner.memory_warning`)."""
 from __future__ import annotations
 
 from pathlib import Path

@@ -18,22 +18,21 @@ from flowins.data.streams import GnssStream, ImuStream, PoseStream
 from flowins.filter.augmentation import with_window
 from flowins.filter.ekf import Gate
 from flowins.filter.chain import FilterTrack
-from flowins.filter.runner import FilterInput, chain_bytes, run_filters
+from flowins.filter.runner import FilterInput, memory_warning, run_filters
 from flowins.filter.smoother import SmoothedTrack, rts_smooth_batch
 from flowins.flow.pairs import FlowPairs
 from flowins.geometry.geodesy import LocalTangentPlane
 from flowins.ins.initialization import InitialUncertainty
 from flowins.ins.mechanization import SCHEMES, STANDARD_GRAVITY_MPS2, ProcessNoise
-from flowins.measurements.flow_update import FlowFrame, FlowUpdate
+from flowins.measurements.flow_update import FlowUpdate, flow_frames
 from flowins.measurements.gnss import GnssRecovery, correlation_inflation, gnss_fixes, gnss_noise
 from flowins.measurements.gnss_heading import HeadingAlignment, aligned_prior_covariance, fit_from_record
 from flowins.measurements.registry import NavigationContext, measurement_kind
 from flowins.measurements.tracks import TrackUpdate, track_frames
 from flowins.measurements.vehicle import VehicleConstraint  # noqa: F401  (registers the kind "vehicle")
 from flowins.measurements.zero_velocity import ZeroVelocity
-from flowins.memory import available_memory_bytes, describe_bytes
 from flowins.parallel import can_start_workers, run_in_processes, split_by_load
-from flowins.state import STATE, STATE_DIM, window_size
+from flowins.state import STATE_DIM, window_size
 from flowins.start import Start, StartSettings, choose_start
 
 log = logging.getLogger(__name__)
@@ -163,32 +162,6 @@ class NavigationResult:
         return [entry for entry in self.filter.log if entry.get("kind") == "flow"]
 
 
-def flow_frames(pairs, camera, update: FlowUpdate, *, t_min_s: float, t_max_s: float, name: str = "flow",
-                jacobians: str = "analytic") -> tuple[list[FlowFrame], int]:
-    """One :class:`FlowFrame` per frame time of ``pairs`` (a :class:`~flowins.flow.pairs.FlowPairs`).
-
-    A pair's points update the filter at its end time; its start time must be the
-    previous frame event (where the pose was augmented), otherwise an augmentation-only
-    frame is inserted there first. Pairs not inside ``[t_min_s, t_max_s]`` are left out
-    and counted (second return value).
-    """
-    from flowins.flow.points import FlowPoints
-
-    empty = torch.zeros(0, 2, dtype=torch.float64)
-    events: list[FlowFrame] = []
-    outside = 0
-    last = None
-    for k, (t1, t2) in enumerate(zip(pairs.t1_s.tolist(), pairs.t2_s.tolist())):
-        if t1 < t_min_s or t2 > t_max_s:
-            outside += 1
-            continue
-        if last is None or last != t1:
-            events.append(FlowFrame(t1, FlowPoints(empty, empty, empty), camera, update, f"{name} frame at {t1:.3f} s", jacobians))
-        events.append(FlowFrame(t2, pairs.points[k], camera, update, f"{name} pair {k} ({t1:.3f} -> {t2:.3f} s)", jacobians))
-        last = t2
-    return events, outside
-
-
 @dataclass
 class NavigationSetup:
     """What :func:`navigate` hands the filter: the prior at the first IMU sample and all events."""
@@ -311,7 +284,7 @@ def navigate(run: NavigationRun, *, config: NavigationConfig = NavigationConfig(
     used (the GNSS fixes left out are counted in the result). With GNSS the local ENU
     frame has its origin at the first fix (or ``run.frame``). Measurements after the
     IMU's last sample raise. Flow pairs are added as the paper's flow frames
-    (:func:`flow_frames`, settings ``config.flow_update``); each of ``run.streams`` by its
+    (:func:`~flowins.measurements.flow_update.flow_frames`, settings ``config.flow_update``); each of ``run.streams`` by its
     registered kind (:mod:`flowins.measurements.registry`, settings ``config.measurements``).
 
     When no input or config tensor needs a gradient (:func:`carries_gradient`) the run is
@@ -440,36 +413,6 @@ def _navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig,
     ]
 
 
-#: a filter pass's peak memory over its node chain's (:func:`~flowins.filter.runner.chain_bytes`):
-#: the chain and the smoother's work, and for a batch of more than four rows the chain's copy
-#: into the tracks. Measured: the 300 s walk's two sparse rows at ``filter.tracks.window=10``
-#: estimate 2.9 GB and peak at 5.1 GB resident (docs/performance.md)
-PEAK_OVER_CHAIN = 2.5
-
-
-def memory_warning(inputs: Sequence[FilterInput], *, output_every: int,
-                   available: int | None | str = "ask") -> str | None:
-    """Why a filter pass over ``inputs`` (one batch) may not fit in memory, or None: its estimated
-    peak (:data:`PEAK_OVER_CHAIN` times :func:`~flowins.filter.runner.chain_bytes`) against 80 %
-    of the memory free on the state's device (``available`` bytes; ``"ask"``: as
-    :func:`~flowins.memory.available_memory_bytes` tells; None: unknown, no warning)."""
-    if not inputs:
-        return None
-    device = inputs[0].mean0.device
-    if available == "ask":
-        available = available_memory_bytes(device)
-    need = PEAK_OVER_CHAIN * chain_bytes(inputs, output_every=output_every)
-    if available is None or need <= 0.8 * available:
-        return None
-    D = inputs[0].mean0.shape[-1]
-    window = window_size(D)
-    longest = max(float(run.t_s[-1] - run.t_s[0]) for run in inputs)
-    return (f"this filter pass may need about {describe_bytes(need)} ({len(inputs)} run(s) in one batch, the longest "
-            f"{longest:.0f} s; a state of {D} entries, {window} cloned pose(s), whose node chain keeps {D} x {D} "
-            f"matrices at every node), and the {device.type.upper()} has {describe_bytes(available)} free. A smaller "
-            f"filter.tracks.window, fewer combinations or seeds at once, or a shorter sequence (sequence.end_s) needs less")
-
-
 def heading_fit_record(track: FilterTrack) -> dict[str, Any] | None:
     """The fit of the GNSS heading alignment that set ``track``'s heading (its log entry's
     ``fit``), or None where no fix set it."""
@@ -533,82 +476,3 @@ def _times(n: int) -> str:
 
 def _resets(track: FilterTrack) -> int:
     return sum(1 for e in track.log if e.get("kind") == "gnss_reset")
-
-
-def flow_statistics(result: NavigationResult, pairs: FlowPairs) -> dict[str, Any]:
-    """How the flow fared in a run: frames, points per frame, accepted, left out."""
-    log = result.flow_log
-    frames = [e for e in log if e["points"]]
-    n = max(1, len(frames))
-    return {
-        "flow_frames": len(frames),
-        "flow_pairs": len(pairs),
-        "flow_pairs_outside_imu": result.flow_pairs_outside,
-        "mean_candidates": sum(e["candidates"] for e in frames) / n,
-        "mean_points": sum(e["points"] for e in frames) / n,
-        "mean_valid": sum(e["valid"] for e in frames) / n,
-        "mean_accepted": sum(e["accepted"] for e in frames) / n,
-        "mean_low_parallax": sum(e["low_parallax"] for e in frames) / n,
-        "mean_degenerate": sum(e["degenerate"] + e["behind"] for e in frames) / n,
-    }
-
-
-def track_statistics(result: NavigationResult) -> dict[str, Any]:
-    """How the multi-view track update fared in a run: frames, tracks used per frame (of those
-    complete there), valid, accepted, left out."""
-    log = [entry for entry in result.filter.log if entry.get("kind") == "tracks"]
-    n = max(1, len(log))
-    return {
-        "track_frames": len(log),
-        "mean_tracks": sum(e["tracks"] for e in log) / n,
-        "mean_candidates": sum(e["candidates"] for e in log) / n,
-        "mean_valid": sum(e["valid"] for e in log) / n,
-        "mean_accepted": sum(e.get("accepted", 0.0) for e in log) / n,
-        "mean_low_parallax": sum(e["low_parallax"] for e in log) / n,
-        "mean_degenerate": sum(e["degenerate"] + e["behind"] for e in log) / n,
-    }
-
-
-def run_warnings(result: NavigationResult) -> list[str]:
-    """What a reader of the table must know about a run: GNSS resets, flow inflations, an
-    unbounded position σ (inertial drift), most fixes rejected, a filter that ends rejecting
-    the fixes (inconsistent), fixes before the start."""
-    warnings = []
-    log = result.filter.log
-    resets = [e for e in log if e.get("kind") == "gnss_reset"]
-    if resets:
-        worst = max(resets, key=lambda e: e["offset_m"])
-        rejected = sum(e["why"] == "rejected" for e in resets)
-        why = ", ".join(part for part in (f"{rejected} after rejected fixes" if rejected else "",
-                                          f"{len(resets) - rejected} after inconsistent innovations"
-                                          if len(resets) > rejected else "") if part)
-        warnings.append(f"GNSS: the filter drifted from the fixes and was reset {len(resets)} time(s) ({why}; largest "
-                        f"jump {worst['offset_m']:.1f} m at {worst['t_s']:.1f} s; filter.gnss_recovery)")
-    inflated = [e for e in log if e.get("kind") == "flow_inflate"]
-    if inflated:
-        warnings.append(f"flow: {len(inflated)} time(s) most points of {inflated[0]['frames']} frames in a row failed "
-                        f"the gate (first at {inflated[0]['t_s']:.1f} s); the velocity and gyroscope bias σ were "
-                        "inflated to let the flow back in (filter.flow.recovery)")
-    sigma = result.filter.node_cov[:, STATE.p, STATE.p].diagonal(dim1=-2, dim2=-1)[:, :2].sum(-1).sqrt()
-    if float(sigma.max()) > 100.0:
-        k = int(sigma.argmax())
-        warnings.append(f"the filter's own horizontal position σ reaches {float(sigma[k]):.0f} m (at "
-                        f"{float(result.filter.t_s[k]):.0f} s): nothing bounds the position there, the error is "
-                        "inertial drift")
-    fixes = [e for e in log if e.get("kind") == "gnss" and "nis" in e]
-    if fixes:
-        rejected = sum(e["accepted"] < 0.5 for e in fixes)
-        if rejected > len(fixes) / 2:
-            warnings.append(f"GNSS: {rejected} of {len(fixes)} fixes failed the gate: the filter disagrees with them "
-                            "(filter.gnss_gate, imu noise)")
-        tail = fixes[-10:]
-        if len(tail) >= 3 and sum(e["accepted"] < 0.5 for e in tail) > len(tail) / 2:
-            warnings.append(f"GNSS: the run ends inconsistent: {sum(e['accepted'] < 0.5 for e in tail)} of the last "
-                            f"{len(tail)} fixes failed the gate")
-    if result.flow_pairs_outside:
-        warnings.append(f"flow: {result.flow_pairs_outside} frame pairs outside the filter's span (its start at "
-                        f"{result.start.t_s:.2f} s to the IMU's last sample) are not used")
-    if result.gnss_before_start:
-        warnings.append(f"GNSS: {result.gnss_before_start} fixes before the filter's start "
-                        f"({result.start.t_s:.2f} s) are not used")
-    return warnings

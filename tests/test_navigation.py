@@ -53,7 +53,7 @@ def test_navigate_gradient_matches_finite_differences_and_the_fast_path_matches_
 def test_run_warnings_name_flow_pairs_outside_the_filter_span_and_fixes_before_the_start():
     from types import SimpleNamespace
 
-    from flowins.navigation import run_warnings
+    from flowins.evaluation.run_report import run_warnings
     from flowins.state import STATE_DIM
 
     cov = torch.eye(STATE_DIM, dtype=torch.float64).expand(3, STATE_DIM, STATE_DIM)
@@ -162,7 +162,7 @@ def test_the_second_pass_reports_its_progress_under_its_own_name(monkeypatch, wr
 
 def test_memory_warning_compares_the_pass_s_estimated_peak_with_80_percent_of_the_free_memory():
     from flowins.filter.runner import FilterInput, chain_bytes
-    from flowins.navigation import PEAK_OVER_CHAIN, memory_warning
+    from flowins.filter.runner import PEAK_OVER_CHAIN, memory_warning
 
     n = 1001
     t = torch.linspace(0.0, 10.0, n, dtype=torch.float64)
@@ -179,14 +179,14 @@ def test_memory_warning_compares_the_pass_s_estimated_peak_with_80_percent_of_th
 
 
 def test_navigate_warns_before_a_pass_that_may_not_fit(monkeypatch, caplog, recording):
-    import flowins.navigation as navigation
+    import flowins.filter.runner as runner
 
-    monkeypatch.setattr(navigation, "available_memory_bytes", lambda device: 1)
+    monkeypatch.setattr(runner, "available_memory_bytes", lambda device: 1)
     with caplog.at_level("WARNING", logger="flowins.navigation"):
         navigate(NavigationRun(recording.imu, recording.gnss))
     assert any(r.getMessage().startswith("warning: this filter pass may need about") for r in caplog.records)
     caplog.clear()
-    monkeypatch.setattr(navigation, "available_memory_bytes", lambda device: 1 << 50)
+    monkeypatch.setattr(runner, "available_memory_bytes", lambda device: 1 << 50)
     with caplog.at_level("WARNING", logger="flowins.navigation"):
         navigate(NavigationRun(recording.imu, recording.gnss))
     assert not caplog.records

@@ -15,6 +15,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from flowins.memory import available_memory_bytes, describe_bytes
 from flowins.progress import progress as track_progress
 from flowins.filter.chain import BatchChain, BatchEvent, Event, FilterTrack
 from flowins.filter.propagation import plan_nodes, propagate_batched, propagate_reference
@@ -328,3 +329,33 @@ def _schedule(t_imu: Tensor, events: Sequence[Event], output_every: int) -> _Sch
     for event, step in zip(later, event_step.tolist()):
         events_by_step.setdefault(step, []).append(event)
     return _Schedule(grid, sample, torch.nonzero(is_node).squeeze(-1), segment_ends, events_by_step)
+
+
+#: a filter pass's peak memory over its node chain's (:func:`chain_bytes`):
+#: the chain and the smoother's work, and for a batch of more than four rows the chain's copy
+#: into the tracks. Measured: the 300 s walk's two sparse rows at ``filter.tracks.window=10``
+#: estimate 2.9 GB and peak at 5.1 GB resident (docs/performance.md)
+PEAK_OVER_CHAIN = 2.5
+
+
+def memory_warning(inputs: Sequence[FilterInput], *, output_every: int,
+                   available: int | None | str = "ask") -> str | None:
+    """Why a filter pass over ``inputs`` (one batch) may not fit in memory, or None: its estimated
+    peak (:data:`PEAK_OVER_CHAIN` times :func:`chain_bytes`) against 80 %
+    of the memory free on the state's device (``available`` bytes; ``"ask"``: as
+    :func:`~flowins.memory.available_memory_bytes` tells; None: unknown, no warning)."""
+    if not inputs:
+        return None
+    device = inputs[0].mean0.device
+    if available == "ask":
+        available = available_memory_bytes(device)
+    need = PEAK_OVER_CHAIN * chain_bytes(inputs, output_every=output_every)
+    if available is None or need <= 0.8 * available:
+        return None
+    D = inputs[0].mean0.shape[-1]
+    window = window_size(D)
+    longest = max(float(run.t_s[-1] - run.t_s[0]) for run in inputs)
+    return (f"this filter pass may need about {describe_bytes(need)} ({len(inputs)} run(s) in one batch, the longest "
+            f"{longest:.0f} s; a state of {D} entries, {window} cloned pose(s), whose node chain keeps {D} x {D} "
+            f"matrices at every node), and the {device.type.upper()} has {describe_bytes(available)} free. A smaller "
+            f"filter.tracks.window, fewer combinations or seeds at once, or a shorter sequence (sequence.end_s) needs less")

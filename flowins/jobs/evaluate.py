@@ -34,8 +34,8 @@ from flowins.ins.initialization import forward_axis
 from flowins.jobs.cli import console_logging
 from flowins.measurements.flow import FlowCamera
 from flowins.measurements.vehicle import VehicleSettings, platform_streams
-from flowins.navigation import (NavigationConfig, NavigationResult, NavigationRun, batch_workers, flow_statistics, navigate_batch,
-                                run_warnings, track_statistics)
+from flowins.evaluation.run_report import flow_statistics, run_warnings, track_statistics
+from flowins.navigation import NavigationConfig, NavigationResult, NavigationRun, batch_workers, navigate_batch
 from flowins.settings import evaluate_settings, filter_setup
 from flowins.state import STATE, STATE_DIM
 

@@ -233,6 +233,30 @@ def _flow_update(chain: BatchChain, rows: list[int], frames: list[FlowFrame]) ->
         frame._recover(chain.row(b), valid=log["valid"], accepted=log["accepted"])
 
 
+def flow_frames(pairs, camera, update: FlowUpdate, *, t_min_s: float, t_max_s: float, name: str = "flow",
+                jacobians: str = "analytic") -> tuple[list[FlowFrame], int]:
+    """One :class:`FlowFrame` per frame time of ``pairs`` (a :class:`~flowins.flow.pairs.FlowPairs`).
+
+    A pair's points update the filter at its end time; its start time must be the
+    previous frame event (where the pose was augmented), otherwise an augmentation-only
+    frame is inserted there first. Pairs not inside ``[t_min_s, t_max_s]`` are left out
+    and counted (second return value).
+    """
+    empty = torch.zeros(0, 2, dtype=torch.float64)
+    events: list[FlowFrame] = []
+    outside = 0
+    last = None
+    for k, (t1, t2) in enumerate(zip(pairs.t1_s.tolist(), pairs.t2_s.tolist())):
+        if t1 < t_min_s or t2 > t_max_s:
+            outside += 1
+            continue
+        if last is None or last != t1:
+            events.append(FlowFrame(t1, FlowPoints(empty, empty, empty), camera, update, f"{name} frame at {t1:.3f} s", jacobians))
+        events.append(FlowFrame(t2, pairs.points[k], camera, update, f"{name} pair {k} ({t1:.3f} -> {t2:.3f} s)", jacobians))
+        last = t2
+    return events, outside
+
+
 class FlowIteration(NamedTuple):
     """One step of a flow frame's (iterated) update (:func:`flow_iteration`)."""
 

@@ -7,7 +7,7 @@ from flowins.filter.chain import ChainBuilder
 from flowins.flow.pairs import FlowPairs
 from flowins.flow.points import FlowPoints
 from flowins.measurements.flow import FlowCamera
-from flowins.navigation import flow_frames
+from flowins.measurements.flow_update import flow_frames
 from flowins.state import STATE, STATE_DIM
 
 F64 = torch.float64
