@@ -49,6 +49,14 @@ class BatchEvent(Event, Protocol):
     def apply_batch(cls, chain: BatchChain, rows: Sequence[int], events: Sequence[BatchEvent]) -> None: ...
 
 
+class RowBatchEvent:
+    """A base for :class:`BatchEvent` types whose one-run ``apply`` is their batch step on the
+    run's own row: a subclass writes ``batch_key`` and ``apply_batch`` only."""
+
+    def apply(self, chain: ChainBuilder) -> None:
+        type(self).apply_batch(chain.batch, [chain.row], [self])
+
+
 #: unflushed node columns a :class:`BatchChain` with row stores holds before it moves them to
 #: the stores (bytes of their ``D x D`` matrices): small enough that the join it copies them
 #: through is reused from the heap, large enough that a flush is a few operations per node run

@@ -12,7 +12,7 @@ from torch import Tensor
 
 from flowins.constants import cached_constant
 from flowins.filter.augmentation import augment_pose_rows
-from flowins.filter.chain import BatchChain, ChainBuilder
+from flowins.filter.chain import BatchChain, ChainBuilder, RowBatchEvent
 from flowins.filter.ekf import Gate, UpdateResult, raise_if_failed
 from flowins.filter.updater import commit_rows, gated_update, likelihood_sums
 from flowins.flow.points import FlowPoints
@@ -116,7 +116,7 @@ PAPER_FLOW_UPDATE = FlowUpdate(n_points=None, min_parallax_sigma=0.0, parallax_i
 
 
 @dataclass(frozen=True)
-class FlowFrame:
+class FlowFrame(RowBatchEvent):
     """A camera frame: flow updates against the augmented previous frame's pose, then
     pose forgetting and augmentation (the paper's per-frame order).
 
@@ -149,9 +149,6 @@ class FlowFrame:
     def batch_key(self) -> tuple:
         """Frames with the same update settings and Jacobians act together in a batch."""
         return (FlowFrame, id(self.update), self.jacobians)
-
-    def apply(self, chain: ChainBuilder) -> None:
-        type(self).apply_batch(chain.batch, [chain.row], [self])
 
     @classmethod
     def apply_batch(cls, chain: BatchChain, rows: list[int], frames: list[FlowFrame]) -> None:

@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 from torch.func import jacrev, vmap
 
-from flowins.filter.chain import BatchChain, ChainBuilder
+from flowins.filter.chain import BatchChain, ChainBuilder, RowBatchEvent
 from flowins.filter.ekf import Gate, chi2_quantile
 from flowins.filter.updater import update, update_rows
 from flowins.geometry import quaternion as quat
@@ -179,7 +179,7 @@ def reset_matrices(mean: Tensor, fixes: list[tuple[float, Tensor, Tensor]], reco
 
 
 @dataclass(frozen=True)
-class GnssFix:
+class GnssFix(RowBatchEvent):
     """A GNSS position fix ``z`` (local ENU, m) with noise ``R`` ``(3, 3)``.
 
     With ``heading`` enabled, a fix that finds the filter's yaw unknown is held back
@@ -200,9 +200,6 @@ class GnssFix:
         """Fixes with the same gate, heading alignment, recovery and lever arm act together (a
         run's fixes share them, as do the runs of one navigation config)."""
         return (GnssFix, id(self.gate), id(self.heading), id(self.recovery), id(self.lever_arm_m))
-
-    def apply(self, chain: ChainBuilder) -> None:
-        type(self).apply_batch(chain.batch, [chain.row], [self])
 
     @classmethod
     def apply_batch(cls, chain: BatchChain, rows: Sequence[int], fixes: Sequence[GnssFix]) -> None:

@@ -49,7 +49,7 @@ from torch import Tensor
 
 from flowins.constants import cached_constant
 from flowins.filter.augmentation import augment_pose_rows
-from flowins.filter.chain import BatchChain, ChainBuilder
+from flowins.filter.chain import BatchChain, RowBatchEvent
 from flowins.filter.ekf import Gate
 from flowins.filter.updater import update_rows
 from flowins.geometry import quaternion as quat
@@ -354,7 +354,7 @@ def schedule_tracks(t_s: Tensor, track_id: Tensor, uv_px: Tensor, frame_times_s:
 
 
 @dataclass(frozen=True)
-class TrackFrame:
+class TrackFrame(RowBatchEvent):
     """A camera frame of the multi-view track update: the complete tracks update the filter
     (:func:`track_measurements`), then the window of cloned poses shifts."""
 
@@ -366,9 +366,6 @@ class TrackFrame:
 
     def batch_key(self) -> tuple:
         return (TrackFrame, id(self.update))
-
-    def apply(self, chain: ChainBuilder) -> None:
-        type(self).apply_batch(chain.batch, [chain.row], [self])
 
     @classmethod
     def apply_batch(cls, chain: BatchChain, rows: list[int], frames: list[TrackFrame]) -> None:

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from flowins.filter.chain import BatchChain, ChainBuilder
+from flowins.filter.chain import BatchChain, RowBatchEvent
 from flowins.filter.updater import update_rows
 from flowins.geometry import quaternion as quat
 from flowins.measurements.registry import MeasurementKind, NavigationContext, register
@@ -95,7 +95,7 @@ def body_velocity_jacobians(q: Tensor, v: Tensor) -> tuple[Tensor, Tensor, Tenso
 
 
 @dataclass(frozen=True)
-class VehicleUpdate:
+class VehicleUpdate(RowBatchEvent):
     """One non-holonomic pseudo-measurement at ``time_s`` (module docstring)."""
 
     time_s: float
@@ -105,9 +105,6 @@ class VehicleUpdate:
     def batch_key(self) -> Hashable:
         """Updates with the same settings (one run's, or one config's for a batch) act together."""
         return (VehicleUpdate, id(self.settings))
-
-    def apply(self, chain: ChainBuilder) -> None:
-        type(self).apply_batch(chain.batch, [chain.row], [self])
 
     @classmethod
     def apply_batch(cls, chain: BatchChain, rows: Sequence[int], events: Sequence[VehicleUpdate]) -> None:

@@ -7,13 +7,13 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from flowins.filter.chain import BatchChain, ChainBuilder
+from flowins.filter.chain import BatchChain, RowBatchEvent
 from flowins.filter.updater import update_rows
 from flowins.state import STATE
 
 
 @dataclass(frozen=True)
-class ZeroVelocity:
+class ZeroVelocity(RowBatchEvent):
     """A zero-velocity pseudo-measurement ``0 = v + n``, ``n ~ N(0, σ² I₃)`` (a still device)."""
 
     time_s: float
@@ -24,9 +24,6 @@ class ZeroVelocity:
         """Zero velocities with the same σ (the same tensor, or the same number) act together."""
         s = self.sigma_mps
         return (ZeroVelocity, ("tensor", id(s)) if isinstance(s, Tensor) else float(s))
-
-    def apply(self, chain: ChainBuilder) -> None:
-        type(self).apply_batch(chain.batch, [chain.row], [self])
 
     @classmethod
     def apply_batch(cls, chain: BatchChain, rows: Sequence[int], events: Sequence[ZeroVelocity]) -> None:
