@@ -86,6 +86,16 @@ def run_filter(
                        jacobians=jacobians, scheme=scheme, progress=progress, likelihood=likelihood)[0]
 
 
+class Segment(NamedTuple):
+    """The IMU steps of one run up to its next event, and what follows them."""
+
+    first: int  # the first step
+    last: int  # the last step (the event's)
+    node_steps: list[int]  # the steps that end at a node of the chain
+    node_times: list[float]  # those nodes' times
+    events: list  # the events at the last step
+
+
 class _Run(NamedTuple):
     """One run's schedule, ready to step: its samples and the segments between events."""
 
@@ -94,7 +104,7 @@ class _Run(NamedTuple):
     gyro: Tensor
     dt: Tensor  # (S,)
     variances: Tensor  # (S, 15) the steps' process noise variances
-    segments: list[tuple[int, int, list[int], list[float], list]]  # first, last step, node steps, times, events
+    segments: list[Segment]
     early: list  # events at the start time
 
 
@@ -168,10 +178,10 @@ def run_filters(
         segments = [plan.segments[k] if k < len(plan.segments) else None for plan in plans]
         L = max(last - first + 1 for first, last, *_ in filter(None, segments))
         if B == 1:
-            first, last = segments[0][:2]
+            first, last = segments[0].first, segments[0].last
             acc, gyro, dt, variances = (getattr(plans[0], name)[first:last + 1].unsqueeze(0)
                                         for name in ("acc", "gyro", "dt", "variances"))
-            node_steps = [[step - first for step in segments[0][2]]]
+            node_steps = [[step - first for step in segments[0].node_steps]]
         else:
             index, node_steps = [], []
             for offset, segment in zip(offsets, segments):
@@ -179,7 +189,7 @@ def run_filters(
                     index.append([pad] * L)
                     node_steps.append([])
                     continue
-                first, last, steps = segment[:3]
+                first, last, steps = segment.first, segment.last, segment.node_steps
                 shift = L - (last - first + 1)  # padding steps first: the last step is the segment's
                 index.append([pad] * shift + list(range(offset + first, offset + last + 1)))
                 node_steps.append([step - first + shift for step in steps])
@@ -194,9 +204,9 @@ def run_filters(
                                       torch.tensor(node_steps[0]), noise=noises[0], gravity_mps2=gravity_mps2,
                                       scheme=scheme)
             out = type(out)(*(t.unsqueeze(0) for t in out))
-        chain.add_nodes([[] if segment is None else segment[3] for segment in segments],
+        chain.add_nodes([[] if segment is None else segment.node_times for segment in segments],
                         out.transition, out.mean, out.cov, real=nodes.real)
-        apply_events(chain, [[] if segment is None else segment[4] for segment in segments])
+        apply_events(chain, [[] if segment is None else segment.events for segment in segments])
     return chain.finish()
 
 
@@ -290,7 +300,7 @@ def _prepare(run: FilterInput, output_every: int, dtype: torch.dtype, device: to
             steps.append(node_index[j])
             times.append(node_t_s[j])
             j += 1
-        segments.append((start, end, steps, times, plan.events_by_step.get(end, [])))
+        segments.append(Segment(start, end, steps, times, plan.events_by_step.get(end, [])))
         start = end + 1
     return _Run(t0, acc, gyro, dt, noise.variances(dt), segments, [e for e in events if e.time_s <= t0])
 
