@@ -272,6 +272,12 @@ def window_loss(
     """
     if loss not in LOSSES:
         raise ValueError(f"model.loss={loss!r}: expected one of {', '.join(LOSSES)}")
+    if orientation_weight_m_per_rad > 0 and truth.quat_wxyz is None:
+        raise ValueError(f"{truth.name}: the orientation loss (orientation_weight_m_per_rad > 0) needs a ground "
+                         "truth with orientations (quat_wxyz); this one has positions only")
+    if innovation_weight > 0 and (innovation is None or innovation[0] is None):
+        raise ValueError("window_loss: innovation_weight > 0 needs the window's innovation likelihood "
+                         "(run_windows(..., likelihood=True))")
     t, pos, cov = track.t, track.mean[:, STATE.p], track.cov[:, STATE.p, STATE.p]
     inside = (truth.t_s >= t[0]) & (truth.t_s <= t[-1])
     t_ref, p_ref = truth.t_s[inside], truth.pos_m[inside].to(pos)
@@ -280,60 +286,67 @@ def window_loss(
     assoc = associate(t, t_ref, max_dt_s=max_dt_s)
     est = interpolate_positions(pos, assoc)
     ref = p_ref[assoc.ref_index]
+    q_ref = None if truth.quat_wxyz is None else truth.quat_wxyz[inside].to(pos)[assoc.ref_index]
     with torch.no_grad():
         if loss != "start" or alignment is None:
-            if loss == "start" and truth.quat_wxyz is not None:
-                q_first = interpolate_quaternions(track.mean[:, STATE.q], assoc)[0]
-                alignment = align_start(est[0], q_first, ref[0], truth.quat_wxyz[inside][assoc.ref_index[0]])
-            else:
-                alignment = align_yaw(est.detach(), ref)
+            alignment = _start_alignment(track, assoc, est, ref, q_ref) if loss == "start" else align_yaw(est.detach(), ref)
         alignment = Alignment(*(x.detach() for x in alignment))
     err = apply_alignment(alignment, est) - ref
-    mse = (err * err).sum(-1).mean()
-    rmse = torch.sqrt(mse + 1e-12)
-    segments = None
+    rmse = torch.sqrt((err * err).sum(-1).mean() + 1e-12)
     if loss == "segments":
-        t_k = t_ref[assoc.ref_index]
-        span = float(t_k[-1] - t_k[0])
-        lengths = [float(x) for x in segment_s if float(x) <= span] or [span]
-        if truth.quat_wxyz is not None:
-            q_est = interpolate_quaternions(track.mean[:, STATE.q], assoc)
-            q_ref = truth.quat_wxyz[inside].to(pos)[assoc.ref_index]
-            segments = segment_errors(t_k, est, ref, lengths, q_est=q_est, q_ref=q_ref)
-        else:
-            segments = segment_errors(t_k, apply_alignment(alignment, est), ref, lengths)
-    nll = pos.new_zeros(())
-    if nll_weight > 0:
-        w = assoc.weight.to(pos).view(-1, 1, 1)
-        left = assoc.est_left
-        P = (1 - w) * cov[left] + w * cov[left + 1]
-        R = alignment.rotation
-        P = R @ P @ R.T + 1e-9 * torch.eye(3, dtype=pos.dtype, device=pos.device)
-        maha = (err.unsqueeze(-2) @ torch.linalg.solve(P, err.unsqueeze(-1))).reshape(-1)
-        nll = 0.5 * (maha + torch.logdet(2 * torch.pi * P)).mean()
-    attitude = pos.new_zeros(())
-    if orientation_weight_m_per_rad > 0 and segments is not None:
-        if segments.heading_rmse_rad is None:
-            raise ValueError(f"{truth.name}: the orientation loss (orientation_weight_m_per_rad > 0) needs a ground "
-                             "truth with orientations (quat_wxyz); this one has positions only")
-        attitude = segments.heading_rmse_rad.mean()
-    elif orientation_weight_m_per_rad > 0:
-        if truth.quat_wxyz is None:
-            raise ValueError(f"{truth.name}: the orientation loss (orientation_weight_m_per_rad > 0) needs a ground "
-                             "truth with orientations (quat_wxyz); this one has positions only")
-        q_est = apply_alignment_to_quaternions(alignment, interpolate_quaternions(track.mean[:, STATE.q], assoc))
-        q_ref = truth.quat_wxyz[inside].to(pos)[assoc.ref_index]
-        attitude = orientation_rmse(q_est, q_ref)
-    innovation_nll = pos.new_zeros(())
-    if innovation_weight > 0:
-        if innovation is None or innovation[0] is None:
-            raise ValueError("window_loss: innovation_weight > 0 needs the window's innovation likelihood "
-                             "(run_windows(..., likelihood=True))")
-        innovation_nll = innovation[0] / max(innovation[1], 1.0)
-    position = rmse if segments is None else segments.rmse_m.mean()
+        position, heading = _segment_terms(track, assoc, t_ref, est, ref, q_ref, alignment, segment_s)
+        attitude = heading if orientation_weight_m_per_rad > 0 else pos.new_zeros(())
+    else:
+        position = rmse
+        attitude = (_aligned_orientation_rmse(track, assoc, q_ref, alignment) if orientation_weight_m_per_rad > 0
+                    else pos.new_zeros(()))
+    nll = _position_nll(cov, assoc, err, alignment) if nll_weight > 0 else pos.new_zeros(())
+    innovation_nll = innovation[0] / max(innovation[1], 1.0) if innovation_weight > 0 else pos.new_zeros(())
     total = position + nll_weight * nll + orientation_weight_m_per_rad * attitude + innovation_weight * innovation_nll
     return WindowLoss(total, rmse.detach(), nll.detach(), attitude.detach(), innovation_nll.detach(),
-                      position.detach() if segments is not None else pos.new_zeros(()), alignment)
+                      position.detach() if loss == "segments" else pos.new_zeros(()), alignment)
+
+
+def _start_alignment(track: NodeTrack, assoc, est: Tensor, ref: Tensor, q_ref: Tensor | None) -> Alignment:
+    """``loss="start"``'s alignment of a sequence's first window: the heading and position of its
+    first node against the truth's, or the window's yaw alignment without orientations."""
+    if q_ref is None:
+        return align_yaw(est.detach(), ref)
+    q_first = interpolate_quaternions(track.mean[:, STATE.q], assoc)[0]
+    return align_start(est[0], q_first, ref[0], q_ref[0])
+
+
+def _segment_terms(track: NodeTrack, assoc, t_ref: Tensor, est: Tensor, ref: Tensor, q_ref: Tensor | None,
+                   alignment: Alignment, segment_s: Sequence[float]) -> tuple[Tensor, Tensor]:
+    """``loss="segments"``: the mean over durations of the RMS displacement error, and the RMS
+    heading-change error (0 without orientations; see :func:`window_loss`)."""
+    t_k = t_ref[assoc.ref_index]
+    span = float(t_k[-1] - t_k[0])
+    lengths = [float(x) for x in segment_s if float(x) <= span] or [span]
+    if q_ref is None:
+        segments = segment_errors(t_k, apply_alignment(alignment, est), ref, lengths)
+        return segments.rmse_m.mean(), est.new_zeros(())
+    q_est = interpolate_quaternions(track.mean[:, STATE.q], assoc)
+    segments = segment_errors(t_k, est, ref, lengths, q_est=q_est, q_ref=q_ref)
+    return segments.rmse_m.mean(), segments.heading_rmse_rad.mean()
+
+
+def _aligned_orientation_rmse(track: NodeTrack, assoc, q_ref: Tensor, alignment: Alignment) -> Tensor:
+    """The orientation RMSE (rad) of the yaw-aligned attitude (:func:`orientation_rmse`)."""
+    q_est = apply_alignment_to_quaternions(alignment, interpolate_quaternions(track.mean[:, STATE.q], assoc))
+    return orientation_rmse(q_est, q_ref)
+
+
+def _position_nll(cov: Tensor, assoc, err: Tensor, alignment: Alignment) -> Tensor:
+    """The mean ``½ (eᵀ P⁻¹ e + log det 2πP)`` of the aligned errors under the filter's
+    position covariance (interpolated, rotated by the alignment)."""
+    w = assoc.weight.to(cov).view(-1, 1, 1)
+    left = assoc.est_left
+    P = (1 - w) * cov[left] + w * cov[left + 1]
+    R = alignment.rotation
+    P = R @ P @ R.T + 1e-9 * torch.eye(3, dtype=cov.dtype, device=cov.device)
+    maha = (err.unsqueeze(-2) @ torch.linalg.solve(P, err.unsqueeze(-1))).reshape(-1)
+    return 0.5 * (maha + torch.logdet(2 * torch.pi * P)).mean()
 
 
 def split_gradient(loss: Tensor, likelihood: Tensor | None, params: Sequence[Tensor],
