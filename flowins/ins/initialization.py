@@ -95,49 +95,6 @@ def initial_covariance(q: Tensor, u: InitialUncertainty, *, velocity_var: Tensor
     return augmented_covariance(core, u.augmentation_nugget_var)
 
 
-def stationary_initialization(
-    *,
-    t_s: Tensor,
-    acc_mps2: Tensor,
-    gyro_rps: Tensor,
-    duration_s: float = 5.0,
-    yaw_rad: float = 0.0,
-    position_m: Tensor | None = None,
-    uncertainty: InitialUncertainty = InitialUncertainty(),
-    max_acc_std_mps2: float = 0.3,
-    max_gyro_std_rps: float = 0.05,
-    dtype: torch.dtype = torch.float64,
-    name: str = "IMU",
-) -> tuple[Tensor, Tensor]:
-    """Prior ``(mean (26,), cov (26, 26))`` at ``t_s[0]`` from the first ``duration_s`` seconds.
-
-    Raises:
-        ValueError: if the window holds fewer than 10 samples, or if the device was
-            visibly moving in it (standard deviation of the specific force above
-            ``max_acc_std_mps2`` or of the rate above ``max_gyro_std_rps``); the
-            message names the rows and the offending statistic.
-    """
-    t = torch.as_tensor(t_s, dtype=torch.float64)
-    window = t <= t[0] + duration_s
-    n = int(window.sum())
-    if n < 10:
-        raise ValueError(
-            f"{name}: the stationary initialisation needs at least 10 samples in the first "
-            f"{duration_s} s, found {n} (rows 0..{n - 1})"
-        )
-    acc = torch.as_tensor(acc_mps2, dtype=dtype)[window]
-    gyro = torch.as_tensor(gyro_rps, dtype=dtype)[window]
-    acc_std = float(acc.std(dim=0).max())
-    gyro_std = float(gyro.std(dim=0).max())
-    if acc_std > max_acc_std_mps2 or gyro_std > max_gyro_std_rps:
-        raise ValueError(
-            f"{name}: rows 0..{n - 1} (the first {duration_s} s) are not stationary: accelerometer std "
-            f"{acc_std:.3g} m/s² (limit {max_acc_std_mps2}), gyroscope std {gyro_std:.3g} rad/s "
-            f"(limit {max_gyro_std_rps}); shorten duration_s to the still part or raise the limits"
-        )
-    return still_prior(acc, gyro, yaw_rad=yaw_rad, position_m=position_m, uncertainty=uncertainty)
-
-
 def still_prior(acc_mps2: Tensor, gyro_rps: Tensor, *, yaw_rad: float = 0.0, position_m: Tensor | None = None,
                 uncertainty: InitialUncertainty = InitialUncertainty()) -> tuple[Tensor, Tensor]:
     """Prior ``(mean (26,), cov (26, 26))`` of a device that was still over the samples

@@ -8,7 +8,7 @@ from flowins.filter.ekf import Gate
 from flowins.filter.runner import FilterInput, run_filter, run_filters
 from flowins.filter.smoother import rts_smooth
 from flowins.geometry import quaternion as quat
-from flowins.ins.initialization import stationary_initialization
+from flowins.ins.initialization import still_prior
 from flowins.ins.mechanization import ProcessNoise
 from flowins.measurements.gnss import GnssRecovery, gnss_fixes, gnss_noise
 from flowins.measurements.zero_velocity import ZeroVelocity
@@ -27,8 +27,8 @@ def _run(seed: int, duration_s: float, rate_hz: float, gnss_every_s: float, *, a
     f_true, w_true = walk.imu(t)
     acc, gyro, _ = corrupt_imu(t, f_true, w_true, ImuErrors(), gen)
     yaw = float(quat.to_euler(walk.quaternion(t[0]))[2])
-    mean0, cov0 = stationary_initialization(t_s=t, acc_mps2=acc, gyro_rps=gyro, duration_s=0.45, yaw_rad=yaw,
-                                            position_m=walk.position(t[0]))
+    first = t <= t[0] + 0.45  # the walk's still start
+    mean0, cov0 = still_prior(acc[first], gyro[first], yaw_rad=yaw, position_m=walk.position(t[0]))
     t_gnss = torch.arange(0.37 + 0.1 * seed, float(t[-1]), gnss_every_s, dtype=F64)
     _, z, h_acc, v_acc = gnss_track(walk, t_gnss, gen, min_acc_m=1.0, max_acc_m=3.0)
     events = gnss_fixes(t_gnss, z, gnss_noise(h_acc, v_acc), gate=Gate(probability=gate),

@@ -21,7 +21,7 @@ from flowins.filter.chain import BatchEvent
 from flowins.filter.runner import FilterInput, chain_bytes, run_filter, run_filters
 from flowins.filter.smoother import rts_smooth
 from flowins.geometry import quaternion as quat
-from flowins.ins.initialization import InitialUncertainty, stationary_initialization
+from flowins.ins.initialization import InitialUncertainty, still_prior
 from flowins.ins.mechanization import STANDARD_GRAVITY_MPS2, ProcessNoise, mechanize
 from flowins.measurements.gnss import gnss_noise
 from flowins.state import NOISE_DIM, STATE, STATE_DIM
@@ -38,9 +38,8 @@ def simulate(duration_s, seed, config=None):
     acc, gyro, _ = corrupt_imu(t, f_true, w_true, ImuErrors(), gen)
     yaw = float(quat.to_euler(walk.quaternion(t[0]))[2])
     still = min(walk.config.stationary_s, 5.0) - 0.05
-    mean0, cov0 = stationary_initialization(
-        t_s=t, acc_mps2=acc, gyro_rps=gyro, duration_s=still, yaw_rad=yaw, position_m=walk.position(t[0])
-    )
+    first = t <= t[0] + still
+    mean0, cov0 = still_prior(acc[first], gyro[first], yaw_rad=yaw, position_m=walk.position(t[0]))
     return walk, t, acc, gyro, mean0, cov0, gen
 
 
@@ -192,9 +191,8 @@ def resting_device():
     acc = torch.tensor([0.0, 0.0, STANDARD_GRAVITY_MPS2], dtype=F64).expand(n, 3)
     gyro = torch.zeros(n, 3, dtype=F64)
     p0 = torch.tensor([10.0, -20.0, 2.0], dtype=F64)
-    mean0, cov0 = stationary_initialization(
-        t_s=t, acc_mps2=acc, gyro_rps=gyro, position_m=p0, uncertainty=InitialUncertainty(position_m=2.0)
-    )
+    first = t <= t[0] + 5.0
+    mean0, cov0 = still_prior(acc[first], gyro[first], position_m=p0, uncertainty=InitialUncertainty(position_m=2.0))
     return t, acc, gyro, p0, mean0, cov0
 
 

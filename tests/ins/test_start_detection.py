@@ -13,7 +13,6 @@ from flowins.ins.initialization import (
     StillSettings,
     forward_axis,
     kinematic_fit,
-    stationary_initialization,
     still_interval,
     two_vector_attitude,
 )
@@ -59,10 +58,9 @@ def still_then_moving(still_s: float = 4.0, total_s: float = 8.0, *, vibration: 
 
 def test_still_interval_ends_where_the_motion_starts_and_vibration_does_not_end_it():
     t, acc, gyro = still_then_moving(vibration=0.5)
-    assert float(acc[: int(4 * RATE)].std(dim=0).max()) > 0.3  # the raw test refuses this start ...
-    with pytest.raises(ValueError, match="not stationary"):
-        stationary_initialization(t_s=t, acc_mps2=acc, gyro_rps=gyro, duration_s=3.0)
-    still = still_interval(t, acc, gyro)  # ... the low-passed one does not
+    # a raw standard-deviation test (0.3 m/s²) would refuse this start; the low-passed one does not
+    assert float(acc[: int(4 * RATE)].std(dim=0).max()) > 0.3
+    still = still_interval(t, acc, gyro)
     # the ramp moves the device by 0.3 mm/s in its first 0.1 s: a ZUPT there is still right
     assert 3.6 <= still.end_s <= 4.1, still
     assert "specific force" in still.reason and "filter.init.still.max_acc_mps2" in still.reason

@@ -29,7 +29,7 @@ from flowins.measurements.gnss import GnssFix
 from flowins.filter.runner import run_filter
 from flowins.flow.points import FlowPoints
 from flowins.geometry import quaternion as quat
-from flowins.ins.initialization import InitialUncertainty, stationary_initialization
+from flowins.ins.initialization import InitialUncertainty, still_prior
 from flowins.ins.mechanization import STANDARD_GRAVITY_MPS2
 from flowins.measurements.flow import FlowCamera
 from flowins.measurements.gnss import gnss_noise
@@ -101,14 +101,12 @@ class ConstantMotion:
 
 
 def prior_covariance(q: torch.Tensor, initial: InitialUncertainty) -> torch.Tensor:
-    """The covariance :func:`stationary_initialization` gives a device still at orientation ``q``
-    (fed a stationary window whose specific force is gravity seen at ``q``)."""
+    """The covariance :func:`still_prior` gives a device still at orientation ``q`` (fed still
+    samples whose specific force is gravity seen at ``q``)."""
     R = quat.to_matrix(q)
-    t = torch.arange(12, dtype=F64) * 0.01
     acc = (R.T @ torch.tensor([0.0, 0.0, G], dtype=F64)).expand(12, 3)
     yaw = math.atan2(float(R[1, 0]), float(R[0, 0]))
-    mean, cov = stationary_initialization(t_s=t, acc_mps2=acc, gyro_rps=torch.zeros(12, 3, dtype=F64),
-                                          duration_s=1.0, yaw_rad=yaw, uncertainty=initial)
+    mean, cov = still_prior(acc, torch.zeros(12, 3, dtype=F64), yaw_rad=yaw, uncertainty=initial)
     # the prior's orientation is q's (up to the sign of the quaternion)
     assert min(float((mean[STATE.q] - q).norm()), float((mean[STATE.q] + q).norm())) < 1e-9
     return cov
