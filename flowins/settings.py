@@ -24,20 +24,14 @@ import torch
 
 from flowins.config import bounded, build, check_device, check_target, setting
 from flowins.data.streams import ImuStream
-from flowins.filter.ekf import Gate
 from flowins.ins.consistency import gyro_consistency
 from flowins.ins.imu_model import ImuModel, imu_model, still_noise_densities
-from flowins.ins.initialization import InitialUncertainty, still_interval
+from flowins.ins.initialization import still_interval
 from flowins.ins.saturation import find_saturation
 from flowins.ins.mechanization import ProcessNoise
-from flowins.measurements.flow_update import FlowUpdate
-from flowins.measurements.tracks import TrackUpdate
-from flowins.measurements.gnss import GnssRecovery
-from flowins.measurements.gnss_heading import HeadingAlignment
 from flowins.measurements.registry import measurement_settings
 from flowins.navigation import NavigationConfig
 from flowins.parallel import available_cores
-from flowins.start import StartSettings
 from flowins.training.parameters import (
     FROZEN_BY_DEFAULT,
     NAMES,
@@ -259,46 +253,62 @@ def check_filter_settings(cfg: Mapping[str, Any], *, recorded: bool) -> None:
 # ---------------------------------------------------------------------------
 
 
+#: the ``filter`` group's keys whose :class:`NavigationConfig` field has another name
+FILTER_KEYS = {"init": "start", "flow": "flow_update"}
+#: the ``filter`` keys that fill ``NavigationConfig.noise`` (:class:`ProcessNoise`)
+NOISE_KEYS = tuple(f.name for f in dataclasses.fields(ProcessNoise))
+#: the IMU noise keys whose null takes the IMU preset's value (:func:`resolve_imu`)
+_IMU_NOISE = ("acc_noise", "gyro_noise", "acc_bias_walk", "gyro_bias_walk")
+
+
+def filter_keys() -> tuple[str, ...]:
+    """Every key of the ``filter`` group: :data:`NOISE_KEYS`, then one per field of
+    :class:`NavigationConfig` (renamed by :data:`FILTER_KEYS`)."""
+    config_key = {field: key for key, field in FILTER_KEYS.items()}
+    return (*NOISE_KEYS, *(config_key.get(f.name, f.name) for f in dataclasses.fields(NavigationConfig)
+                           if f.name != "noise"))
+
+
 def navigation_config(cfg: Mapping[str, Any], imu: ImuModel | None = None) -> NavigationConfig:
-    """:class:`NavigationConfig` from the ``filter`` config group; its IMU noise keys that are
+    """:class:`NavigationConfig` from the ``filter`` config group (:func:`filter_keys`: the
+    dataclass's fields; a new setting is a field and a YAML line); its IMU noise keys that are
     null come from ``imu`` (:func:`resolve_imu`). Every value is checked against the
-    settings it builds; errors name the key."""
-    if cfg["dtype"] not in _DTYPES:
-        raise ValueError(f"filter.dtype={cfg['dtype']!r}: expected one of {list(_DTYPES)} (float32 is not "
-                         "precise enough for the pose augmentation and the flow update)")
-    noise = {}
-    for key in ("acc_noise", "gyro_noise", "acc_bias_walk", "gyro_bias_walk"):
-        noise[key] = cfg[key] if cfg[key] is not None else (None if imu is None else imu.noise()[key])
-        if noise[key] is None:
-            raise ValueError(f"filter.{key} is null and no imu preset was given; set filter.{key} or choose imu=...")
-    noise.update(acc_scale_walk=cfg["acc_scale_walk"], discretization=cfg["discretization"])
-    simple = ("gnss_noise_scale", "gnss_correlation_s", "output_every", "scheme", "gravity_mps2", "jacobians", "device",
-              "workers")
-    groups = ("init", "initial", "gnss_gate", "gnss_recovery", "gnss_heading", "flow", "tracks", "dtype", "measurements")
-    known = (*noise, *simple, *groups)
+    settings it builds; errors name the key. A key the group leaves out takes the field's default."""
+    known = filter_keys()
     for key in cfg:
         if key not in known:
             raise ValueError(f"filter.{key}: unknown key; filter takes {', '.join(known)}")
-    values = {key: cfg[key] for key in simple}
-    if isinstance(values["workers"], str):
-        if values["workers"] != "auto":
-            raise ValueError(f"filter.workers={values['workers']!r}: expected an integer >= 1 or auto")
-        values["workers"] = available_cores()
-    return build(
-        NavigationConfig,
-        values,
-        "filter",
-        noise=build(ProcessNoise, noise, "filter"),
-        initial=build(InitialUncertainty, cfg["initial"], "filter.initial"),
-        start=build(StartSettings, cfg["init"], "filter.init"),
-        gnss_gate=build(Gate, cfg["gnss_gate"], "filter.gnss_gate"),
-        gnss_recovery=build(GnssRecovery, cfg["gnss_recovery"], "filter.gnss_recovery"),
-        gnss_heading=build(HeadingAlignment, cfg["gnss_heading"], "filter.gnss_heading"),
-        dtype=_DTYPES[cfg["dtype"]],
-        flow_update=build(FlowUpdate, cfg["flow"], "filter.flow"),
-        tracks=build(TrackUpdate, cfg["tracks"], "filter.tracks") if cfg.get("tracks") is not None else TrackUpdate(),
-        measurements=measurement_settings(cfg.get("measurements") or {}),
-    )
+    if cfg.get("dtype", "float64") not in _DTYPES:
+        raise ValueError(f"filter.dtype={cfg['dtype']!r}: expected one of {list(_DTYPES)} (float32 is not "
+                         "precise enough for the pose augmentation and the flow update)")
+    noise = {key: cfg[key] for key in NOISE_KEYS if key in cfg}
+    for key in _IMU_NOISE:
+        if noise.get(key) is None:
+            noise[key] = None if imu is None else imu.noise()[key]
+        if noise[key] is None:
+            raise ValueError(f"filter.{key} is null and no imu preset was given; set filter.{key} or choose imu=...")
+    values, ready = {}, {"noise": build(ProcessNoise, noise, "filter")}
+    defaults = NavigationConfig()
+    config_key = {field: key for key, field in FILTER_KEYS.items()}
+    for field in dataclasses.fields(NavigationConfig):
+        key = config_key.get(field.name, field.name)
+        if field.name == "noise" or key not in cfg or cfg[key] is None and field.name == "tracks":
+            continue
+        value, default = cfg[key], getattr(defaults, field.name)
+        if field.name == "dtype":
+            ready["dtype"] = _DTYPES[value]
+        elif field.name == "measurements":
+            ready["measurements"] = measurement_settings(value or {})
+        elif dataclasses.is_dataclass(default):
+            ready[field.name] = build(type(default), value, f"filter.{key}")
+        elif field.name == "workers" and isinstance(value, str):
+            if value != "auto":
+                raise ValueError(f"filter.workers={value!r}: expected an integer >= 1 or auto")
+            values["workers"] = available_cores()
+        else:
+            values[field.name] = value
+    ready.setdefault("measurements", measurement_settings({}))  # every registered kind at its defaults
+    return build(NavigationConfig, values, "filter", **ready)
 
 
 class SensorRecording(Protocol):

@@ -13,13 +13,9 @@ import yaml
 
 from flowins.measurements.vehicle import VehicleSettings
 from flowins.navigation import NavigationConfig
-from flowins.settings import SequenceSettings
+from flowins.settings import FILTER_KEYS, NOISE_KEYS, SequenceSettings, filter_keys
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
-#: the filter group's names for NavigationConfig's fields where they differ
-RENAMED = {"init": "start", "flow": "flow_update"}
-#: filter keys read into ProcessNoise (NavigationConfig.noise); null: the IMU preset's
-NOISE = ("acc_noise", "gyro_noise", "acc_bias_walk", "gyro_bias_walk", "acc_scale_walk", "discretization")
 #: keys whose YAML value is resolved when the job starts, not a default to mirror
 RESOLVED = {"filter.workers": "auto: one worker per core", "filter.device": "a string the job parses",
             "filter.dtype": "a string the job parses"}
@@ -49,7 +45,7 @@ def drift(node: dict, default, path: str) -> list[str]:
     fields = {f.name: f for f in dataclasses.fields(default)}
     problems = []
     for key, value in node.items():
-        name = RENAMED.get(key, key) if path == "filter" else key
+        name = FILTER_KEYS.get(key, key) if path == "filter" else key
         dotted = f"{path}.{key}"
         if dotted in RESOLVED:
             continue
@@ -68,7 +64,7 @@ def drift(node: dict, default, path: str) -> list[str]:
 
 def test_the_filter_yaml_is_the_dataclasses_defaults():
     node = yaml.safe_load((CONFIGS / "filter" / "default.yaml").read_text())
-    noise = {k: node.pop(k) for k in NOISE}
+    noise = {k: node.pop(k) for k in NOISE_KEYS}
     vehicle = node["measurements"].pop("vehicle")
     default = NavigationConfig()
     problems = drift(node, default, "filter")
@@ -102,3 +98,10 @@ def test_the_dtype_and_device_keys_parse_to_the_defaults():
     node = yaml.safe_load((CONFIGS / "filter" / "default.yaml").read_text())
     assert getattr(torch, node["dtype"]) == NavigationConfig().dtype
     assert torch.device(node["device"]) == NavigationConfig().device
+
+
+def test_the_filter_yaml_has_every_key_the_filter_takes_and_no_other():
+    """The keys come from the dataclasses (settings.filter_keys): a new field without its YAML
+    line, or a YAML line without its field, fails here."""
+    node = yaml.safe_load((CONFIGS / "filter" / "default.yaml").read_text())
+    assert sorted(node) == sorted(filter_keys())
