@@ -74,7 +74,7 @@ def load_training_sequence(
                 raise ValueError(f"{rec.name}: {kind} flow unavailable: {flow}")
             pairs[kind] = flow
     if setting(cfg, "sequence.check_mounting", bool):
-        check_camera_mounting(rec, {"sparse": tracks or pairs["sparse"], "dense": pairs["dense"]})
+        check_camera_mounting(rec, {"sparse": pairs["sparse"] if tracks is None else tracks, "dense": pairs["dense"]})
     return TrainingSequence(rec.name, rec.imu, rec.gnss, rec.truth, FlowCamera.from_sequence(rec.sequence),
                             pairs["dense"], pairs["sparse"], tracks, rec.sensor, platform_streams(rec.platform))
 
