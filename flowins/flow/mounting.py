@@ -4,10 +4,10 @@ Between the two frames of a pair the camera turns by ``R_c`` and the IMU by ``R_
 rigid body ``R_c = R_ci R_b R_ciᵀ``, so their rotation vectors obey ``φ_c = R_ci φ_b``
 (``R_ci``: the rotation of ``imu_to_camera``, ``x_cam = R_ci x_imu + t``). The gyroscope
 gives ``φ_b`` (its rates integrated over the pair, :func:`gyro_rotations`); the flow gives
-``φ_c`` (an essential matrix fitted to the pair's points with RANSAC, the one of its two
-rotations that turns less, :func:`camera_rotations`). :func:`check_mounting` solves Wahba's
-problem ``ω_c ≈ R ω_b`` on the mean rates ``ω = φ / Δt`` of every pair (a hand–eye fit over
-the recording):
+``φ_c`` (the turn alone where it explains the pair's points, else an essential matrix fitted
+with RANSAC and the one of its two rotations that turns less, :func:`camera_rotations`).
+:func:`check_mounting` solves Wahba's problem ``ω_c ≈ R ω_b`` on the mean rates ``ω = φ / Δt``
+of every pair (a hand–eye fit over the recording):
 
 * **A constant gyroscope bias is no fault**: both sets are centred (a bias shifts every
   ``ω_b`` by the same vector), so the fit needs no bias estimate;
@@ -119,9 +119,11 @@ def camera_rotations(pairs: FlowPairs, K: Tensor, *, max_points: int = 300, thre
     camera at ``t2`` to camera at ``t1``; ideal pinhole pixels, intrinsics ``K`` ``(3, 3)``)
     and a ``(P,)`` bool: whether the pair gave one.
 
-    An essential matrix fitted with RANSAC (``threshold_px`` on the image) to at most
-    ``max_points`` of the pair's points, those of lowest σ first, decomposes into two
-    rotations; the one that turns less is the camera's (the other differs by a half turn).
+    At most ``max_points`` of the pair's points, those of lowest σ first, are used. Where a
+    turn alone explains them (median distance within ``threshold_px / 2``: no parallax, and an
+    essential matrix would be degenerate) that turn is the camera's. Otherwise an essential
+    matrix fitted with RANSAC (``threshold_px`` on the image) decomposes into two rotations;
+    the one that turns less is the camera's (the other differs by a half turn).
     A pair with fewer than 8 points, no essential matrix or a turn over ``max_angle_rad``
     gives none."""
     import cv2
@@ -132,27 +134,66 @@ def camera_rotations(pairs: FlowPairs, K: Tensor, *, max_points: int = 300, thre
     K_inv = torch.linalg.inv(K)
     out = torch.zeros(len(pairs), 3, dtype=torch.float64)
     ok = torch.zeros(len(pairs), dtype=torch.bool)
+    chosen: dict[int, tuple[Tensor, Tensor]] = {}
     for k, p in enumerate(pairs.points):
         uv1 = p.uv1_px.to(torch.float64)
         uv2 = uv1 + p.flow_px.to(torch.float64)
         sigma = p.sigma_px.to(torch.float64).norm(dim=-1)
         finite = torch.isfinite(uv1).all(-1) & torch.isfinite(uv2).all(-1) & torch.isfinite(sigma)
         index = torch.nonzero(finite)[:, 0]
-        if index.numel() < 8:
-            continue
-        index = index[torch.argsort(sigma[index], stable=True)[:max_points]]
-        x1 = (torch.cat((uv1[index], torch.ones_like(uv1[index, :1])), -1) @ K_inv.T)[:, :2].numpy()
-        x2 = (torch.cat((uv2[index], torch.ones_like(uv2[index, :1])), -1) @ K_inv.T)[:, :2].numpy()
-        E, _ = cv2.findEssentialMat(x1, x2, np.eye(3), method=cv2.USAC_ACCURATE, prob=0.999, threshold=threshold_px / f)
-        if E is None or E.shape[0] < 3 or not np.isfinite(E[:3]).all():
-            continue
-        R1, R2, _ = cv2.decomposeEssentialMat(E[:3])
-        # OpenCV's R maps camera-1 points to camera-2 points (R_{c2 c1}); its transpose is R_{c1 c2}
-        phi = [-quaternion.to_rotation_vector(quaternion.from_matrix(torch.from_numpy(R))) for R in (R1, R2)]
-        best = min(phi, key=lambda v: float(v.norm()))
+        if index.numel() >= 8:
+            index = index[torch.argsort(sigma[index], stable=True)[:max_points]]
+            x1 = (torch.cat((uv1[index], torch.ones_like(uv1[index, :1])), -1) @ K_inv.T)[:, :2]
+            x2 = (torch.cat((uv2[index], torch.ones_like(uv2[index, :1])), -1) @ K_inv.T)[:, :2]
+            chosen[k] = (x1, x2)
+    if not chosen:
+        return out, ok
+    keys = list(chosen)
+    x1 = torch.nn.utils.rnn.pad_sequence([chosen[k][0] for k in keys], batch_first=True, padding_value=float("nan"))
+    x2 = torch.nn.utils.rnn.pad_sequence([chosen[k][1] for k in keys], batch_first=True, padding_value=float("nan"))
+    R_turn, median_px = pure_turns(x1, x2, f)
+    phi_turn = quaternion.to_rotation_vector(quaternion.from_matrix(R_turn))
+    for j, k in enumerate(keys):
+        if float(median_px[j]) <= 0.5 * threshold_px:  # no parallax: an essential matrix is degenerate
+            candidates = [phi_turn[j]]
+        else:
+            E, _ = cv2.findEssentialMat(chosen[k][0].numpy(), chosen[k][1].numpy(), np.eye(3),
+                                        method=cv2.USAC_ACCURATE, prob=0.999, threshold=threshold_px / f)
+            if E is None or E.shape[0] < 3 or not np.isfinite(E[:3]).all():
+                continue
+            # OpenCV's R maps camera-1 points to camera-2 points (R_{c2 c1}); its transpose is R_{c1 c2}
+            candidates = [-quaternion.to_rotation_vector(quaternion.from_matrix(torch.from_numpy(R)))
+                          for R in cv2.decomposeEssentialMat(E[:3])[:2]]
+        best = min(candidates, key=lambda v: float(v.norm()))
         if float(best.norm()) <= max_angle_rad:
             out[k], ok[k] = best, True
     return out, ok
+
+
+def pure_turns(x1: Tensor, x2: Tensor, f: float, iterations: int = 5) -> tuple[Tensor, Tensor]:
+    """Rotations ``R_{c1 c2}`` ``(P, 3, 3)`` of a camera that only turns, fitted per pair to
+    normalised image points ``x1``, ``x2`` ``(P, N, 2)`` (rows of NaN pad a pair;
+    ``[x1, 1] ∝ R [x2, 1]``: Wahba's problem on their bearings, Cauchy-reweighted), and the
+    ``(P,)`` median distance in pixels (focal length ``f``) of ``x1`` from ``x2`` so turned.
+    A turn alone, or a scene too far for the baseline to show, leaves that distance at the
+    noise; any parallax leaves more."""
+    valid = torch.isfinite(x1).all(-1) & torch.isfinite(x2).all(-1)
+    x1, x2 = x1.nan_to_num(0.0), x2.nan_to_num(0.0)
+    b1 = torch.nn.functional.normalize(torch.cat((x1, torch.ones_like(x1[..., :1])), -1), dim=-1)
+    b2 = torch.nn.functional.normalize(torch.cat((x2, torch.ones_like(x2[..., :1])), -1), dim=-1)
+    w = valid.to(x1.dtype)
+    nan = torch.full_like(w, float("nan"))
+    for _ in range(iterations + 1):
+        U, _, Vh = torch.linalg.svd((w.unsqueeze(-1) * b1).transpose(-1, -2) @ b2)
+        d = torch.linalg.det(U @ Vh)
+        R = U @ torch.diag_embed(torch.stack((torch.ones_like(d), torch.ones_like(d), d), -1)) @ Vh
+        turned = b2 @ R.transpose(-1, -2)
+        r = f * (turned[..., :2] / turned[..., 2:].clamp_min(1e-9) - x1).norm(dim=-1)
+        r = torch.where(valid, torch.where(turned[..., 2] > 0, r, torch.full_like(r, float("inf"))), nan)
+        median = r.nanmedian(-1).values
+        scale = (1.4826 * median).clamp_min(1e-9).unsqueeze(-1)
+        w = torch.where(valid, 1.0 / (1.0 + (r / (2.385 * scale)) ** 2), torch.zeros_like(w))
+    return R, median
 
 
 def _fit(omega_b: Tensor, omega_c: Tensor, configured: Tensor, prior_weight: float, iterations: int

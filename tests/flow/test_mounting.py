@@ -15,7 +15,7 @@ from flowins.data.simulate.tracks import tracks_along
 from flowins.data.streams import ImuStream
 from flowins.data.synthetic import ImuErrors, Walk, WalkConfig, corrupt_imu, increment_imu
 from flowins.flow.load import check_camera_mounting
-from flowins.flow.mounting import _fit, camera_rotations, check_mounting, gyro_rotations
+from flowins.flow.mounting import _fit, camera_rotations, check_mounting, gyro_rotations, pure_turns
 from flowins.flow.pairs import FlowPairs, track_pairs
 from flowins.flow.points import FlowPoints
 from flowins.geometry import quaternion as quat
@@ -86,6 +86,27 @@ def test_camera_rotations_of_exact_points_are_the_cameras_turn():
     phi_c, ok = camera_rotations(pairs, K)
     assert bool(ok.all())
     torch.testing.assert_close(phi_c, phis, atol=1e-5, rtol=0)  # OpenCV solves in float64 to ~1e-6
+
+
+def test_a_noisy_pure_turn_is_the_cameras_turn_and_parallax_is_not_taken_for_one():
+    """A turn alone with 0.3 px noise (an essential matrix is degenerate there) comes back
+    within the noise; a 0.2 m step sideways at 4-24 m leaves parallax well above the noise,
+    so the turn-only fit is refused for it (the essential matrix decides)."""
+    g = torch.Generator().manual_seed(1)
+    X1 = torch.rand(300, 3, generator=g, dtype=F64) * torch.tensor([8.0, 6.0, 20.0], dtype=F64)
+    X1 = X1 + torch.tensor([-4.0, -3.0, 4.0], dtype=F64)
+    phi = torch.tensor([0.01, -0.03, 0.02], dtype=F64)
+    R_c1c2 = quat.to_matrix(quat.from_rotation_vector(phi))
+    x1 = X1[:, :2] / X1[:, 2:]
+    for shift, turn_alone in ((0.0, True), (0.2, False)):
+        X2 = (X1 - torch.tensor([shift, 0.0, 0.0], dtype=F64)) @ R_c1c2
+        x2 = X2[:, :2] / X2[:, 2:] + 0.3 / 300.0 * torch.randn(300, 2, generator=g, dtype=F64)
+        pad = torch.full((50, 2), float("nan"), dtype=F64)  # a shorter pair's padding is no point
+        R, median_px = pure_turns(torch.cat((x1, pad))[None], torch.cat((x2, pad))[None], 300.0)
+        assert (float(median_px[0]) <= 0.5) == turn_alone, (shift, median_px)
+        if turn_alone:
+            angle = quat.angle_between(quat.from_matrix(R[0]), quat.from_matrix(R_c1c2))
+            assert float(angle) < 1e-3  # 0.3 px at f = 300 px is 1e-3 rad per point, 300 points
 
 
 def test_the_true_mounting_passes_despite_a_constant_gyro_bias():
