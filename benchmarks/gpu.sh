@@ -81,7 +81,7 @@ PY
 
 s1() {
   section "1. the device tests (tests/test_cuda.py: both devices agree)"
-  python -m pytest -q -p no:cacheprovider -m cuda tests/test_cuda.py
+  python -m pytest -q -p no:cacheprovider -o addopts="-ra --import-mode=importlib" -m cuda tests/test_cuda.py  # no xdist there
 }
 
 s2() {

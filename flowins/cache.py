@@ -8,11 +8,13 @@ result is recomputed rather than served stale.
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import importlib
 import json
 import os
-from collections.abc import Iterable, Mapping
+import time
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +29,39 @@ KEY_LENGTH = 16
 def cache_root() -> Path:
     """``$FLOWINS_CACHE``, default ``~/.cache/flowins``."""
     return Path(os.environ.get("FLOWINS_CACHE", Path.home() / ".cache" / "flowins"))
+
+
+@contextlib.contextmanager
+def folder_lock(folder: str | os.PathLike) -> Iterator[None]:
+    """Hold an exclusive lock on ``folder`` (the file ``<folder>.lock`` beside it) between
+    processes: two jobs (or test workers) that want the same cached simulation take turns,
+    the second finding it written, instead of writing one folder at once. The lock goes with
+    the process that holds it (it cannot be left stale by a crash); the lock file stays."""
+    path = Path(folder)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path.with_name(path.name + ".lock"), "a+b") as handle:
+        try:
+            import fcntl
+        except ImportError:  # Windows
+            import msvcrt
+
+            while True:
+                try:
+                    msvcrt.locking(handle.fileno(), msvcrt.LK_NBLCK, 1)
+                    break
+                except OSError:
+                    time.sleep(0.2)
+            try:
+                yield
+            finally:
+                handle.seek(0)
+                msvcrt.locking(handle.fileno(), msvcrt.LK_UNLCK, 1)
+        else:
+            fcntl.flock(handle.fileno(), fcntl.LOCK_EX)
+            try:
+                yield
+            finally:
+                fcntl.flock(handle.fileno(), fcntl.LOCK_UN)
 
 
 def file_digest(path: str | os.PathLike) -> str:

@@ -1,4 +1,4 @@
-"""Content keys: equal exactly when what they key is equal."""
+"""Content keys: equal exactly when what they key is equal; the lock that lets processes take turns at one folder."""
 from __future__ import annotations
 
 import hashlib
@@ -9,7 +9,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from flowins.cache import array_digest, content_key, file_digest, source_digest
+from flowins.cache import array_digest, content_key, file_digest, folder_lock, source_digest
 
 
 def test_file_digest_is_the_sha256_of_the_bytes(tmp_path):
@@ -62,3 +62,35 @@ def test_source_digest_follows_the_code(tmp_path, monkeypatch):
     (package / "b.py").write_text("")  # a new module counts
     assert source_digest("keyed_pkg") != before
     sys.modules.pop("keyed_pkg", None)
+
+
+def _hold_and_write(folder, log, held, hold_s):
+    import time
+
+    with folder_lock(folder):
+        held.set()
+        with open(log, "a") as f:
+            f.write("first in\n")
+        time.sleep(hold_s)
+        with open(log, "a") as f:
+            f.write("first out\n")
+
+
+def test_a_second_process_waits_for_the_folder_lock(tmp_path):
+    """One process holds the lock for 0.5 s; another that asks for it meanwhile writes only
+    after the first has let go (without the lock its line lands between the two)."""
+    import multiprocessing
+
+    context = multiprocessing.get_context("spawn")
+    folder, log = tmp_path / "sim", tmp_path / "log.txt"
+    held = context.Event()
+    first = context.Process(target=_hold_and_write, args=(folder, log, held, 0.5))
+    first.start()
+    assert held.wait(60.0)
+    with folder_lock(folder):
+        with open(log, "a") as f:
+            f.write("second\n")
+    first.join(60.0)
+    assert first.exitcode == 0
+    assert log.read_text().splitlines() == ["first in", "first out", "second"]
+    assert (tmp_path / "sim.lock").exists() and not folder.exists()  # the lock is a file beside the folder

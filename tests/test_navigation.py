@@ -90,7 +90,7 @@ def test_the_whole_navigation_in_float32_stays_float32_and_agrees_with_float64(m
     assert float((tracks[torch.float32] - tracks[torch.float64]).norm(dim=-1).max()) < 0.05
 
 
-@pytest.mark.parametrize("second_pass", [False, True])
+@pytest.mark.parametrize("second_pass", [False, pytest.param(True, marks=pytest.mark.slow)])
 def test_the_navigation_on_another_device_is_the_cpu_run_and_leaves_no_tensor_behind(fake_device, second_pass,
                                                                                     wrong_heading_walk):
     """``NavigationConfig.device``: the start, the GNSS heading alignment and fixes, the

@@ -83,6 +83,7 @@ def test_a_filter_that_drifts_off_in_the_outage_is_reset_instead_of_locked_out(r
         assert mean_error(t, err, 290.0, 300.0) < 5.0
 
 
+@pytest.mark.slow
 def test_inconsistent_innovations_reset_a_filter_whose_gate_is_off():
     """With the gate off nothing is rejected; the NIS of the returning fixes tells."""
     from flowins.filter.ekf import Gate

@@ -202,22 +202,20 @@ def plot_trajectory(
     return _save(fig, path, dpi)
 
 
-def plot_errors(
-    path: str | os.PathLike,
+def errors_figure(
     *,
     series: dict[str, tuple[Tensor, Tensor]],
     title: str = "",
     figsize_in: tuple[float, float] = (8.0, 3.5),
     dpi: int = 120,
-) -> Path:
-    """Position error (m) against time (s), one line per series; saves a PNG.
+) -> Figure:
+    """Position error (m) against time (s), one line per series, labelled by its name.
 
     Args:
-        path: output PNG file.
         series: name → ``(t_s (K,), errors_m (K,))``, e.g. ``TrajectoryErrors.t_s, .errors_m``.
         title: axes title.
-        figsize_in: figure size (inches); the PNG is that times ``dpi`` pixels.
-        dpi: resolution of the PNG.
+        figsize_in: figure size (inches).
+        dpi: resolution.
     """
     if not series:
         raise ValueError("series is empty: give at least one name -> (t_s, errors_m)")
@@ -237,4 +235,17 @@ def plot_errors(
     ax.legend(loc="best", fontsize="small")
     if title:
         ax.set_title(title)
-    return _save(fig, path, dpi)
+    return fig
+
+
+def plot_errors(
+    path: str | os.PathLike,
+    *,
+    series: dict[str, tuple[Tensor, Tensor]],
+    title: str = "",
+    figsize_in: tuple[float, float] = (8.0, 3.5),
+    dpi: int = 120,
+) -> Path:
+    """:func:`errors_figure` written as a PNG at ``path`` (parent folders made; ``figsize_in``
+    times ``dpi`` pixels); returns the path."""
+    return _save(errors_figure(series=series, title=title, figsize_in=figsize_in, dpi=dpi), path, dpi)

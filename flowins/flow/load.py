@@ -4,6 +4,7 @@ config, run once on the frames and cached by content (or the recording's own
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -127,7 +128,7 @@ def load_tracks(rec: Recording, cfg: Mapping[str, Any], *, progress: bool) -> Tr
 def write_tracks(path: Path, tracks: Tracks) -> None:
     """One ``.npz`` of the track rows (written to a partial file, then renamed)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".partial.npz")
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.partial.npz")  # one per process: no two write one file
     np.savez_compressed(tmp, version=TRACKS_FORMAT, t_s=tracks.t_s.numpy(), track_id=tracks.track_id.numpy(),
                         uv_px=tracks.uv_px.numpy(), name=str(tracks.name))
     tmp.replace(path)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import functools
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -94,7 +95,7 @@ class FlowPairs:
         optional = [f for f in _OPTIONAL if self.points and all(getattr(p, f) is not None for p in self.points)]
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".partial.npz")
+        tmp = path.with_name(f"{path.name}.{os.getpid()}.partial.npz")  # one per process: no two write one file
         np.savez_compressed(
             tmp, version=FORMAT_VERSION, t1_s=self.t1_s.cpu().numpy(), t2_s=self.t2_s.cpu().numpy(), counts=counts,
             **{f: cat(f) for f in (*_REQUIRED, *optional)},

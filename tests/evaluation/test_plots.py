@@ -12,7 +12,7 @@ from matplotlib.colors import to_rgba_array
 from matplotlib.image import imread
 
 from flowins.evaluation import plot_errors, plot_trajectory
-from flowins.evaluation.plots import trajectory_figure
+from flowins.evaluation.plots import errors_figure, trajectory_figure
 
 F64 = torch.float64
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -71,6 +71,33 @@ def test_errors_png(tmp_path):
         dpi=100,
     )
     assert png_size(path) == (600, 200)
+
+
+def test_each_error_series_is_drawn_at_its_own_values_in_its_legend_colour():
+    """Two series at 1 m and 3 m: the rendered pixels along each level are that line's colour
+    (read back from the legend entry of its name), and nothing of it sits at the other level."""
+    t = torch.linspace(0, 10, 50, dtype=F64)
+    fig = errors_figure(series={"filter": (t, torch.full_like(t, 3.0)), "smoother": (t, torch.full_like(t, 1.0))},
+                        figsize_in=(6.0, 3.0), dpi=100)
+    (ax,) = fig.axes
+    ax.get_legend().set_visible(False)
+    ax.set_ylim(0.0, 4.0)
+    colours = {line.get_label(): to_rgba_array(line.get_color())[0, :3] * 255 for line in ax.get_lines()}
+    assert set(colours) == {"filter", "smoother"}
+    fig.canvas.draw()
+    image = np.asarray(fig.canvas.buffer_rgba())[..., :3].astype(np.float64)
+
+    def nearest(level, colour):
+        """Per point along the level, the colour distance of the closest pixel within 2 rows
+        (a 1 pt line is anti-aliased over about two pixel rows)."""
+        xy = ax.transData.transform(np.stack((np.linspace(2.0, 8.0, 25), np.full(25, level)), -1))
+        cols, rows = np.floor(xy[:, 0]).astype(int), image.shape[0] - 1 - np.floor(xy[:, 1]).astype(int)
+        window = np.stack([image[rows + d, cols] for d in range(-2, 3)], 1)  # (25, 5, 3)
+        return np.abs(window - colour).max(-1).min(-1)
+
+    for name, level, other in (("filter", 3.0, 1.0), ("smoother", 1.0, 3.0)):
+        assert nearest(level, colours[name]).max() < 30, name
+        assert nearest(other, colours[name]).min() > 60, name
 
 
 def test_nan_track_is_refused(tmp_path):

@@ -137,6 +137,7 @@ def test_a_corrupted_image_is_an_error_even_with_a_warm_cache(recording, tmp_pat
         _dense_flow(tmp_path / "rec", cache, caplog)
 
 
+@pytest.mark.slow
 def test_closed_form_dropout_shares_one_cache_across_rates(recording, tmp_path, caplog):
     """SpyNet in closed form keeps σ's moments: a second rate reads the first rate's cache, and its
     σ is what the network computes at that rate from scratch (another cache)."""

@@ -41,6 +41,7 @@ def test_a_recording_without_gnss_reports_the_gnss_rows_as_not_applicable(tmp_pa
     assert abs(err.rmse_m - ins.filter_rmse_m) < 1e-6 * max(1.0, ins.filter_rmse_m)
 
 
+@pytest.mark.slow
 def test_the_default_configuration_composes_and_runs_quick(tmp_path):
     cfg = _compose([f"output_dir={tmp_path}", "quick=true", "plots=false", "progress=false", "combinations=[ins_gnss]"])
     (row,) = run(cfg)
@@ -61,6 +62,7 @@ def small_walk(tmp_path_factory):
     return folder
 
 
+@pytest.mark.slow
 def test_every_combination_runs_on_a_simulated_walk_and_flow_bounds_the_drift(small_walk, tmp_path):
     out = tmp_path / "out"
     cfg = _compose([f"sequence.path={small_walk}", f"output_dir={out}", f"cache_dir={tmp_path / 'cache'}",
@@ -88,6 +90,7 @@ def test_every_combination_runs_on_a_simulated_walk_and_flow_bounds_the_drift(sm
     assert len(list((tmp_path / "cache" / "flow").glob("dense-*.npz"))) == 1
 
 
+@pytest.mark.slow
 def test_sparse_rows_on_whole_tracks_run_cache_their_tracks_and_bound_the_drift(small_walk, tmp_path):
     """``filter.tracks.window=5``: Lucas-Kanade with ids kept over the frames, the multi-view update."""
     from flowins.flow.load import read_tracks
@@ -191,6 +194,7 @@ def test_a_bad_filter_value_stops_the_job_before_the_recording_is_read(tmp_path)
         run(cfg)  # the missing folder would be the error if the recording were read first
 
 
+@pytest.mark.slow
 def test_seeds_run_as_one_batch_and_report_the_mean_and_std_of_the_single_runs(tmp_path, monkeypatch):
     """``sequence.seeds=[a,b]``: each seed's metrics are its single run's (to rounding), the
     table's the mean ± sample std over them."""

@@ -75,6 +75,7 @@ def outage_error(result) -> float:
     return float(err[late, :2].norm(dim=-1).mean())
 
 
+@pytest.mark.slow
 def test_the_constraint_keeps_a_car_on_its_road_through_a_gnss_outage():
     """The simulated car's body x is along its velocity (no slip, no lift): its sideways and
     vertical body velocity are exactly zero. Through a 60 s outage the constraint holds the

@@ -222,6 +222,7 @@ def test_a_bad_select_source_is_refused_naming_its_key(tmp_path):
         SequenceDataModule(train=[{"seed": 1}], val=[{"seed": 3}], select=[{"foo": 1}], config={}, methods=["ins"])
 
 
+@pytest.mark.slow
 def test_a_batch_of_windows_has_the_mean_loss_and_gradient_of_its_sequences_windows(workdir):
     """run_windows: the windows of two sequences in one batched filter; the mean of their
     losses has the mean of the gradients each window gives alone (run_window)."""

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from flowins.cache import cache_root, content_key, library_versions, source_digest
+from flowins.cache import cache_root, content_key, folder_lock, library_versions, source_digest
 from flowins.data.sequence import Sequence
 from flowins.data.simulate.gnss import GnssErrors, simulate_fixes
 from flowins.data.simulate.scenario import SIMULATOR_CODE, open_simulation, seal_simulation
@@ -199,14 +199,18 @@ def simulate_drive(out: str | Path | None = None, config: DriveConfig = DriveCon
                    overwrite: bool = False) -> Sequence:
     """Write the drive to ``out`` (default :func:`default_drive_dir`) in the flowins folder
     format, or read it back when the folder holds it already (the walk's caching rules)."""
-    from flowins.data.folder import write_folder
-
     in_cache = out is None
     out = Path(out) if out is not None else default_drive_dir(config)
     key = config.key()
-    held = open_simulation(out, key, overwrite=overwrite, in_cache=in_cache)
-    if held is not None:
-        return held
+    with folder_lock(out):
+        held = open_simulation(out, key, overwrite=overwrite, in_cache=in_cache)
+        return held if held is not None else _simulate_drive(out, config, key)
+
+
+def _simulate_drive(out: Path, config: DriveConfig, key: str) -> Sequence:
+    """Simulate the drive of ``config`` into the empty folder ``out`` and seal it as ``key``."""
+    from flowins.data.folder import write_folder
+
     sequence, imu_truth = drive_sequence(config)
     write_folder(sequence, out, overwrite=True)
     (out / "truth").mkdir(exist_ok=True)

@@ -29,7 +29,7 @@ import torch
 from torch import Tensor
 
 from flowins.progress import progress as track_progress
-from flowins.cache import cache_root, content_key, library_versions, source_digest
+from flowins.cache import cache_root, content_key, folder_lock, library_versions, source_digest
 from flowins.data.sequence import CameraFrames, PinholeCamera, Sequence
 from flowins.data.simulate.gnss import GnssErrors, simulate_fixes
 from flowins.data.simulate.tracks import RenderedTracker, TrackConfig
@@ -214,15 +214,20 @@ def simulate(
     Args:
         out: folder to write; default :func:`default_cache_dir`.
         overwrite: replace a folder holding a different simulation (or other files).
-    """
-    from flowins.data.folder import write_folder
 
+    Processes that simulate into one folder at once take turns (:func:`~flowins.cache.folder_lock`).
+    """
     in_cache = out is None
     out = Path(out) if out is not None else default_cache_dir(config)
     key = config.key()
-    held = open_simulation(out, key, overwrite=overwrite, in_cache=in_cache)
-    if held is not None:
-        return held
+    with folder_lock(out):
+        held = open_simulation(out, key, overwrite=overwrite, in_cache=in_cache)
+        return held if held is not None else _simulate(out, config, key, progress=progress)
+
+
+def _simulate(out: Path, config: SimulationConfig, key: str, *, progress: bool) -> Sequence:
+    """Simulate the walk of ``config`` into the empty folder ``out`` and seal it as ``key``."""
+    from flowins.data.folder import write_folder
 
     gen = torch.Generator().manual_seed(config.seed)
     walk = Walk(WalkConfig(duration_s=config.duration_s))
