@@ -153,7 +153,7 @@ def _auto():
 
 def bias_score(seeds: int) -> None:
     from flowins.data.synthetic import Imperfections, WalkConfig, synthetic_walk_recording
-    from flowins.settings import resolve_imu
+    from flowins.sensor import resolve_imu
 
     print("\n2. 120 s walk with GNSS, 2 s still start, imu=auto as for a recording that names its sensor "
           "(simulated_walk): horizontal RMSE")
@@ -173,7 +173,7 @@ def noise_score(seeds: int, rate_hz: float) -> None:
     from flowins.data.synthetic import ImuErrors
     from flowins.ins.imu_model import still_noise_densities
     from flowins.ins.initialization import still_interval
-    from flowins.settings import resolve_imu
+    from flowins.sensor import resolve_imu
 
     truth = ImuErrors()
     print(f"\n3. vibrating still start (5 s), 120 s walk with GNSS at {rate_hz:g} Hz; simulator's white noise acc "

@@ -11,6 +11,7 @@ may not be empty), which :func:`build` checks with the same kind of message;
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import os
 import types
@@ -29,7 +30,9 @@ _PLURALS = {float: "numbers", int: "integers", str: "names"}
 def _expected(tp: Any) -> str:
     args = typing.get_args(tp)
     if typing.get_origin(tp) in (typing.Union, types.UnionType):
-        return " or ".join(dict.fromkeys("null" if a is type(None) else _expected(a) for a in args))
+        # a tensor stands where training learns a number: a config gives the number
+        return " or ".join(dict.fromkeys("null" if a is type(None) else _expected(a) for a in args
+                                         if a is not torch.Tensor))
     if typing.get_origin(tp) is tuple:
         if args and args[-1] is not Ellipsis:
             return f"a list of {len(args)} numbers"
@@ -150,24 +153,32 @@ def _fields(cls: type) -> list[str]:
 
 
 def bounded(default: Any = dataclasses.MISSING, *, minimum: float | None = None, maximum: float | None = None,
-            nonempty: bool = False, **kwargs: Any) -> Any:
-    """A dataclass field whose value :func:`build` checks against ``[minimum, maximum]``
-    (each item's, for a tuple) and, with ``nonempty``, refuses an empty list."""
+            above: float | None = None, nonempty: bool = False, **kwargs: Any) -> Any:
+    """A dataclass field whose value must lie in ``[minimum, maximum]`` and, with ``above``,
+    exceed it (each item's, for a tuple; every element's, for a tensor); with ``nonempty`` an
+    empty list is refused. :func:`build` checks it on a config's value and :func:`check_fields`
+    (called from the dataclass's ``__post_init__``) on every instance."""
     if isinstance(default, (list, dict)):
         mutable, default = default, dataclasses.MISSING
         kwargs["default_factory"] = lambda: type(mutable)(mutable)
-    return dataclasses.field(default=default, metadata={"minimum": minimum, "maximum": maximum,
+    return dataclasses.field(default=default, metadata={"minimum": minimum, "maximum": maximum, "above": above,
                                                         "nonempty": nonempty}, **kwargs)
 
 
-def _check_range(value: Any, raw: Any, tp: Any, key: str, minimum: float | None, maximum: float | None) -> None:
-    """ValueError naming ``key`` when ``value`` is outside ``[minimum, maximum]``."""
+def _check_range(value: Any, raw: Any, tp: Any, key: str, minimum: float | None, maximum: float | None,
+                 above: float | None = None) -> None:
+    """ValueError naming ``key`` when ``value`` (a number, or a tensor's every element) is
+    outside ``[minimum, maximum]`` or not above ``above``."""
     if value is None:
         return
-    if minimum is not None and value < minimum:
-        raise ValueError(f"{key}={raw!r}: expected {_expected(tp)} >= {minimum:g}")
-    if maximum is not None and value > maximum:
-        raise ValueError(f"{key}={raw!r}: expected {_expected(tp)} <= {maximum:g}")
+    v = value.detach() if isinstance(value, torch.Tensor) else value
+    what = "numbers" if isinstance(value, torch.Tensor) else _expected(tp)
+    if above is not None and not bool((v > above).all() if isinstance(v, torch.Tensor) else v > above):
+        raise ValueError(f"{key}={raw!r}: expected {what} > {above:g}")
+    if minimum is not None and not bool((v >= minimum).all() if isinstance(v, torch.Tensor) else v >= minimum):
+        raise ValueError(f"{key}={raw!r}: expected {what} >= {minimum:g}")
+    if maximum is not None and not bool((v <= maximum).all() if isinstance(v, torch.Tensor) else v <= maximum):
+        raise ValueError(f"{key}={raw!r}: expected {what} <= {maximum:g}")
 
 
 def _check_field(field: dataclasses.Field, value: Any, raw: Any, tp: Any, key: str) -> None:
@@ -175,16 +186,38 @@ def _check_field(field: dataclasses.Field, value: Any, raw: Any, tp: Any, key: s
     meta = field.metadata
     if not meta:
         return
+    bounds = meta.get("minimum"), meta.get("maximum"), meta.get("above")
     if isinstance(value, tuple):
         items = [a for a in typing.get_args(tp) if a is not type(None)] if typing.get_origin(tp) is not tuple else [tp]
         if meta.get("nonempty") and not value:
             raise ValueError(f"{key}=[]: expected {_expected(items[0])}, not an empty one")
         args = typing.get_args(items[0]) if items else ()
         for i, (item, raw_item) in enumerate(zip(value, raw)):
-            _check_range(item, raw_item, args[0] if args else float, f"{key}[{i}]", meta.get("minimum"),
-                         meta.get("maximum"))
+            _check_range(item, raw_item, args[0] if args else float, f"{key}[{i}]", *bounds)
     else:
-        _check_range(value, raw, tp, key, meta.get("minimum"), meta.get("maximum"))
+        _check_range(value, raw, tp, key, *bounds)
+
+
+@functools.cache
+def _hints(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+def check_fields(obj: Any) -> None:
+    """Every field of the dataclass instance ``obj`` that declares a :func:`bounded` range or
+    a ``Literal`` of choices: a value of its annotation's kind (a tensor, which training may put in a number's
+    place, is checked for its range only) within that range; ValueError naming
+    ``ClassName.field`` (which :func:`build` turns into the config's key) otherwise. The one
+    range check of every settings dataclass: call it from ``__post_init__``."""
+    hints = _hints(type(obj))
+    for field in dataclasses.fields(obj):
+        if not field.metadata and typing.get_origin(hints[field.name]) is not typing.Literal:
+            continue
+        value = getattr(obj, field.name)
+        key = f"{type(obj).__name__}.{field.name}"
+        if not isinstance(value, torch.Tensor):
+            value = check_value(value, hints[field.name], key)
+        _check_field(field, value, getattr(obj, field.name), hints[field.name], key)
 
 
 def build(cls: type[T], values: Mapping[str, Any], key: str, **ready: Any) -> T:

@@ -4,16 +4,16 @@
 """
 from __future__ import annotations
 
-import dataclasses
-import functools
 import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import KW_ONLY, dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import torch
 from torch import Tensor
 
+from flowins.batching import carries_gradient, navigate_in_workers
+from flowins.config import bounded, check_fields
 from flowins.data.streams import GnssStream, ImuStream, PoseStream
 from flowins.filter.augmentation import with_window
 from flowins.filter.ekf import Gate
@@ -26,13 +26,13 @@ from flowins.ins.initialization import InitialUncertainty
 from flowins.ins.mechanization import SCHEMES, STANDARD_GRAVITY_MPS2, ProcessNoise
 from flowins.measurements.flow_update import FlowUpdate, flow_frames
 from flowins.measurements.gnss import GnssRecovery, correlation_inflation, gnss_fixes, gnss_noise
-from flowins.measurements.gnss_heading import HeadingAlignment, aligned_prior_covariance, fit_from_record
-from flowins.measurements.registry import NavigationContext, measurement_kind
+from flowins.measurements.gnss_heading import HeadingAlignment
+from flowins.measurements.registry import NavigationContext, registered_events
 from flowins.measurements.tracks import TrackUpdate, track_frames
 from flowins.measurements.vehicle import VehicleConstraint  # noqa: F401  (registers the kind "vehicle")
 from flowins.measurements.zero_velocity import ZeroVelocity
-from flowins.parallel import can_start_workers, run_in_processes, split_by_load
-from flowins.state import STATE_DIM, window_size
+from flowins.second_pass import smoother_tracks
+from flowins.state import STATE_DIM
 from flowins.start import Start, StartSettings, choose_start
 
 log = logging.getLogger(__name__)
@@ -49,24 +49,24 @@ class NavigationConfig:
     gnss_gate: Gate = field(default_factory=Gate)
     #: what follows a run of rejected fixes (:class:`~flowins.measurements.gnss.GnssRecovery`)
     gnss_recovery: GnssRecovery = field(default_factory=GnssRecovery)
-    gnss_noise_scale: float = 1.0
+    gnss_noise_scale: float = bounded(1.0, above=0.0)
     #: correlation time of the GNSS errors (s): each fix's R is inflated by
     #: :func:`~flowins.measurements.gnss.correlation_inflation`; 0: white, as in the paper
-    gnss_correlation_s: float = 0.0
+    gnss_correlation_s: float = bounded(0.0, minimum=0.0)
     #: heading from the first fixes while the yaw is unknown (:mod:`flowins.measurements.gnss_heading`)
     gnss_heading: HeadingAlignment = field(default_factory=HeadingAlignment)
-    output_every: int = 10
+    output_every: int = bounded(10, minimum=1)
     scheme: str = "midpoint"
-    gravity_mps2: float = STANDARD_GRAVITY_MPS2
+    gravity_mps2: float = bounded(STANDARD_GRAVITY_MPS2, above=0.0)
     #: ``"analytic"`` | ``"autodiff"``: the IMU's and the flow measurements' Jacobians
-    jacobians: str = "analytic"
+    jacobians: Literal["analytic", "autodiff"] = "analytic"
     dtype: torch.dtype = torch.float64
     #: where the filter, the smoother and their events run (``cpu``, ``cuda``, ``cuda:1``);
     #: the start and the measurements are prepared on the CPU and moved there
     device: torch.device = field(default_factory=lambda: torch.device("cpu"))
     #: worker processes a batch of several recordings is split over on the CPU (:func:`navigate_batch`,
     #: :mod:`flowins.parallel`); 1: the batch in this process
-    workers: int = 1
+    workers: int = bounded(1, minimum=1)
     flow_update: FlowUpdate = field(default_factory=FlowUpdate)
     #: the multi-view update of sparse tracks over a window of cloned poses (``filter.tracks``;
     #: :mod:`flowins.measurements.tracks`); its window 0 (the default) leaves it off
@@ -79,17 +79,7 @@ class NavigationConfig:
     def __post_init__(self) -> None:
         if self.scheme not in SCHEMES:
             raise ValueError(f"NavigationConfig.scheme={self.scheme!r}: expected one of {', '.join(SCHEMES)}")
-        if self.jacobians not in ("analytic", "autodiff"):
-            raise ValueError(f"NavigationConfig.jacobians={self.jacobians!r}: expected analytic or autodiff")
-        if not (isinstance(self.output_every, int) and self.output_every >= 1):
-            raise ValueError(f"NavigationConfig.output_every={self.output_every!r}: expected an integer >= 1")
-        for key in ("gravity_mps2", "gnss_noise_scale"):
-            if not getattr(self, key) > 0.0:
-                raise ValueError(f"NavigationConfig.{key}={getattr(self, key)!r}: expected a number > 0")
-        if not self.gnss_correlation_s >= 0.0:
-            raise ValueError(f"NavigationConfig.gnss_correlation_s={self.gnss_correlation_s!r}: expected a number >= 0")
-        if isinstance(self.workers, bool) or not (isinstance(self.workers, int) and self.workers >= 1):
-            raise ValueError(f"NavigationConfig.workers={self.workers!r}: expected an integer >= 1")
+        check_fields(self)
 
     def filter_settings(self) -> dict:
         """The keyword arguments of :func:`~flowins.filter.runner.run_filter` this config sets."""
@@ -113,7 +103,7 @@ class NavigationResult:
     #: GNSS fixes before the filter's start (not used)
     gnss_before_start: int = 0
     #: what the smoother ran on where a second pass was tried (``filter.gnss_heading.second_pass``,
-    #: :func:`smoother_tracks`): ``{"pass": "second" | "first", "reason": ...}``; None: the one pass
+    #: :func:`~flowins.second_pass.smoother_tracks`): ``{"pass": "second" | "first", "reason": ...}``; None: the one pass
     smoother_pass: dict[str, Any] | None = None
 
     @property
@@ -134,27 +124,6 @@ class NavigationResult:
                             "reason": "the run ended before the held fixes could set the heading "
                             "(filter.gnss_heading: baseline_m, max_sigma_rad); they never updated the filter"})
         return entries
-
-    def summary(self) -> dict[str, Any]:
-        """What the run did, for ``metrics.json``: GNSS fixes accepted, how it started, its
-        GNSS resets, fixes before the start, and the heading alignment (each when present)."""
-        out: dict[str, Any] = {}
-        if self.gnss_accepted is not None:
-            out["gnss_accepted"] = int(self.gnss_accepted.sum())
-            out["gnss_fixes"] = int(self.gnss_accepted.numel())
-        if self.start is not None:
-            out["start"] = self.start.as_dict()
-        resets = [{k: v for k, v in e.items() if k != "kind"} for e in self.filter.log if e.get("kind") == "gnss_reset"]
-        if resets:
-            out["gnss_resets"] = resets
-        if self.gnss_before_start:
-            out["gnss_before_start"] = self.gnss_before_start
-        heading = [{k: v for k, v in e.items() if k not in ("kind", "name", "fit")} for e in self.heading_status]
-        if heading:
-            out["heading_alignment"] = heading  # filter.gnss_heading: when and how the heading was set (or given up)
-        if self.smoother_pass is not None:
-            out["smoother_pass"] = self.smoother_pass
-        return out
 
     @property
     def flow_log(self) -> list[dict]:
@@ -257,18 +226,8 @@ def prepare_navigation(run: NavigationRun, *, config: NavigationConfig = Navigat
         clones = config.tracks.window
         events = events + track_frames(run.tracks, run.camera, config.tracks, t_min_s=start.t_s, t_max_s=t_end_s,
                                        name=run.tracks.name)
-    streams = dict(run.streams)
-    for name, settings in config.measurements.items():  # a kind switched on that needs no recorded stream
-        kind = measurement_kind(name)
-        if name not in streams and kind.default_stream is not None and getattr(settings, "mode", None) == "on":
-            streams[name] = kind.default_stream()
-    if streams:
-        context = NavigationContext(t_start_s=start.t_s, t_end_s=t_end_s, frame=frame, dtype=config.dtype)
-        for name, stream in streams.items():
-            kind = measurement_kind(name)
-            settings = config.measurements.get(name)
-            settings = kind.settings() if settings is None else settings
-            events += [e for e in kind.events(stream, settings, context) if e.time_s >= start.t_s]
+    context = NavigationContext(t_start_s=start.t_s, t_end_s=t_end_s, frame=frame, dtype=config.dtype)
+    events += registered_events(run.streams, config.measurements, context)
     like = {"dtype": config.dtype, "device": torch.device(config.device)}
     mean0, cov0 = with_window(start.mean.to(**like), start.cov.to(**like), clones,
                               nugget_var=config.initial.augmentation_nugget_var)
@@ -287,38 +246,12 @@ def navigate(run: NavigationRun, *, config: NavigationConfig = NavigationConfig(
     (:func:`~flowins.measurements.flow_update.flow_frames`, settings ``config.flow_update``); each of ``run.streams`` by its
     registered kind (:mod:`flowins.measurements.registry`, settings ``config.measurements``).
 
-    When no input or config tensor needs a gradient (:func:`carries_gradient`) the run is
+    When no input or config tensor needs a gradient (:func:`~flowins.batching.carries_gradient`) the run is
     made in ``torch.inference_mode`` and the result's tensors are inference tensors:
     read them freely, but ``clone()`` one before changing it in place. With a tensor that
     needs a gradient the result carries the graph back to it.
     """
     return navigate_batch([run], config=config, progress=progress)[0]
-
-
-def carries_gradient(*objects) -> bool:
-    """Whether grad mode is on and any tensor in ``objects`` (searched through dataclasses,
-    named tuples, lists, tuples and mappings) requires a gradient."""
-    if not torch.is_grad_enabled():
-        return False
-    seen: set[int] = set()
-    stack = list(objects)
-    while stack:
-        obj = stack.pop()
-        if isinstance(obj, Tensor):
-            if obj.requires_grad:
-                return True
-        elif isinstance(obj, (str, bytes, int, float, bool, type(None), torch.dtype, torch.device)) or id(obj) in seen:
-            continue
-        elif dataclasses.is_dataclass(obj):
-            seen.add(id(obj))
-            stack.extend(getattr(obj, f.name) for f in dataclasses.fields(obj))
-        elif isinstance(obj, Mapping):
-            seen.add(id(obj))
-            stack.extend(obj.values())
-        elif isinstance(obj, (list, tuple)):
-            seen.add(id(obj))
-            stack.extend(obj)
-    return False
 
 
 def navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig = NavigationConfig(),
@@ -331,55 +264,13 @@ def navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig = 
     split into that many parts of about equal work (IMU samples and flow frames), each part
     one batched pass in a worker process of its own (:mod:`flowins.parallel`)."""
     gradient = carries_gradient(runs, config)
-    if batch_workers(runs, config, gradient=gradient, here=False) > 1:
-        if can_start_workers():
-            return _navigate_in_workers(runs, config=config, progress=progress)
-        log.info("filter: %d runs in this process: it is a daemonic worker, which may not start the "
-                 "filter.workers=%d processes", len(runs), config.workers)
+    results = navigate_in_workers(navigate_batch, runs, config=config, gradient=gradient, progress=progress)
+    if results is not None:
+        return results
     # without a gradient to carry, inference mode skips autograd's bookkeeping on every
     # one of the filter's many small operations
     with torch.inference_mode(not gradient):
         return _navigate_batch(runs, config=config, progress=progress)
-
-
-def batch_workers(runs: Sequence[NavigationRun], config: NavigationConfig, *, gradient: bool | None = None,
-                  here: bool = True) -> int:
-    """The worker processes :func:`navigate_batch` splits ``runs`` over: ``config.workers`` (at most
-    one per run) on the CPU where nothing carries a gradient (``gradient``; None: look) and,
-    with ``here``, this process may start processes (:func:`~flowins.parallel.can_start_workers`);
-    else 1, the batch in this process."""
-    if min(config.workers, len(runs)) == 1 or config.device.type != "cpu" or (here and not can_start_workers()):
-        return 1
-    if carries_gradient(runs, config) if gradient is None else gradient:
-        return 1
-    return min(config.workers, len(runs))
-
-
-#: a flow frame's share of the work against an IMU sample's (:func:`run_load`): the 300 s walk's
-#: dense frames (10 Hz, 256 points, 100 Hz IMU) take most of its filter pass
-FRAME_LOAD = 30.0
-
-
-def run_load(run: NavigationRun) -> float:
-    """About how much filtering ``run`` takes: its IMU samples and :data:`FRAME_LOAD` per flow
-    frame pair or track frame (splitting a batch over workers evens it out)."""
-    frames = 0 if run.flow is None else len(run.flow)
-    if run.tracks is not None:
-        frames += len(run.tracks.frame_times)
-    return float(run.imu.t_s.shape[0]) + FRAME_LOAD * frames
-
-
-def _navigate_in_workers(runs: Sequence[NavigationRun], *, config: NavigationConfig,
-                         progress: bool) -> list[NavigationResult]:
-    parts = split_by_load([run_load(run) for run in runs], config.workers)
-    log.info("filter: %d runs in %d worker processes (filter.workers=%d)", len(runs), len(parts), config.workers)
-    task = functools.partial(navigate_batch, config=dataclasses.replace(config, workers=1), progress=progress)
-    done = run_in_processes(task, [([runs[i] for i in part],) for part in parts])
-    results: list[NavigationResult | None] = [None] * len(runs)
-    for part, part_results in zip(parts, done):
-        for i, result in zip(part, part_results):
-            results[i] = result
-    return results  # type: ignore[return-value]
 
 
 def _navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig,
@@ -396,83 +287,9 @@ def _navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig,
     tracks = run_filters(inputs, progress=progress, **config.filter_settings())
     again, passes = smoother_tracks(inputs, tracks, config, progress=progress)
     smoothed = rts_smooth_batch(again, marginal=STATE_DIM)
-    return [
-        NavigationResult(
-            filter=track,
-            smoother=smoother,
-            smoother_pass=which,
-            frame=setup.frame,
-            gnss_t_s=None if run.gnss is None else run.gnss.t_s,
-            gnss_enu_m=setup.gnss_enu_m,
-            gnss_h_acc_m=None if run.gnss is None else run.gnss.h_acc_m,
-            flow_pairs_outside=setup.flow_pairs_outside,
-            start=setup.start,
-            gnss_before_start=setup.gnss_before_start,
-        )
-        for run, setup, track, smoother, which in zip(runs, setups, tracks, smoothed, passes)
-    ]
-
-
-def heading_fit_record(track: FilterTrack) -> dict[str, Any] | None:
-    """The fit of the GNSS heading alignment that set ``track``'s heading (its log entry's
-    ``fit``), or None where no fix set it."""
-    for entry in track.log:
-        if entry.get("kind") == "heading" and entry.get("status") == "aligned" and "fit" in entry:
-            return entry["fit"]
-    return None
-
-
-def smoother_tracks(inputs: Sequence[FilterInput], tracks: Sequence[FilterTrack], config: NavigationConfig, *,
-                    progress: bool = False) -> tuple[list[FilterTrack], list[dict[str, Any] | None]]:
-    """The filter tracks the RTS smoother runs on, one per run of ``inputs`` (filtered into
-    ``tracks``), and for each run what was chosen (None: nothing to choose). A run's track is its
-    own, or, for a run whose GNSS fixes set its heading (``filter.gnss_heading.second_pass``),
-    a second filter pass from the same start. The first pass holds the fixes back until they set
-    the heading, and they never update it; the second knows the heading from its first sample
-    and applies every fix, so the smoother uses them all.
-
-    The second pass starts at the first pass's smoothed mean at the start (the smoother carries
-    the alignment back through the held stretch, where the filter's yaw moved while it was
-    unknown, so the fit's rotation alone does not give the start's heading), with the run's own
-    prior covariance aligned by the fit (:func:`~flowins.measurements.gnss_heading.aligned_prior_covariance`):
-    it claims no more certainty than the prior and the fit (the smoothed covariance would count
-    every measurement twice). A second pass that had to reset to the fixes more
-    often than the first (``filter.gnss_recovery``: it drifted off them) is not used: the
-    smoother runs on the first. All such runs go as one batch; the start carries no gradient
-    through the first pass. ``progress``: report the second pass's progress.
-    """
-    out, which = list(tracks), [None] * len(tracks)
-    if not config.gnss_heading.second_pass:
-        return out, which
-    again = [(i, record) for i, record in enumerate(heading_fit_record(t) for t in tracks) if record is not None]
-    if not again:
-        return out, which
-    rows = []
-    first = rts_smooth_batch([tracks[i] for i, _ in again], marginal=STATE_DIM)
-    for (i, record), smoothed in zip(again, first):
-        run = inputs[i]
-        fit = fit_from_record(record, dtype=run.mean0.dtype, device=run.mean0.device)
-        smoothed = smoothed.mean[0].detach()
-        mean0 = with_window(smoothed, run.cov0[:STATE_DIM, :STATE_DIM], window_size(run.mean0.shape[-1]))[0]
-        cov0 = aligned_prior_covariance(run.mean0, run.cov0, mean0, fit,
-                                        condition_sigma_rad=config.gnss_heading.condition_sigma_rad)
-        rows.append(dataclasses.replace(run, mean0=mean0, cov0=cov0))
-    passes = run_filters(rows, **config.filter_settings(), progress=progress, description="smoother's second pass")
-    for (i, _), track in zip(again, passes):
-        resets_first, resets_second = _resets(tracks[i]), _resets(track)
-        if resets_second > resets_first:
-            which[i] = {"pass": "first", "reason": f"the second pass reset to the fixes {_times(resets_second)}, the "
-                        f"first {_times(resets_first)} (filter.gnss_recovery)"}
-        else:
-            out[i] = track
-            which[i] = {"pass": "second", "reason": "the held fixes set the heading; the smoother's pass knows it "
-                        "from the start and applies every fix"}
-    return out, which
-
-
-def _times(n: int) -> str:
-    return {0: "never", 1: "once", 2: "twice"}.get(n, f"{n} times")
-
-
-def _resets(track: FilterTrack) -> int:
-    return sum(1 for e in track.log if e.get("kind") == "gnss_reset")
+    return [NavigationResult(filter=track, smoother=smoother, smoother_pass=which, frame=setup.frame,
+                             gnss_t_s=None if run.gnss is None else run.gnss.t_s, gnss_enu_m=setup.gnss_enu_m,
+                             gnss_h_acc_m=None if run.gnss is None else run.gnss.h_acc_m,
+                             flow_pairs_outside=setup.flow_pairs_outside, start=setup.start,
+                             gnss_before_start=setup.gnss_before_start)
+            for run, setup, track, smoother, which in zip(runs, setups, tracks, smoothed, passes)]

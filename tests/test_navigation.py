@@ -6,23 +6,12 @@ import torch
 
 from flowins.data.synthetic import synthetic_walk_recording
 from flowins.measurements.gnss_heading import HeadingAlignment
-from flowins.navigation import NavigationConfig, NavigationRun, carries_gradient, navigate
+from flowins.navigation import NavigationConfig, NavigationRun, navigate
 
 
 @pytest.fixture(scope="module")
 def recording():
     return synthetic_walk_recording(duration_s=12.0, seed=5)
-
-
-def test_carries_gradient_finds_a_tensor_deep_in_a_config():
-    config = NavigationConfig()
-    assert not carries_gradient(config, [1.0, "a"], {"k": torch.zeros(2)})
-    scale = torch.tensor(2.0, requires_grad=True)
-    deep = dataclasses.replace(config, flow_update=dataclasses.replace(config.flow_update, sigma_scale=scale))
-    assert carries_gradient(deep)
-    assert carries_gradient({"a": [(None, scale)]})
-    with torch.no_grad():
-        assert not carries_gradient(deep)
 
 
 def test_navigate_gradient_matches_finite_differences_and_the_fast_path_matches_its_values(recording):
@@ -67,6 +56,7 @@ def test_run_warnings_name_flow_pairs_outside_the_filter_span_and_fixes_before_t
     assert run_warnings(quiet) == []
 
 
+@pytest.mark.slow
 def test_the_whole_navigation_in_float32_stays_float32_and_agrees_with_float64(mixed_dtypes):
     """Every tensor a run builds follows the state's dtype: a float64 constant slipped into a
     float32 run (or a device's into another's) would promote the nodes or raise. The still start
@@ -90,7 +80,8 @@ def test_the_whole_navigation_in_float32_stays_float32_and_agrees_with_float64(m
     assert float((tracks[torch.float32] - tracks[torch.float64]).norm(dim=-1).max()) < 0.05
 
 
-@pytest.mark.parametrize("second_pass", [False, pytest.param(True, marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("second_pass", [False, True])
 def test_the_navigation_on_another_device_is_the_cpu_run_and_leaves_no_tensor_behind(fake_device, second_pass,
                                                                                     wrong_heading_walk):
     """``NavigationConfig.device``: the start, the GNSS heading alignment and fixes, the
@@ -114,33 +105,6 @@ def test_the_navigation_on_another_device_is_the_cpu_run_and_leaves_no_tensor_be
     assert torch.equal(moved.filter.node_mean, cpu.filter.node_mean)
     assert torch.equal(moved.smoother.node_cov, cpu.smoother.node_cov)
     assert (moved.smoother_pass is not None) == second_pass
-
-
-def test_a_second_pass_that_resets_more_often_than_the_first_is_not_smoothed(monkeypatch, wrong_heading_walk):
-    """``smoother_tracks``: the smoother takes the second pass unless that pass reset to the
-    fixes more often than the first (each reset counted from the tracks' logs); the run's
-    summary says which pass it took."""
-    import flowins.navigation as nav
-
-    rec, run, config = wrong_heading_walk(2, duration_s=60.0, second_pass=True)
-    setup = nav.prepare_navigation(run, config=config)
-    inputs = [nav.FilterInput(rec.imu.t_s, rec.imu.acc_mps2, rec.imu.gyro_rps, setup.mean0, setup.cov0, setup.events)]
-    (first,) = nav.run_filters(inputs, **config.filter_settings())
-    assert nav.heading_fit_record(first) is not None and nav._resets(first) == 0
-    real = nav.run_filters
-    for extra, chosen in ((0, "second"), (1, "first")):
-        def second_pass(rows, **kw):
-            return [dataclasses.replace(t, log=t.log + [{"kind": "gnss_reset", "t_s": 1.0}] * extra) for t in real(rows, **kw)]
-        monkeypatch.setattr(nav, "run_filters", second_pass)
-        (track,), (which,) = nav.smoother_tracks(inputs, [first], config)
-        assert which["pass"] == chosen
-        assert (track is first) == (chosen == "first")
-    monkeypatch.setattr(nav, "run_filters", real)
-    result = navigate(run, config=config)
-    assert result.summary()["smoother_pass"]["pass"] == "second"
-    off = navigate(run, config=dataclasses.replace(config, gnss_heading=dataclasses.replace(config.gnss_heading, second_pass=False)))
-    assert "smoother_pass" not in off.summary()
-    torch.testing.assert_close(off.filter.node_mean, result.filter.node_mean, rtol=0, atol=0)
 
 
 def test_the_second_pass_reports_its_progress_under_its_own_name(monkeypatch, wrong_heading_walk):

@@ -14,10 +14,40 @@ class RunLog(Protocol):
     filter: Any  # FilterTrack: log, node_cov, t_s
     flow_pairs_outside: int
     gnss_before_start: int
-    start: Any  # Start: t_s
+    start: Any  # Start: t_s, as_dict()
+    smoother_pass: dict[str, Any] | None
 
     @property
     def flow_log(self) -> list[dict]: ...
+
+    @property
+    def gnss_accepted(self) -> Any: ...  # (G,) tensor of 0/1, or None
+
+    @property
+    def heading_status(self) -> list[dict]: ...
+
+
+def run_summary(result: RunLog) -> dict[str, Any]:
+    """What the run did, for ``metrics.json``: GNSS fixes accepted, how it started, its
+    GNSS resets, fixes before the start, the heading alignment and which pass the smoother
+    ran on (each when present)."""
+    out: dict[str, Any] = {}
+    if result.gnss_accepted is not None:
+        out["gnss_accepted"] = int(result.gnss_accepted.sum())
+        out["gnss_fixes"] = int(result.gnss_accepted.numel())
+    if result.start is not None:
+        out["start"] = result.start.as_dict()
+    resets = [{k: v for k, v in e.items() if k != "kind"} for e in result.filter.log if e.get("kind") == "gnss_reset"]
+    if resets:
+        out["gnss_resets"] = resets
+    if result.gnss_before_start:
+        out["gnss_before_start"] = result.gnss_before_start
+    heading = [{k: v for k, v in e.items() if k not in ("kind", "name", "fit")} for e in result.heading_status]
+    if heading:
+        out["heading_alignment"] = heading  # filter.gnss_heading: when and how the heading was set (or given up)
+    if result.smoother_pass is not None:
+        out["smoother_pass"] = result.smoother_pass
+    return out
 
 
 def flow_statistics(result: RunLog, pairs: Sized) -> dict[str, Any]:

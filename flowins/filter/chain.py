@@ -20,7 +20,7 @@ from typing import Any, Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
-from flowins.filter.ekf import UpdateResult, linear_predict
+from flowins.filter.ekf import UpdateResult, linear_predict, raise_if_failed, waits_cost
 from flowins.state import normalize_quaternions, symmetrize
 
 
@@ -152,6 +152,8 @@ class BatchChain:
         self._mean: list[Tensor] = []  # chunks; the last is (B, 1, 26)
         self._cov: list[Tensor] = []
         self._finished = False
+        #: update failure flags not read yet (:meth:`check_failed`): (flags, what, rows, times)
+        self._failures: list[tuple[Tensor, str, list[int], list[float]]] = []
         use_stores = capacity is not None and rows <= STORE_ROWS and not torch.is_grad_enabled()
         self._stores = [_RowStore(c) for c in capacity] if use_stores else None
         self._start = 0  # the first column the chunk lists hold (the ones before are in the stores)
@@ -172,6 +174,31 @@ class BatchChain:
 
     def time_s(self, b: int) -> float:
         return self.t_s[b][-1]
+
+    def check_failed(self, failed: Tensor | None, what: str, rows: Sequence[int]) -> None:
+        """An update's failure flags ``(r,)`` for ``rows``: raised now (:func:`~flowins.filter.ekf.raise_if_failed`,
+        naming the rows and the time) where reading them back is free (the CPU, eager), kept as
+        a tensor where it costs (a GPU, or ``torch.compile``: :func:`~flowins.filter.ekf.waits_cost`)
+        and raised by :meth:`raise_failures` at the end of the pass, naming the first
+        failure's time and rows."""
+        if failed is None:
+            return
+        failed = failed.reshape(len(rows), -1).any(-1)  # a row's blocks: one flag per row
+        times = [self.time_s(b) for b in rows]
+        if waits_cost(failed):
+            self._failures.append((failed.detach().reshape(-1), what, list(rows), times))
+        else:
+            raise_if_failed(failed, what, rows, times)
+
+    def raise_failures(self) -> None:
+        """Raise the first failure :meth:`check_failed` kept (one read of all their flags)."""
+        if not self._failures:
+            return
+        flags = torch.stack([f.any() for f, *_ in self._failures]).tolist()
+        failures, self._failures = self._failures, []
+        for flag, (failed, what, rows, times) in zip(flags, failures):
+            if flag:
+                raise_if_failed(failed, what, rows, times)
 
     def _append(self, transition: Tensor, pred_mean: Tensor, pred_cov: Tensor, mean: Tensor, cov: Tensor) -> None:
         """Append columns ``(B, n, ...)``; ``mean``, ``cov`` are the filtered Gaussians of the
@@ -343,6 +370,7 @@ class BatchChain:
         views of them (after a last flush); otherwise the chain's storage is handed over part by
         part (each part's columns are freed once the rows have copied theirs, so the nodes are
         not held twice). After it the chain keeps only its newest nodes (:attr:`mean`, :attr:`cov`)."""
+        self.raise_failures()
         if self._finished:
             raise RuntimeError("BatchChain.finish: the chain is finished already (it hands its nodes over once)")
         self._finished = True

@@ -190,19 +190,23 @@ class Posterior(NamedTuple):
     failed: Tensor  # (...,)
 
 
-def raise_if_failed(failed: Tensor | None, what: str, rows: Sequence[int] | None = None) -> None:
-    """A ``ValueError`` naming ``what`` and the batch rows where ``failed`` holds (``rows``: the
-    run each entry of ``failed`` is; default its index). A read of one flag from the device:
-    call it where the pass may wait."""
+def raise_if_failed(failed: Tensor | None, what: str, rows: Sequence[int] | None = None,
+                    t_s: Sequence[float] | None = None) -> None:
+    """A ``ValueError`` naming ``what``, the batch rows where ``failed`` holds (``rows``: the
+    run each entry of ``failed`` is; default its index) and, with ``t_s`` (each entry's time),
+    when. A read of one flag from the device: call it where the pass may wait
+    (:meth:`~flowins.filter.chain.BatchChain.check_failed` defers it where a wait costs)."""
     if failed is None or not bool(failed.any()):
         return
-    rows = [i if rows is None else rows[i] for i in torch.nonzero(failed.reshape(-1))[:, 0].tolist()]
-    raise ValueError(f"{what}: the state covariance is not positive semi-definite (its Cholesky factorisation "
-                     f"failed even with a jitter of 1e-6 of its largest variance) in batch row(s) {rows[:10]}"
-                     + (" ..." if len(rows) > 10 else ""))
+    bad = torch.nonzero(failed.reshape(-1))[:, 0].tolist()
+    rows = [i if rows is None else rows[i] for i in bad]
+    when = "" if t_s is None else f" at t = {t_s[bad[0]]:.3f} s"
+    raise ValueError(f"{what}{when}: a factorisation failed in batch row(s) {rows[:10]}"
+                     + (" ..." if len(rows) > 10 else "") + ": the state covariance is not positive semi-definite "
+                     "even with a jitter of 1e-6 of its largest variance, or the innovation covariance is singular")
 
 
-def _waits_cost(t: Tensor) -> bool:
+def waits_cost(t: Tensor) -> bool:
     """Whether reading a flag back from ``t``'s device would cost: on a GPU, or under ``torch.compile``
     (a read breaks the graph)."""
     return t.is_cuda or torch.compiler.is_compiling()
@@ -241,11 +245,11 @@ def _cholesky_psd(cov: Tensor) -> tuple[Tensor, Tensor]:
     with the first jitter of :data:`_JITTERS` (times the largest variance) its factorisation
     takes (``P`` is singular right after the pose copy, up to its nugget), each matrix of a
     batch the jitter it alone would get; ``failed`` ``(...,)`` where none does (``F`` then
-    from the largest). Where a read-back costs (:func:`_waits_cost`) all jitters are factorised
+    from the largest). Where a read-back costs (:func:`waits_cost`) all jitters are factorised
     in one batched call; elsewhere the ladder stops at the first jitter every matrix takes."""
     eye = _eye(cov.shape[-1], cov.dtype, cov.device)
     scale = cov.diagonal(dim1=-2, dim2=-1).amax(-1, keepdim=True).unsqueeze(-1).detach().clamp_min(torch.finfo(cov.dtype).tiny)
-    if _waits_cost(cov):
+    if waits_cost(cov):
         levels = torch.tensor(_JITTERS, dtype=cov.dtype, device=cov.device).view(-1, *([1] * cov.ndim))
         factors, info = torch.linalg.cholesky_ex(cov.unsqueeze(0) + (levels * scale) * eye)  # (J, ..., D, D)
         ok = info == 0

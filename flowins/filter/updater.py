@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 
 from flowins.filter.chain import BatchChain, ChainBuilder
-from flowins.filter.ekf import Gate, UpdateResult, ekf_update, raise_if_failed
+from flowins.filter.ekf import Gate, UpdateResult, ekf_update
 from flowins.state import normalize_quaternions
 
 
@@ -76,7 +76,7 @@ def update(
     keep = likelihood and chain.likelihood
     result = gated_update(chain.mean, chain.cov, H=H, residual=residual, noise_cov=noise_cov, gate=gate,
                           sequential=sequential, valid=valid, likelihood=keep, dof=dof, noise_logdet=noise_logdet)
-    raise_if_failed(result.failed, f"update ({info.get('kind', 'measurement')})", [chain.row])
+    chain.batch.check_failed(result.failed, f"update ({info.get('kind', 'measurement')})", [chain.row])
     if keep:
         chain.add_likelihood(*likelihood_sums(result, residual.shape[-1] if dof is None else dof))
     if info:
@@ -151,7 +151,7 @@ def step_rows(
     keep = likelihood and chain.likelihood
     result = gated_update(mean, cov, H=H, residual=residual, noise_cov=noise_cov, gate=gate, sequential=sequential,
                           valid=valid, likelihood=keep, dof=dof, noise_logdet=noise_logdet)
-    raise_if_failed(result.failed, "update", rows)
+    chain.check_failed(result.failed, "update", rows)
     if keep:
         chain.add_likelihood(rows, *likelihood_sums(result, residual.shape[-1] if dof is None else dof))
     return result

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from flowins.config import bounded, check_fields
 from flowins.geometry import quaternion as quat
 from flowins.state import CORE_DIM, STATE, STATE_DIM, make_state, symmetrize
 
@@ -130,21 +131,16 @@ class StillSettings:
         zupt_hz, zupt_sigma_mps: zero-velocity updates over the still interval (0: none).
     """
 
-    min_s: float = 1.0
-    lowpass_hz: float = 2.0
-    max_acc_mps2: float = 0.2
-    max_gyro_rps: float = 0.03
-    max_gravity_error_mps2: float = 0.5
-    zupt_hz: float = 10.0
-    zupt_sigma_mps: float = 0.01
+    min_s: float = bounded(1.0, above=0.0)
+    lowpass_hz: float = bounded(2.0, above=0.0)
+    max_acc_mps2: float = bounded(0.2, above=0.0)
+    max_gyro_rps: float = bounded(0.03, above=0.0)
+    max_gravity_error_mps2: float = bounded(0.5, above=0.0)
+    zupt_hz: float = bounded(10.0, minimum=0.0)
+    zupt_sigma_mps: float = bounded(0.01, above=0.0)
 
     def __post_init__(self) -> None:
-        for key in ("min_s", "lowpass_hz", "max_acc_mps2", "max_gyro_rps", "max_gravity_error_mps2", "zupt_sigma_mps"):
-            value = getattr(self, key)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"filter.init.still.{key} must be a finite number > 0, got {value!r}")
-        if not (isinstance(self.zupt_hz, (int, float)) and math.isfinite(self.zupt_hz) and self.zupt_hz >= 0):
-            raise ValueError(f"filter.init.still.zupt_hz must be a finite number >= 0, got {self.zupt_hz!r}")
+        check_fields(self)
 
 
 @dataclass(frozen=True)

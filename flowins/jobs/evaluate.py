@@ -34,8 +34,9 @@ from flowins.ins.initialization import forward_axis
 from flowins.jobs.cli import console_logging
 from flowins.measurements.flow import FlowCamera
 from flowins.measurements.vehicle import VehicleSettings, platform_streams
-from flowins.evaluation.run_report import flow_statistics, run_warnings, track_statistics
-from flowins.navigation import NavigationConfig, NavigationResult, NavigationRun, batch_workers, navigate_batch
+from flowins.batching import batch_workers
+from flowins.evaluation.run_report import flow_statistics, run_summary, run_warnings, track_statistics
+from flowins.navigation import NavigationConfig, NavigationResult, NavigationRun, navigate_batch
 from flowins.settings import evaluate_settings, filter_setup
 from flowins.state import STATE, STATE_DIM
 
@@ -268,7 +269,7 @@ def _export(out: Path, name: str, result: NavigationResult, rec: Recording, *, p
         metrics[f"{kind}_rmse_m"] = err.rmse_m
         metrics[f"{kind}_num_associated"] = err.num_associated
         tracks[kind] = (err.t_s, err.aligned_est)
-    metrics.update(result.summary())
+    metrics.update(run_summary(result))
     if plots and score:
         # GNSS is plotted in the frame the aligned tracks live in (the truth's)
         plot_trajectory(

@@ -13,7 +13,7 @@ from torch import Tensor
 from flowins.constants import cached_constant
 from flowins.filter.augmentation import augment_pose_rows
 from flowins.filter.chain import BatchChain, ChainBuilder, RowBatchEvent
-from flowins.filter.ekf import Gate, UpdateResult, raise_if_failed
+from flowins.filter.ekf import Gate, UpdateResult
 from flowins.filter.updater import commit_rows, gated_update, likelihood_sums
 from flowins.flow.points import FlowPoints
 from flowins.measurements.flow import FlowCamera, FlowMeasurements, epipolar_update, flow_measurements
@@ -199,7 +199,7 @@ def _flow_update(chain: BatchChain, rows: list[int], frames: list[FlowFrame]) ->
     for iteration in range(u.iterations):
         it = flow_iteration(x_i, mean, cov, points, camera, mask, min_parallax, update=u, jacobians=first.jacobians,
                             first=iteration == 0, likelihood=iteration == 0 and chain.likelihood)
-        raise_if_failed(it.result.failed, "flow update", rows)
+        chain.check_failed(it.result.failed, "flow update", rows)
         if iteration == 0 and chain.likelihood:  # the likelihood of the prior's prediction: the first iteration's only
             chain.add_likelihood(rows, *likelihood_sums(it.result, 1))
         m, step = it.measurements, it.result

@@ -64,7 +64,7 @@ class HeadingAlignment:
         outlier_probability: χ²₂ acceptance of a fix's residual in the fit.
         condition_sigma_rad: σ of the step-1 yaw conditioning.
         second_pass: the RTS smoother of a run whose heading these fixes set runs on a
-            second filter pass from the start (:func:`flowins.navigation.smoother_tracks`),
+            second filter pass from the start (:func:`flowins.second_pass.smoother_tracks`),
             so that every fix, the held ones too, reaches the smoother; the filter's own
             estimates stay those of the first, causal pass. Off by default: it costs one
             more filter pass per such run.

@@ -101,3 +101,23 @@ def measurement_settings(cfg_node: Mapping[str, Any]) -> dict[str, Any]:
             raise ValueError(f"{key}={values!r}: expected a mapping of {kind.settings.__name__}'s keys")
         out[name] = build(kind.settings, values or {}, key)
     return out
+
+
+def registered_events(streams: Mapping[str, Any], settings: Mapping[str, Any], context: NavigationContext) -> list:
+    """The events of every registered kind: each of ``streams`` (name -> stream) by its kind,
+    with its settings from ``settings`` (name -> settings; a kind not named there uses its
+    defaults), and each kind switched on in ``settings`` (``mode: on``) that needs no recorded
+    stream, on its default stream; events before ``context.t_start_s`` are left out."""
+    streams = dict(streams)
+    for name, chosen in settings.items():
+        kind = measurement_kind(name)
+        if name not in streams and kind.default_stream is not None and getattr(chosen, "mode", None) == "on":
+            streams[name] = kind.default_stream()
+    events = []
+    for name, stream in streams.items():
+        kind = measurement_kind(name)
+        chosen = settings.get(name)
+        chosen = kind.settings() if chosen is None else chosen
+        events += [e for e in kind.events(stream, chosen, context) if e.time_s >= context.t_start_s]
+    return events
+

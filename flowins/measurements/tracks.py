@@ -47,6 +47,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from flowins.config import bounded, check_fields
 from flowins.constants import cached_constant
 from flowins.filter.augmentation import augment_pose_rows
 from flowins.filter.chain import BatchChain, RowBatchEvent
@@ -75,28 +76,17 @@ class TrackUpdate:
         gate: the χ² gate of each track (``2m - 3`` degrees of freedom).
     """
 
-    window: int = 0
-    sigma_px: float | Tensor = 0.3
-    max_tracks: int | None = 128
-    min_parallax_rad: float = 0.005
-    min_depth_m: float = 0.05
-    min_conditioning: float = 1e-9
-    refine_iterations: int = 2
+    window: int = bounded(0, minimum=0)
+    sigma_px: float | Tensor = bounded(0.3, above=0.0)
+    max_tracks: int | None = bounded(128, minimum=1)
+    min_parallax_rad: float = bounded(0.005, minimum=0.0)
+    min_depth_m: float = bounded(0.05, minimum=0.0)
+    min_conditioning: float = bounded(1e-9, minimum=0.0)
+    refine_iterations: int = bounded(2, minimum=0)
     gate: Gate = field(default_factory=Gate)
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.window, int) and not isinstance(self.window, bool) and self.window >= 0):
-            raise ValueError(f"filter.tracks.window must be an integer >= 0 (0: off), got {self.window!r}")
-        if self.max_tracks is not None and not (isinstance(self.max_tracks, int) and self.max_tracks >= 1):
-            raise ValueError(f"filter.tracks.max_tracks must be an integer >= 1 or null, got {self.max_tracks!r}")
-        if not (isinstance(self.refine_iterations, int) and self.refine_iterations >= 0):
-            raise ValueError(f"filter.tracks.refine_iterations must be an integer >= 0, got {self.refine_iterations!r}")
-        for key in ("min_parallax_rad", "min_depth_m", "min_conditioning"):
-            if not getattr(self, key) >= 0.0:
-                raise ValueError(f"filter.tracks.{key} must be >= 0, got {getattr(self, key)!r}")
-        sigma = self.sigma_px
-        if not isinstance(sigma, Tensor) and not sigma > 0.0:
-            raise ValueError(f"filter.tracks.sigma_px must be > 0, got {sigma!r}")
+        check_fields(self)
 
     @property
     def views(self) -> int:

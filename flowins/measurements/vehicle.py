@@ -18,10 +18,12 @@ from __future__ import annotations
 
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
+from typing import Literal
 
 import torch
 from torch import Tensor
 
+from flowins.config import bounded, check_fields
 from flowins.filter.chain import BatchChain, RowBatchEvent
 from flowins.filter.updater import update_rows
 from flowins.geometry import quaternion as quat
@@ -37,30 +39,21 @@ class VehicleSettings:
     """``filter.measurements.vehicle``."""
 
     #: auto: on when the recording's metadata names ``platform: vehicle``; on; off
-    mode: str = "auto"
+    mode: Literal["auto", "on", "off"] = "auto"
     #: σ of the sideways and of the vertical velocity in the vehicle frame (m/s)
-    lateral_sigma_mps: float | Tensor = 1.0
-    vertical_sigma_mps: float | Tensor = 1.0
+    lateral_sigma_mps: float | Tensor = bounded(1.0, above=0.0)
+    vertical_sigma_mps: float | Tensor = bounded(1.0, above=0.0)
     #: pseudo-measurements per second
-    rate_hz: float = 5.0
+    rate_hz: float = bounded(5.0, above=0.0)
     #: the IMU axes along the vehicle's forward and up directions
-    forward_axis: str = "x"
-    up_axis: str = "z"
+    forward_axis: Literal["x", "-x", "y", "-y", "z", "-z"] = "x"
+    up_axis: Literal["x", "-x", "y", "-y", "z", "-z"] = "z"
 
     def __post_init__(self) -> None:
-        key = "filter.measurements.vehicle"
-        if self.mode not in MODES:
-            raise ValueError(f"{key}.mode={self.mode!r}: expected one of {', '.join(MODES)}")
-        for name in ("forward_axis", "up_axis"):
-            if getattr(self, name) not in AXES:
-                raise ValueError(f"{key}.{name}={getattr(self, name)!r}: expected one of {', '.join(AXES)}")
+        check_fields(self)
         if AXES[self.forward_axis][0] == AXES[self.up_axis][0]:
-            raise ValueError(f"{key}: forward_axis={self.forward_axis!r} and up_axis={self.up_axis!r} are the same axis")
-        if not self.rate_hz > 0:
-            raise ValueError(f"{key}.rate_hz={self.rate_hz!r}: expected a number > 0")
-        for name in ("lateral_sigma_mps", "vertical_sigma_mps"):
-            if not float(torch.as_tensor(getattr(self, name)).detach()) > 0:
-                raise ValueError(f"{key}.{name}={getattr(self, name)!r}: expected a number > 0")
+            raise ValueError(f"VehicleSettings.forward_axis={self.forward_axis!r} and up_axis={self.up_axis!r} "
+                             "are the same axis")
 
     def rows(self) -> tuple[Tensor, Tensor]:
         """``E (2, 3)``: the body's lateral and up unit axes as rows (the up axis with its sign)."""

@@ -38,7 +38,8 @@ from flowins.filter.runner import FilterInput, run_filters
 from flowins.filter.smoother import rts_smooth_batch
 from flowins.flow.pairs import FlowPairs
 from flowins.measurements.flow import FlowCamera
-from flowins.navigation import NavigationConfig, NavigationRun, prepare_navigation, smoother_tracks
+from flowins.navigation import NavigationConfig, NavigationRun, prepare_navigation
+from flowins.second_pass import smoother_tracks
 from flowins.state import STATE, STATE_DIM
 
 #: the rows of Table I as (GNSS, sparse, dense) sources
@@ -157,7 +158,7 @@ def run_windows(
     ``bounds[i][1]`` starting at ``starts[i]``, all in one batched filter pass
     (:func:`~flowins.filter.runner.run_filters`); ``smooth``: each with its RTS smoother
     (:attr:`WindowResult.smoothed`; on a second filter pass where the GNSS heading alignment
-    calls for one, :func:`~flowins.navigation.smoother_tracks`). ``method``: one for every row, or one per row (a
+    calls for one, :func:`~flowins.second_pass.smoother_tracks`). ``method``: one for every row, or one per row (a
     sequence may appear once per method). ``dropout_p`` applies to the rows whose flow
     pairs carry dropout moments."""
     starts = [None] * len(seqs) if starts is None else starts

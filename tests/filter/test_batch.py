@@ -124,13 +124,13 @@ def test_the_cholesky_jitter_one_covariance_needs_leaves_the_others_of_the_batch
     assert torch.equal(both[0], _cholesky_psd(good)[0]) and torch.equal(both[1], _cholesky_psd(bad)[0])
     assert not torch.equal(both[0], torch.linalg.cholesky(good + 1e-14 * good.diagonal().max() * torch.eye(6, dtype=F64)))
     # the ladder in one batched call (a GPU, torch.compile) gives the same factors
-    monkeypatch.setattr("flowins.filter.ekf._waits_cost", lambda t: True)
+    monkeypatch.setattr("flowins.filter.ekf.waits_cost", lambda t: True)
     at_once, failed = _cholesky_psd(torch.stack((good, bad)))
     assert torch.equal(at_once, both) and not bool(failed.any())
     # a covariance no jitter rescues (an eigenvalue of -1e-3 of the largest) is flagged, not raised
     worse = Q @ torch.diag(torch.tensor([1.0, 0.5, 0.2, 0.1, 0.05, -1e-3], dtype=F64)) @ Q.T
     for waits in (True, False):
-        monkeypatch.setattr("flowins.filter.ekf._waits_cost", lambda t, waits=waits: waits)
+        monkeypatch.setattr("flowins.filter.ekf.waits_cost", lambda t, waits=waits: waits)
         _, failed = _cholesky_psd(torch.stack((good, worse)))
         assert failed.tolist() == [False, True]
 

@@ -139,3 +139,26 @@ def test_residuals_of_the_wrong_rank_are_refused_naming_the_form_to_use():
     chain = chain_at(mean, cov)
     with pytest.raises(ValueError, match="r = 1 rows"):
         update_rows(chain.batch, [0], H=H, residual=z, noise_cov=R)
+
+
+@pytest.mark.parametrize("waits", [False, True])
+def test_a_failed_update_names_its_row_and_time_at_once_or_at_the_end_of_the_pass(monkeypatch, waits):
+    """Row 1's innovation covariance is exactly zero (H = 0, R = 0: its solve is singular).
+    Where reading the flag back is free (the CPU, eager) the update raises at once; where it
+    costs (a GPU, ``torch.compile``) the flag stays on the device and ``finish`` raises the
+    same error at the end of the pass. Either names row 1 and its time, never row 0."""
+    import flowins.filter.chain as chain_module
+
+    monkeypatch.setattr(chain_module, "waits_cost", lambda t: waits)
+    priors = [toy(seed, 2, 3) for seed in (1, 2)]
+    mean, cov = torch.stack([p[0] for p in priors]), torch.stack([p[1] for p in priors])
+    H, z, R = (torch.stack([p[k] for p in priors]) for k in (2, 3, 4))
+    H[1], R[1] = 0.0, 0.0
+    batch = BatchChain(2)
+    eye = torch.eye(STATE_DIM, dtype=F64).expand(2, 1, STATE_DIM, STATE_DIM)
+    batch.add_nodes([[0.5], [1.25]], eye, mean.unsqueeze(1), cov.unsqueeze(1))
+    message = r"update at t = 1\.250 s: a factorisation failed in batch row\(s\) \[1\]"
+    with pytest.raises(ValueError, match=message):
+        update_rows(batch, [0, 1], H=H, residual=z - (H @ mean[:, None, :, None]).squeeze(-1), noise_cov=R)
+        assert waits, "the CPU's eager pass raises in the update"
+        batch.finish()

@@ -8,7 +8,7 @@ from flowins.data.streams import ImuStream
 from flowins.data.synthetic import Walk, WalkConfig, body_readings
 from flowins.geometry import quaternion as quat
 from flowins.ins.consistency import gyro_consistency
-from flowins.settings import check_gyro_consistency, resolve_imu
+from flowins.sensor import check_gyro_consistency, resolve_imu
 
 F64 = torch.float64
 

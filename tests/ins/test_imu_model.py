@@ -186,7 +186,7 @@ class _Rec:
 
 
 def test_a_recording_that_names_no_imu_gets_the_noise_of_its_still_start():
-    from flowins.settings import resolve_imu
+    from flowins.sensor import resolve_imu
 
     imu = resolve_imu(_auto_cfg(), [_Rec(_still_walk())], recorded=True)
     phone = resolve_imu(_auto_cfg(still_noise=False), [_Rec(_still_walk())], recorded=True)
@@ -213,7 +213,7 @@ def test_a_recording_that_names_no_imu_gets_the_noise_of_its_still_start():
 
 
 def test_a_short_still_start_a_named_sensor_or_the_simulated_walk_keep_their_presets():
-    from flowins.settings import resolve_imu
+    from flowins.sensor import resolve_imu
 
     short = resolve_imu(_auto_cfg(), [_Rec(_still_walk(still_s=1.0))], recorded=True)
     assert short.name == "phone" and "the still start's noise is not measured (walk/imu.csv: still for" in short.source

@@ -160,7 +160,7 @@ def test_the_job_refuses_a_saturated_recording_naming_axis_and_key():
     """resolve_imu: a clipped walk stops with the stream, the axis and the key to run anyway."""
     from flowins.data.streams import ImuStream
     from flowins.data.synthetic import synthetic_walk_recording
-    from flowins.settings import resolve_imu
+    from flowins.sensor import resolve_imu
 
     imu = synthetic_walk_recording(duration_s=60.0, seed=0).imu
     clipped = ImuStream(imu.t_s, imu.acc_mps2.clamp(-12.0, 12.0), imu.gyro_rps, name="walk/imu.csv")

@@ -164,5 +164,7 @@ def test_gnss_fixes_that_move_overrule_an_imu_that_looks_still():
 
 
 def test_still_settings_name_the_bad_key():
-    with pytest.raises(ValueError, match="filter.init.still.lowpass_hz"):
+    with pytest.raises(ValueError, match=r"StillSettings\.lowpass_hz=0\.0: expected a number > 0"):
         StillSettings(lowpass_hz=0.0)
+    with pytest.raises(ValueError, match=r"StillSettings\.zupt_hz=nan: expected a finite number"):
+        StillSettings(zupt_hz=float("nan"))

@@ -231,6 +231,7 @@ def test_bad_seeds_are_refused_naming_the_key(tmp_path, seeds, message):
         run(cfg)
 
 
+@pytest.mark.slow
 def test_the_job_scores_plots_and_writes_a_filter_run_on_another_device(tmp_path, monkeypatch, fake_device):
     """``filter.device`` other than the CPU: the job's scoring, TUM export, plots, warnings and
     metrics read the tracks where they are (the fake device of ``conftest.FakeDevice``), with

@@ -1,6 +1,7 @@
 """Flow frames in the filter: INS + optical flow on a simulated walk."""
 import math
 
+import pytest
 import torch
 
 from flowins.data.simulate.render import exact_flow, render
@@ -89,6 +90,7 @@ def test_flow_frames_of_unequal_runs_in_one_batch_equal_each_run_alone():
             torch.testing.assert_close(x, y, rtol=0, atol=1e-10 * max(1.0, float(y.abs().max())))
 
 
+@pytest.mark.slow
 def test_flow_frames_in_float32_mix_no_dtypes_and_agree_with_float64(mixed_dtypes):
     """Every tensor the flow update, the pose augmentation, the recovery and the smoother build
     follows the state's dtype (and so its device): a float32 run with float64 as the default
@@ -118,6 +120,7 @@ def test_flow_frames_in_float32_mix_no_dtypes_and_agree_with_float64(mixed_dtype
     assert float((ends[torch.float32, False] - ends[torch.float64, False]).norm(dim=-1).max()) < 0.2
 
 
+@pytest.mark.slow
 def test_flow_frames_on_another_device_are_the_cpu_run(fake_device):
     """The flow update (stacked and sequential, iterated, with the recovery's inflation), the
     pose augmentation (exact and the paper's forgetting) and the smoother on the fake device of

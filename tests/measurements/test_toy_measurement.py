@@ -20,12 +20,8 @@ from flowins.measurements.registry import (
     measurement_settings,
     register,
 )
-from flowins.navigation import (
-    NavigationConfig,
-    NavigationRun,
-    carries_gradient,
-    navigate,
-)
+from flowins.batching import carries_gradient
+from flowins.navigation import NavigationConfig, NavigationRun, navigate
 from flowins.start import StartSettings, StillSettings
 from flowins.state import STATE, STATE_DIM
 

@@ -317,10 +317,13 @@ def test_schedule_caps_tracks_per_frame_longest_first():
 
 
 def test_bad_settings_name_their_key():
-    with pytest.raises(ValueError, match="filter.tracks.window"):
+    """Built directly the error names the field (``tests/test_config.py``: from a config, the key)."""
+    with pytest.raises(ValueError, match=r"TrackUpdate\.window=-1: expected an integer >= 0"):
         TrackUpdate(window=-1)
-    with pytest.raises(ValueError, match="filter.tracks.sigma_px"):
+    with pytest.raises(ValueError, match=r"TrackUpdate\.sigma_px=0\.0: expected a number > 0"):
         TrackUpdate(window=3, sigma_px=0.0)
+    with pytest.raises(ValueError, match=r"TrackUpdate\.sigma_px=.*: expected numbers > 0"):
+        TrackUpdate(window=3, sigma_px=torch.tensor([0.3, -1.0]))  # a learned σ: its every element
     assert math.isfinite(TrackUpdate(window=3).min_parallax_rad)
 
 

@@ -12,6 +12,7 @@ from flowins.training.unroll import (LOSSES, TrainingSequence, run_windows, sequ
                                      window_loss)
 
 
+@pytest.mark.slow
 def test_the_unroll_on_another_device_gives_the_cpu_losses_gradients_and_rmse(fake_device):
     """Parameters placed on the fake device (``module.to(cuda)``): every window loss, its gradient
     and the held-out RMSE equal the CPU run's, and no op meets a CPU tensor on the device."""
