@@ -153,26 +153,30 @@ def _fields(cls: type) -> list[str]:
 
 
 def bounded(default: Any = dataclasses.MISSING, *, minimum: float | None = None, maximum: float | None = None,
-            above: float | None = None, nonempty: bool = False, **kwargs: Any) -> Any:
-    """A dataclass field whose value must lie in ``[minimum, maximum]`` and, with ``above``,
-    exceed it (each item's, for a tuple; every element's, for a tensor); with ``nonempty`` an
+            above: float | None = None, below: float | None = None, nonempty: bool = False, **kwargs: Any) -> Any:
+    """A dataclass field whose value must lie in ``[minimum, maximum]``, exceed ``above`` and stay
+    under ``below`` (each item's, for a tuple; every element's, finite, for a tensor); with ``nonempty`` an
     empty list is refused. :func:`build` checks it on a config's value and :func:`check_fields`
     (called from the dataclass's ``__post_init__``) on every instance."""
     if isinstance(default, (list, dict)):
         mutable, default = default, dataclasses.MISSING
         kwargs["default_factory"] = lambda: type(mutable)(mutable)
     return dataclasses.field(default=default, metadata={"minimum": minimum, "maximum": maximum, "above": above,
-                                                        "nonempty": nonempty}, **kwargs)
+                                                        "below": below, "nonempty": nonempty}, **kwargs)
 
 
 def _check_range(value: Any, raw: Any, tp: Any, key: str, minimum: float | None, maximum: float | None,
-                 above: float | None = None) -> None:
-    """ValueError naming ``key`` when ``value`` (a number, or a tensor's every element) is
-    outside ``[minimum, maximum]`` or not above ``above``."""
+                 above: float | None = None, below: float | None = None) -> None:
+    """ValueError naming ``key`` when ``value`` (a number, or a tensor's every element, which
+    must be finite) is outside ``[minimum, maximum]``, not above ``above`` or not below ``below``."""
     if value is None:
         return
     v = value.detach() if isinstance(value, torch.Tensor) else value
     what = "numbers" if isinstance(value, torch.Tensor) else _expected(tp)
+    if isinstance(v, torch.Tensor) and not bool(torch.isfinite(v).all()):
+        raise ValueError(f"{key}={raw!r}: expected finite numbers")
+    if below is not None and not bool((v < below).all() if isinstance(v, torch.Tensor) else v < below):
+        raise ValueError(f"{key}={raw!r}: expected {what} < {below:g}")
     if above is not None and not bool((v > above).all() if isinstance(v, torch.Tensor) else v > above):
         raise ValueError(f"{key}={raw!r}: expected {what} > {above:g}")
     if minimum is not None and not bool((v >= minimum).all() if isinstance(v, torch.Tensor) else v >= minimum):
@@ -186,7 +190,7 @@ def _check_field(field: dataclasses.Field, value: Any, raw: Any, tp: Any, key: s
     meta = field.metadata
     if not meta:
         return
-    bounds = meta.get("minimum"), meta.get("maximum"), meta.get("above")
+    bounds = meta.get("minimum"), meta.get("maximum"), meta.get("above"), meta.get("below")
     if isinstance(value, tuple):
         items = [a for a in typing.get_args(tp) if a is not type(None)] if typing.get_origin(tp) is not tuple else [tp]
         if meta.get("nonempty") and not value:

@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import torch
 from torch import Tensor
 
+from flowins.config import check_fields
 from flowins.data.streams import ImuStream, PoseStream
 from flowins.geometry.procrustes import rotation_2d
 from flowins.measurements.gnss_heading import fit_heading
@@ -30,8 +31,6 @@ from flowins.ins.initialization import (
     still_prior,
 )
 from flowins.state import STATE, make_state
-
-MODES = ("auto", "still", "moving", "groundtruth")
 
 
 @dataclass(frozen=True)
@@ -86,7 +85,7 @@ class GroundtruthSettings:
 class StartSettings:
     """``filter.init``: ``mode`` (auto | still | moving | groundtruth) and each mode's settings."""
 
-    mode: str = "auto"
+    mode: Literal["auto", "still", "moving", "groundtruth"] = "auto"
     still: StillSettings = field(default_factory=StillSettings)
     moving: MovingSettings = field(default_factory=MovingSettings)
     groundtruth: GroundtruthSettings = field(default_factory=GroundtruthSettings)
@@ -94,8 +93,7 @@ class StartSettings:
     yaw_rad: float = 0.0
 
     def __post_init__(self) -> None:
-        if self.mode not in MODES:
-            raise ValueError(f"filter.init.mode={self.mode!r}; expected one of {', '.join(MODES)}")
+        check_fields(self)
 
 
 @dataclass

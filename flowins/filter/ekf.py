@@ -24,12 +24,13 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import NamedTuple
+from typing import Literal, NamedTuple
 
 import torch
 from torch import Tensor
 from torch.func import jacrev, vmap
 
+from flowins.config import bounded, check_fields
 from flowins.constants import cached_constant
 from flowins.linalg import in_slices
 from flowins.state import symmetrize
@@ -131,17 +132,14 @@ class Gate:
     and no division happens anywhere.
     """
 
-    mode: str = "hard"
-    probability: float = 0.999
+    mode: Literal["hard", "soft", "off"] = "hard"
+    probability: float = bounded(0.999, above=0.0, below=1.0)
     threshold: float | Tensor | None = None
     softness: float | Tensor = 1.0
     scale: float | Tensor = 1.0
 
     def __post_init__(self) -> None:
-        if self.mode not in ("hard", "soft", "off"):
-            raise ValueError(f"Gate.mode must be 'hard', 'soft' or 'off', got {self.mode!r}")
-        if not 0.0 < self.probability < 1.0:
-            raise ValueError(f"Gate.probability must be in (0, 1), got {self.probability}")
+        check_fields(self)
 
     def threshold_for(self, dof: int | Tensor) -> float | Tensor:
         """The NIS threshold for ``dof`` degrees of freedom: an int, or a tensor of them (one per

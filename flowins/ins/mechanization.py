@@ -35,10 +35,12 @@ perfect sensor.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import torch
 from torch import Tensor
 
+from flowins.config import bounded, check_fields
 from flowins.constants import STANDARD_GRAVITY_MPS2, cached_constant
 from flowins.geometry import quaternion as quat
 from flowins.state import NOISE, NOISE_DIM, STATE_DIM, State, join, split
@@ -134,22 +136,15 @@ class ProcessNoise:
             The two agree up to a constant factor ``Δt²`` for uniform sampling.
     """
 
-    acc_noise: float | Tensor = 3e-3
-    gyro_noise: float | Tensor = 2e-4
-    acc_bias_walk: float | Tensor = 0.0
-    gyro_bias_walk: float | Tensor = 0.0
-    acc_scale_walk: float | Tensor = 0.0
-    discretization: str = "density"
+    acc_noise: float | Tensor = bounded(3e-3, minimum=0.0)
+    gyro_noise: float | Tensor = bounded(2e-4, minimum=0.0)
+    acc_bias_walk: float | Tensor = bounded(0.0, minimum=0.0)
+    gyro_bias_walk: float | Tensor = bounded(0.0, minimum=0.0)
+    acc_scale_walk: float | Tensor = bounded(0.0, minimum=0.0)
+    discretization: Literal["density", "paper"] = "density"
 
     def __post_init__(self) -> None:
-        if self.discretization not in ("density", "paper"):
-            raise ValueError(
-                f"ProcessNoise.discretization must be 'density' or 'paper', got {self.discretization!r}"
-            )
-        for name in ("acc_noise", "gyro_noise", "acc_bias_walk", "gyro_bias_walk", "acc_scale_walk"):
-            value = torch.as_tensor(getattr(self, name))
-            if not torch.isfinite(value).all() or (value < 0).any():
-                raise ValueError(f"ProcessNoise.{name} must be finite and >= 0, got {value.tolist()}")
+        check_fields(self)
 
     def covariance(self, dt_s: Tensor) -> Tensor:
         """Diagonal ``Q_k`` ``(..., 15, 15)`` for steps ``Δt_k`` ``(...)``, NOISE layout."""

@@ -10,6 +10,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from flowins.config import bounded, check_fields
 from flowins.constants import cached_constant
 from flowins.filter.augmentation import augment_pose_rows
 from flowins.filter.chain import BatchChain, ChainBuilder, RowBatchEvent
@@ -34,22 +35,14 @@ class FlowRecovery:
     pull the filter back. 0 frames switches it off.
     """
 
-    after_frames: int = 5
-    max_accepted: float = 0.5
-    min_valid: int = 8
-    velocity_sigma_mps: float = 0.5
-    gyro_bias_sigma_rps: float = 2e-3
+    after_frames: int = bounded(5, minimum=0)
+    max_accepted: float = bounded(0.5, minimum=0.0, below=1.0)
+    min_valid: int = bounded(8, minimum=0)
+    velocity_sigma_mps: float = bounded(0.5, minimum=0.0)
+    gyro_bias_sigma_rps: float = bounded(2e-3, minimum=0.0)
 
     def __post_init__(self) -> None:
-        for key in ("after_frames", "min_valid"):
-            value = getattr(self, key)
-            if not isinstance(value, int) or isinstance(value, bool) or value < 0:
-                raise ValueError(f"filter.flow.recovery.{key} must be an integer >= 0, got {value!r}")
-        if not 0.0 <= self.max_accepted < 1.0:
-            raise ValueError(f"filter.flow.recovery.max_accepted must be in [0, 1), got {self.max_accepted!r}")
-        for key in ("velocity_sigma_mps", "gyro_bias_sigma_rps"):
-            if not getattr(self, key) >= 0.0:
-                raise ValueError(f"filter.flow.recovery.{key} must be >= 0, got {getattr(self, key)!r}")
+        check_fields(self)
 
     def gated(self, valid: int, accepted: float) -> bool:
         """Whether a frame with ``valid`` points of which ``accepted`` passed counts as gated."""
@@ -86,28 +79,23 @@ class FlowUpdate:
         recovery: what follows frames whose flow is nearly all gated (:class:`FlowRecovery`).
     """
 
-    n_points: int | None = 256
+    n_points: int | None = bounded(256, minimum=1)
     selection: str = "parallax"
     cell_px: float = 80.0
     sigma_scale: float | Tensor = 1.0
     sigma_floor_px: float | Tensor = 0.25
-    min_parallax_sigma: float = 1.0
+    min_parallax_sigma: float = bounded(1.0, minimum=0.0)
     parallax_inflation: bool = True
     gate: Gate = field(default_factory=Gate)
     sequential: bool = False
-    iterations: int = 1
+    iterations: int = bounded(1, minimum=1)
     augmentation_mode: str = "limit"
     sigma_p0: float | Tensor = 1e3
     sigma_q0: float | Tensor = 1e2
     recovery: FlowRecovery = field(default_factory=FlowRecovery)
 
     def __post_init__(self) -> None:
-        if self.n_points is not None and self.n_points < 1:
-            raise ValueError(f"FlowUpdate.n_points must be >= 1 or None, got {self.n_points}")
-        if self.iterations < 1:
-            raise ValueError(f"FlowUpdate.iterations must be >= 1, got {self.iterations}")
-        if self.min_parallax_sigma < 0:
-            raise ValueError(f"FlowUpdate.min_parallax_sigma must be >= 0, got {self.min_parallax_sigma}")
+        check_fields(self)
 
 
 #: every point used, no inflation, no parallax limit, no gate: the paper's update as written

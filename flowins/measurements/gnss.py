@@ -25,6 +25,7 @@ import torch
 from torch import Tensor
 from torch.func import jacrev, vmap
 
+from flowins.config import bounded, check_fields
 from flowins.filter.chain import BatchChain, ChainBuilder, RowBatchEvent
 from flowins.filter.ekf import Gate, chi2_quantile
 from flowins.filter.updater import update, update_rows
@@ -125,25 +126,17 @@ class GnssRecovery:
     filter that drifted off on biases it trusted too much can learn them again.
     """
 
-    after_rejections: int = 3
+    after_rejections: int = bounded(3, minimum=0)
     velocity: bool = True
-    acceleration_sigma_mps2: float = 1.0
+    acceleration_sigma_mps2: float = bounded(1.0, minimum=0.0)
     #: added to the IMU biases' σ at a reset: a filter that drifted off has biases it trusts too much
-    acc_bias_sigma_mps2: float = 0.1
-    gyro_bias_sigma_rps: float = 2e-3
-    nis_window: int = 0
-    nis_probability: float = 1 - 1e-6
+    acc_bias_sigma_mps2: float = bounded(0.1, minimum=0.0)
+    gyro_bias_sigma_rps: float = bounded(2e-3, minimum=0.0)
+    nis_window: int = bounded(0, minimum=0)
+    nis_probability: float = bounded(1 - 1e-6, above=0.0, below=1.0)
 
     def __post_init__(self) -> None:
-        for key in ("after_rejections", "nis_window"):
-            value = getattr(self, key)
-            if not isinstance(value, int) or isinstance(value, bool) or value < 0:
-                raise ValueError(f"filter.gnss_recovery.{key} must be an integer >= 0, got {value!r}")
-        if not 0.0 < self.nis_probability < 1.0:
-            raise ValueError(f"filter.gnss_recovery.nis_probability must be in (0, 1), got {self.nis_probability!r}")
-        for key in ("acceleration_sigma_mps2", "acc_bias_sigma_mps2", "gyro_bias_sigma_rps"):
-            if not getattr(self, key) >= 0.0:
-                raise ValueError(f"filter.gnss_recovery.{key} must be >= 0, got {getattr(self, key)!r}")
+        check_fields(self)
 
 
 def reset_matrices(mean: Tensor, fixes: list[tuple[float, Tensor, Tensor]], recovery: GnssRecovery

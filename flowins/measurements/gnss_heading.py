@@ -40,6 +40,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
+from flowins.config import bounded, check_fields
 from flowins.filter.ekf import chi2_quantile
 from flowins.geometry import quaternion as quat
 from flowins.geometry.procrustes import planar_rotation, rotation_2d
@@ -71,22 +72,16 @@ class HeadingAlignment:
     """
 
     enabled: bool = True
-    unknown_yaw_sigma_rad: float = 0.5
-    baseline_m: float = 20.0
-    max_sigma_rad: float = 0.2
-    min_fixes: int = 3
+    unknown_yaw_sigma_rad: float = bounded(0.5, above=0.0)
+    baseline_m: float = bounded(20.0, minimum=0.0)
+    max_sigma_rad: float = bounded(0.2, above=0.0)
+    min_fixes: int = bounded(3, minimum=2)  # a rotation needs two points
     outlier_probability: float = 0.999
-    condition_sigma_rad: float = 1e-4
+    condition_sigma_rad: float = bounded(1e-4, above=0.0)
     second_pass: bool = False
 
     def __post_init__(self) -> None:
-        if self.baseline_m < 0 or self.max_sigma_rad <= 0 or self.unknown_yaw_sigma_rad <= 0:
-            raise ValueError("HeadingAlignment: baseline_m must be >= 0, max_sigma_rad and "
-                             f"unknown_yaw_sigma_rad > 0; got {self}")
-        if self.min_fixes < 2:
-            raise ValueError(f"HeadingAlignment.min_fixes must be >= 2 (a rotation needs two points), got {self.min_fixes}")
-        if self.condition_sigma_rad <= 0:
-            raise ValueError(f"HeadingAlignment.condition_sigma_rad must be > 0, got {self.condition_sigma_rad}")
+        check_fields(self)
 
 
 def heading_jacobian(x: Tensor) -> Tensor:

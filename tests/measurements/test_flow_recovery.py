@@ -81,5 +81,8 @@ def test_a_filter_sure_of_a_wrong_gyro_bias_inflates_after_gated_frames_and_reco
 
 
 def test_flow_recovery_settings_name_the_bad_key():
-    with pytest.raises(ValueError, match="filter.flow.recovery.max_accepted"):
+    """From code the field (``tests/test_config.py``: from a config, the key)."""
+    with pytest.raises(ValueError, match=r"FlowRecovery\.max_accepted=1\.5: expected a number < 1"):
         FlowRecovery(max_accepted=1.5)
+    with pytest.raises(ValueError, match=r"FlowRecovery\.after_frames=-1: expected an integer >= 0"):
+        FlowRecovery(after_frames=-1)
