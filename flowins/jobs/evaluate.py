@@ -23,6 +23,7 @@ import torch
 from flowins.config import instantiate
 from flowins.data.load import Recording, load_recording
 from flowins.evaluation import plot_trajectory, trajectory_errors, write_tum
+from flowins.evaluation.drift import drift_metrics
 from flowins.evaluation.gnss_floor import describe_gnss_floor, gnss_floor_metrics
 from flowins.evaluation.metrics import truth_extent_problem
 from flowins.evaluation.motion import vehicle_hint
@@ -268,6 +269,9 @@ def _export(out: Path, name: str, result: NavigationResult, rec: Recording, *, p
         err = trajectory_errors(track.t, pos, rec.truth.t_s, rec.truth.pos_m, align="se3")
         metrics[f"{kind}_rmse_m"] = err.rmse_m
         metrics[f"{kind}_num_associated"] = err.num_associated
+        if rec.truth.quat_wxyz is not None:  # drift as odometry papers report it (RPE, KITTI's %)
+            metrics[f"{kind}_drift"] = drift_metrics(track.t, pos, q, rec.truth.t_s, rec.truth.pos_m,
+                                                     rec.truth.quat_wxyz)
         tracks[kind] = (err.t_s, err.aligned_est)
     metrics.update(run_summary(result))
     if plots and score:

@@ -1,0 +1,111 @@
+"""Drift metrics against closed forms: a scale error is a constant translational drift, a
+heading-rate error a constant rotational drift and a known chord error, and neither depends
+on the estimate's world frame."""
+import math
+
+import pytest
+import torch
+
+from flowins.evaluation.drift import kitti_drift, path_length, rpe
+
+F64 = torch.float64
+
+
+def rot_z(angle: torch.Tensor) -> torch.Tensor:
+    c, s = torch.cos(angle), torch.sin(angle)
+    R = torch.zeros(*angle.shape, 3, 3, dtype=F64)
+    R[..., 0, 0], R[..., 0, 1], R[..., 1, 0], R[..., 1, 1], R[..., 2, 2] = c, -s, s, c, 1.0
+    return R
+
+
+def straight(duration_s=1000.0, rate_hz=10.0, speed=1.0):
+    """The truth: along x at ``speed``, body axes the world's."""
+    t = torch.arange(0.0, duration_s + 0.5 / rate_hz, 1.0 / rate_hz, dtype=F64)
+    p = torch.stack((speed * t, torch.zeros_like(t), torch.zeros_like(t)), -1)
+    return t, torch.eye(3, dtype=F64).expand(t.shape[0], 3, 3), p
+
+
+def turning(t, omega, speed=1.0):
+    """An estimate whose heading turns at ``omega`` and that moves along its heading."""
+    R = rot_z(omega * t)
+    p = torch.stack((speed * torch.sin(omega * t) / omega, speed * (1 - torch.cos(omega * t)) / omega,
+                     torch.zeros_like(t)), -1)
+    return R, p
+
+
+def test_a_scale_error_is_a_constant_translational_drift_and_no_rotational_one():
+    t, R, p = straight()
+    drift = kitti_drift(R, p, R, 1.01 * p)
+    # each segment ends at the first sample beyond L: at most one 0.1 m step longer than L
+    assert abs(drift.translation_pct - 1.0) < 1e-3
+    assert drift.rotation_deg_per_m == 0.0
+    assert set(drift.per_length) == {100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0}
+    # from every 10th of 10001 samples, a segment of L while L fits: 1000 - 100 L / 100 + ... starts
+    for L, (pct, _, count) in drift.per_length.items():
+        assert count == sum(1 for i in range(0, 10001, 10) if 0.1 * i + L < 1000.0 - 1e-9)
+        assert abs(pct - 1.0) < 1e-3
+
+
+def test_a_heading_rate_error_is_its_rate_per_metre_and_the_chord_of_its_arc():
+    omega = 1e-3  # rad/s, at 1 m/s: 1e-3 rad/m
+    t, R_ref, p_ref = straight()
+    R_est, p_est = turning(t, omega)
+    drift = kitti_drift(R_ref, p_ref, R_est, p_est)
+    assert abs(drift.rotation_deg_per_m - math.degrees(omega)) < 1e-3 * math.degrees(omega)
+    T = 100.0
+    result = rpe(t, R_ref, p_ref, R_est, p_est, delta=T, unit="s")
+    chord = math.hypot(math.sin(omega * T) / omega - T, (1 - math.cos(omega * T)) / omega)
+    assert result.pairs == 10  # 0-100 s, 100-200 s, ..., 900-1000 s, each starting where the last ended
+    assert result.translation_rmse_m == pytest.approx(chord, rel=1e-9)
+    assert result.translation_median_m == pytest.approx(chord, rel=1e-9)
+    assert result.rotation_rmse_rad == pytest.approx(omega * T, rel=1e-9)
+    every = rpe(t, R_ref, p_ref, R_est, p_est, delta=T, unit="s", all_pairs=True)
+    assert every.pairs == 9001 and every.translation_mean_m == pytest.approx(chord, rel=1e-6)
+    # on a path at 1 m/s, 100 m of it and 1000 samples are those 100 s
+    for delta, unit in ((100.0, "m"), (1000, "f")):
+        other = rpe(t, R_ref, p_ref, R_est, p_est, delta=delta, unit=unit)
+        assert other.pairs == 10 and other.translation_rmse_m == pytest.approx(chord, rel=1e-6)
+
+
+def test_the_estimates_world_frame_does_not_matter():
+    """A turn and a shift of the estimate's world frame (an INS's unknown heading and origin)
+    change no relative error."""
+    t, R_ref, p_ref = straight(duration_s=300.0)
+    R_est, p_est = turning(t, 2e-3)
+    p_est = 1.02 * p_est
+    R0 = rot_z(torch.tensor(1.1, dtype=F64)) @ torch.tensor([[1.0, 0, 0], [0, math.cos(0.3), -math.sin(0.3)],
+                                                              [0, math.sin(0.3), math.cos(0.3)]], dtype=F64)
+    moved_R, moved_p = R0 @ R_est, p_est @ R0.T + torch.tensor([5.0, -3.0, 2.0], dtype=F64)
+    a = kitti_drift(R_ref, p_ref, R_est, p_est, lengths_m=(50.0, 100.0))
+    b = kitti_drift(R_ref, p_ref, moved_R, moved_p, lengths_m=(50.0, 100.0))
+    assert b.translation_pct == pytest.approx(a.translation_pct, rel=1e-9)
+    assert b.rotation_deg_per_m == pytest.approx(a.rotation_deg_per_m, rel=1e-9)
+    assert a.translation_pct > 1.0  # the scale and the turn do cost
+
+
+def test_a_short_path_has_no_kitti_segment_and_no_pair():
+    t, R, p = straight(duration_s=50.0)
+    assert kitti_drift(R, p, R, p) is None
+    with pytest.raises(ValueError, match="no pair of samples 60 s apart"):
+        rpe(t, R, p, R, p, delta=60.0)
+    with pytest.raises(ValueError, match="unit='x'"):
+        rpe(t, R, p, R, p, delta=1.0, unit="x")
+    assert path_length(p)[-1] == pytest.approx(50.0)
+
+
+def test_drift_metrics_match_a_track_at_its_own_rate_to_the_truth():
+    """A track at 10 Hz against a truth at 50 Hz (a straight walk, 1 % long): linear
+    interpolation is exact on it, so KITTI's drift is that 1 % and the 10 s RPE is 0.1 m per pair."""
+    from flowins.evaluation.drift import drift_metrics
+    from flowins.geometry import quaternion
+
+    t_ref, R_ref, p_ref = straight(duration_s=400.0, rate_hz=50.0)
+    t_est, _, p_est = straight(duration_s=400.0, rate_hz=10.0)
+    q_ref = quaternion.from_matrix(R_ref)
+    q_est = quaternion.from_matrix(torch.eye(3, dtype=F64).expand(t_est.shape[0], 3, 3))
+    m = drift_metrics(t_est, 1.01 * p_est, q_est, t_ref, p_ref, q_ref)
+    assert m["rpe_pairs"] == 40 and m["rpe_translation_rmse_m"] == pytest.approx(0.1, rel=1e-6)
+    assert m["rpe_rotation_rmse_deg"] == pytest.approx(0.0, abs=1e-9)
+    assert abs(m["kitti_translation_pct"] - 1.0) < 1e-3 and m["kitti_segments"] > 0
+    short = drift_metrics(t_est[:51], p_est[:51], q_est[:51], t_ref[:251], p_ref[:251], q_ref[:251])
+    assert short["kitti_translation_pct"] is None and short["rpe_pairs"] == 0
