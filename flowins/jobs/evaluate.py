@@ -325,6 +325,25 @@ def _report_starts(rows: list[Row], per_run: dict[str, list[dict[str, Any]]], mo
             log.info(f"\nstart: {', '.join(sorted(modes))} (filter.init.mode={mode}; per row in metrics.json)")
 
 
+def _report_drift(per_run: dict[str, list[dict[str, Any]]]) -> None:
+    """Each row's drift (``filter_drift``, ``smoother_drift``: :func:`~flowins.evaluation.drift.drift_metrics`)
+    under the table, filter / smoother, the mean over seeds; nothing where no row has one."""
+    def mean(ms: list[dict[str, Any]], kind: str, key: str) -> float | None:
+        values = [m.get(f"{kind}_drift", {}).get(key) for m in ms]
+        return None if not values or any(v is None for v in values) else sum(values) / len(values)
+
+    def pair(ms: list[dict[str, Any]], key: str, unit: str) -> str:
+        f, s = mean(ms, "filter", key), mean(ms, "smoother", key)
+        return "n/a" if f is None or s is None else f"{f:.2f} / {s:.2f} {unit}"
+
+    lines = [f"  {name:<16} {pair(ms, 'rpe_translation_rmse_m', 'm'):>20}   {pair(ms, 'kitti_translation_pct', '%'):>18}"
+             for name, ms in per_run.items() if any("filter_drift" in m for m in ms)]
+    if lines:
+        delta = next(m["filter_drift"]["rpe_delta_s"] for ms in per_run.values() for m in ms if "filter_drift" in m)
+        log.info("\ndrift, filter / smoother (flowins.evaluation.drift: no alignment; metrics.json *_drift):\n"
+                 f"  {'':<16} {f'RPE over {delta:g} s':>20}   {'KITTI 100-800 m':>18}\n" + "\n".join(lines))
+
+
 def _vehicle_hints(recs: list[Recording], labels: list[str], nav_cfg: NavigationConfig) -> list[str]:
     """:func:`flowins.evaluation.motion.vehicle_hint` of each recording, labelled."""
     mode = (nav_cfg.measurements.get("vehicle") or VehicleSettings()).mode
@@ -341,6 +360,7 @@ def _report(rows: list[Row], metrics: dict[str, Any], cfg: Mapping[str, Any], re
     per_run = {n: ([m] if seeds is None else list(m["per_seed"].values())) for n, m in metrics.items()
                if isinstance(m, dict) and m.get("status") != "not applicable"}
     _report_starts(rows, per_run, nav_cfg.start.mode)
+    _report_drift(per_run)
     labels = [""] if seeds is None else [f"seed {int(s)}: " for s in seeds]
     hints = _vehicle_hints(recs, labels, nav_cfg)
     if hints:

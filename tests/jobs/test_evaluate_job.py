@@ -258,3 +258,25 @@ def test_the_job_scores_plots_and_writes_a_filter_run_on_another_device(tmp_path
             metrics[device][name].pop("seconds")
     assert metrics["meta"]["ins_gnss"] == metrics["cpu"]["ins_gnss"] and metrics["meta"]["ins"] == metrics["cpu"]["ins"]
     assert (tmp_path / "meta" / "ins_gnss_filter.tum").read_text() == (tmp_path / "cpu" / "ins_gnss_filter.tum").read_text()
+
+
+def test_the_drift_block_prints_each_rows_filter_and_smoother_drift_mean_over_seeds(caplog):
+    """Two seeds of one row average; a row without a ground truth's orientation has no line;
+    a length the path never reached reads n/a."""
+    import logging
+
+    from flowins.jobs.evaluate import _report_drift
+
+    def run(rpe_f, rpe_s, kitti):
+        drift = lambda rpe: {"rpe_delta_s": 10.0, "rpe_translation_rmse_m": rpe, "kitti_translation_pct": kitti}  # noqa: E731
+        return {"filter_drift": drift(rpe_f), "smoother_drift": drift(rpe_s)}
+
+    per_run = {"ins_dense": [run(2.0, 1.0, 1.5), run(4.0, 3.0, 2.5)], "ins_gnss": [run(5.0, 1.0, None)],
+               "ins": [{"filter_rmse_m": 3.0}]}
+    with caplog.at_level(logging.INFO, logger="flowins"):
+        _report_drift(per_run)
+    text = caplog.text
+    assert "RPE over 10 s" in text
+    assert "ins_dense" in text and "3.00 / 2.00 m" in text and "2.00 / 2.00 %" in text
+    assert "5.00 / 1.00 m" in text and "n/a" in text
+    assert "  ins " not in text
