@@ -20,7 +20,7 @@ from typing import Any, Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
-from flowins.filter.ekf import UpdateResult, linear_predict, raise_if_failed, waits_cost
+from flowins.filter.ekf import UpdateResult, linear_predict, waits_cost
 from flowins.state import normalize_quaternions, symmetrize
 
 
@@ -108,6 +108,22 @@ class _RowStore:
         self.updated_count = needed
 
 
+def raise_if_failed(failed: Tensor | None, what: str, rows: Sequence[int] | None = None,
+                    t_s: Sequence[float] | None = None) -> None:
+    """A ``ValueError`` naming ``what``, the batch rows where ``failed`` holds (``rows``: the
+    run each entry of ``failed`` is; default its index) and, with ``t_s`` (each entry's time),
+    when. A read of one flag from the device: call it where the pass may wait
+    (:meth:`BatchChain.check_failed` defers it where a wait costs)."""
+    if failed is None or not bool(failed.any()):
+        return
+    bad = torch.nonzero(failed.reshape(-1))[:, 0].tolist()
+    rows = [i if rows is None else rows[i] for i in bad]
+    when = "" if t_s is None else f" at t = {t_s[bad[0]]:.3f} s"
+    raise ValueError(f"{what}{when}: a factorisation failed in batch row(s) {rows[:10]}"
+                     + (" ..." if len(rows) > 10 else "") + ": the state covariance is not positive semi-definite "
+                     "even with a jitter of 1e-6 of its largest variance, or the innovation covariance is singular")
+
+
 class BatchChain:
     """The node chains of ``B`` runs, grown together (:func:`~flowins.filter.runner.run_filters`).
 
@@ -176,7 +192,7 @@ class BatchChain:
         return self.t_s[b][-1]
 
     def check_failed(self, failed: Tensor | None, what: str, rows: Sequence[int]) -> None:
-        """An update's failure flags ``(r,)`` for ``rows``: raised now (:func:`~flowins.filter.ekf.raise_if_failed`,
+        """An update's failure flags ``(r,)`` for ``rows``: raised now (:func:`raise_if_failed`,
         naming the rows and the time) where reading them back is free (the CPU, eager), kept as
         a tensor where it costs (a GPU, or ``torch.compile``: :func:`~flowins.filter.ekf.waits_cost`)
         and raised by :meth:`raise_failures` at the end of the pass, naming the first

@@ -14,14 +14,14 @@ followed by quaternion re-normalisation of the mean and symmetrisation of ``P``.
 **No wait on the device.** Every factorisation is a ``cholesky_ex`` / ``solve_ex`` whose
 error flag stays a tensor: an update returns ``failed`` (``(...,)`` bool: the covariance
 could not be factorised even with the largest jitter, or a solve met a singular matrix) and
-the caller decides when to read it (:func:`raise_if_failed`). On a GPU or under
+the caller decides when to read it (:meth:`flowins.filter.chain.BatchChain.check_failed`). On a GPU or under
 ``torch.compile`` the jitter ladder of :func:`_cholesky_psd` is one batched call, so an update
 is one graph with no read-back; on the CPU in eager mode, where a read costs nothing, the
 ladder stops at the first jitter every matrix takes (the same factors).
 """
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Literal, NamedTuple
@@ -186,22 +186,6 @@ class Posterior(NamedTuple):
     mean: Tensor  # (..., D)
     cov: Tensor  # (..., D, D)
     failed: Tensor  # (...,)
-
-
-def raise_if_failed(failed: Tensor | None, what: str, rows: Sequence[int] | None = None,
-                    t_s: Sequence[float] | None = None) -> None:
-    """A ``ValueError`` naming ``what``, the batch rows where ``failed`` holds (``rows``: the
-    run each entry of ``failed`` is; default its index) and, with ``t_s`` (each entry's time),
-    when. A read of one flag from the device: call it where the pass may wait
-    (:meth:`~flowins.filter.chain.BatchChain.check_failed` defers it where a wait costs)."""
-    if failed is None or not bool(failed.any()):
-        return
-    bad = torch.nonzero(failed.reshape(-1))[:, 0].tolist()
-    rows = [i if rows is None else rows[i] for i in bad]
-    when = "" if t_s is None else f" at t = {t_s[bad[0]]:.3f} s"
-    raise ValueError(f"{what}{when}: a factorisation failed in batch row(s) {rows[:10]}"
-                     + (" ..." if len(rows) > 10 else "") + ": the state covariance is not positive semi-definite "
-                     "even with a jitter of 1e-6 of its largest variance, or the innovation covariance is singular")
 
 
 def waits_cost(t: Tensor) -> bool:
