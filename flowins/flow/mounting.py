@@ -184,9 +184,7 @@ def pure_turns(x1: Tensor, x2: Tensor, f: float, iterations: int = 5) -> tuple[T
     w = valid.to(x1.dtype)
     nan = torch.full_like(w, float("nan"))
     for _ in range(iterations + 1):
-        U, _, Vh = torch.linalg.svd((w.unsqueeze(-1) * b1).transpose(-1, -2) @ b2)
-        d = torch.linalg.det(U @ Vh)
-        R = U @ torch.diag_embed(torch.stack((torch.ones_like(d), torch.ones_like(d), d), -1)) @ Vh
+        R = wahba_rotation(b2, b1, w)
         turned = b2 @ R.transpose(-1, -2)
         r = f * (turned[..., :2] / turned[..., 2:].clamp_min(1e-9) - x1).norm(dim=-1)
         r = torch.where(valid, torch.where(turned[..., 2] > 0, r, torch.full_like(r, float("inf"))), nan)

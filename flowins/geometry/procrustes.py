@@ -52,8 +52,9 @@ def rotation_2d(theta_rad: Tensor) -> Tensor:
 
 def wahba_rotation(source: Tensor, target: Tensor, weights: Tensor | None = None, *,
                    prior: Tensor | None = None, prior_weight: float = 0.0) -> Tensor:
-    """The rotation ``R`` ``(3, 3)`` minimising ``Σ wᵢ |tᵢ - R sᵢ|² + prior_weight · θ²(R, prior)``
-    for vectors ``source``, ``target`` ``(N, 3)`` (Wahba's problem; no centring).
+    """The rotation ``R`` ``(..., 3, 3)`` minimising ``Σ wᵢ |tᵢ - R sᵢ|² + prior_weight · θ²(R, prior)``
+    for vectors ``source``, ``target`` ``(..., N, 3)`` and weights ``(..., N)`` (Wahba's problem,
+    one per leading index; no centring).
 
     With ``B = Σ wᵢ tᵢ sᵢᵀ + prior_weight · prior / 2`` (``θ² ≈ 3 - tr(priorᵀ R)`` near the
     prior) the optimum over SO(3) is ``U diag(1, 1, det(U Vᵀ)) Vᵀ`` for ``B = U S Vᵀ``: the
@@ -64,5 +65,5 @@ def wahba_rotation(source: Tensor, target: Tensor, weights: Tensor | None = None
         B = B + 0.5 * prior_weight * prior
     U, _, Vh = torch.linalg.svd(B)
     d = torch.linalg.det(U @ Vh)
-    D = torch.diag(torch.stack((torch.ones_like(d), torch.ones_like(d), d)))
+    D = torch.diag_embed(torch.stack((torch.ones_like(d), torch.ones_like(d), d), -1))
     return U @ D @ Vh
