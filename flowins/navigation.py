@@ -22,7 +22,7 @@ from flowins.filter.runner import FilterInput, memory_warning, run_filters
 from flowins.filter.smoother import SmoothedTrack, rts_smooth_batch
 from flowins.flow.pairs import FlowPairs
 from flowins.geometry.geodesy import LocalTangentPlane
-from flowins.ins.initialization import InitialUncertainty
+from flowins.ins.initialization import InitialUncertainty, start_uncertainty
 from flowins.ins.mechanization import SCHEMES, STANDARD_GRAVITY_MPS2, ProcessNoise
 from flowins.measurements.flow_update import FlowUpdate, flow_frames
 from flowins.measurements.gnss import GnssRecovery, correlation_inflation, gnss_fixes, gnss_noise
@@ -189,10 +189,6 @@ def prepare_navigation(run: NavigationRun, *, config: NavigationConfig = Navigat
     enu = fixes = None
     if gnss is not None:
         enu, _, frame = gnss.enu(frame)
-        inflation = correlation_inflation(gnss.t_s, config.gnss_correlation_s).to(gnss.h_acc_m.dtype)
-        cov = gnss_noise(gnss.h_acc_m, gnss.v_acc_m, config.gnss_noise_scale) * inflation.reshape(-1, 1, 1)
-        events = gnss_fixes(gnss.t_s, enu, cov, gate=config.gnss_gate, name=gnss.name, heading=config.gnss_heading,
-                            recovery=config.gnss_recovery)
     start_gnss = gnss if gnss is not None else run.start_gnss
     if start_gnss is not None:
         start_enu = enu  # the GNSS updates' fixes, converted once
@@ -200,8 +196,17 @@ def prepare_navigation(run: NavigationRun, *, config: NavigationConfig = Navigat
             start_enu, _, frame = start_gnss.enu(frame)
         sigma = torch.stack((start_gnss.h_acc_m, start_gnss.h_acc_m, start_gnss.v_acc_m), -1)
         fixes = (start_gnss.t_s, start_enu, sigma)
+    # without fixes a yaw the start leaves free (its σ above unknown_yaw_sigma_rad) is only the track's
+    # reference direction (InitialUncertainty.reference_yaw_rad)
+    reference = gnss is None and float(config.initial.yaw_rad) > config.gnss_heading.unknown_yaw_sigma_rad
     start = choose_start(imu, settings=config.start, fixes=fixes, truth=run.truth, forward_b=run.forward_b,
-                         uncertainty=config.initial, gravity_mps2=float(config.gravity_mps2), fused=gnss is not None)
+                         uncertainty=start_uncertainty(config.initial, reference=reference),
+                         gravity_mps2=float(config.gravity_mps2), fused=gnss is not None)
+    if gnss is not None:
+        inflation = correlation_inflation(gnss.t_s, config.gnss_correlation_s).to(gnss.h_acc_m.dtype)
+        cov = gnss_noise(gnss.h_acc_m, gnss.v_acc_m, config.gnss_noise_scale) * inflation.reshape(-1, 1, 1)
+        events = gnss_fixes(gnss.t_s, enu, cov, gate=config.gnss_gate, name=gnss.name, heading=config.gnss_heading,
+                            recovery=config.gnss_recovery)
     t_end_s = float(imu.t_s[-1])
     before = [e for e in events if e.time_s < start.t_s]
     events = [e for e in events if e.time_s >= start.t_s]

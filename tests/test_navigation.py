@@ -206,3 +206,22 @@ def test_workers_started_by_spawn_take_pickled_runs_and_give_their_results(monke
     for a, b in zip(there, here):
         torch.testing.assert_close(a.filter.node_mean, b.filter.node_mean, rtol=0, atol=1e-9)
         torch.testing.assert_close(a.smoother.node_mean, b.smoother.node_mean, rtol=0, atol=1e-8)
+
+
+@pytest.mark.parametrize("gnss, alignment, yaw_sigma, expected", [
+    (False, True, 2.5, 0.02), (True, True, 2.5, 2.5), (True, False, 2.5, 2.5), (False, True, 0.3, 0.3)])
+def test_a_free_yaw_without_fixes_is_the_track_s_reference(recording, gnss, alignment, yaw_sigma, expected):
+    """A still start leaves the yaw free. Without GNSS, where its σ (``yaw_rad``) says it is unknown,
+    nothing can set it: the filter takes ``reference_yaw_rad``. With fixes it keeps ``yaw_rad`` (held
+    fixes set the heading, or fixes that apply as they come turn it); a σ at or below
+    ``unknown_yaw_sigma_rad`` (0.5) is a known yaw, kept as given."""
+    from flowins.ins.initialization import InitialUncertainty
+    from flowins.measurements.gnss_heading import heading_jacobian
+    from flowins.navigation import prepare_navigation
+
+    config = NavigationConfig(initial=InitialUncertainty(yaw_rad=yaw_sigma, reference_yaw_rad=0.02),
+                              gnss_heading=HeadingAlignment(enabled=alignment))
+    setup = prepare_navigation(NavigationRun(recording.imu, recording.gnss if gnss else None), config=config)
+    h = heading_jacobian(setup.mean0)
+    assert setup.start.mode == "still"
+    assert float((h @ setup.cov0 @ h).sqrt()) == pytest.approx(expected, rel=1e-6)

@@ -15,6 +15,7 @@ the body's forward axis points along the course over ground.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -33,7 +34,15 @@ class InitialUncertainty:
     position_m: float = 0.01
     velocity_mps: float = 0.05
     roll_pitch_rad: float = 0.035  # 2°
+    #: the yaw's where the start does not know it (a still start, or a moving one too slow for its
+    #: course), in a run with GNSS fixes: above ``filter.gnss_heading.unknown_yaw_sigma_rad`` the fixes
+    #: are held until they set the heading; at or below it the yaw counts as known
+    #: (``filter.init.yaw_rad`` gives it)
     yaw_rad: float = math.pi
+    #: ... in a run without GNSS fixes, where ``yaw_rad`` says the yaw is unknown: it is then only the
+    #: track's reference direction, which neither the IMU nor the camera observes; at a large σ every
+    #: linearised flow or track update would turn it by what its own linearisation point makes up
+    reference_yaw_rad: float = 1e-3
     acc_bias_mps2: float = 0.1
     gyro_bias_rps: float = 2e-3
     acc_scale: float = 0.02
@@ -42,6 +51,12 @@ class InitialUncertainty:
     quaternion_radial: float = 1e-3
     #: nugget between the current pose and its augmented copy
     augmentation_nugget_var: float = 1e-9
+
+
+def start_uncertainty(u: InitialUncertainty, *, reference: bool) -> InitialUncertainty:
+    """``u`` with the σ a start gives a free yaw: ``u.reference_yaw_rad`` where the yaw is only the
+    track's reference direction (``reference``: nothing in the run can set it), else ``u.yaw_rad``."""
+    return dataclasses.replace(u, yaw_rad=u.reference_yaw_rad) if reference else u
 
 
 def orientation_covariance(q: Tensor, roll_pitch_yaw_std: Tensor, radial_std: float) -> Tensor:
