@@ -200,7 +200,7 @@ def test_tracks_do_not_turn_a_yaw_they_cannot_observe(window):
     gyroscope bias to correct, must leave the track's reference direction where the start put it
     (here the truth's). With the reference σ (``InitialUncertainty.reference_yaw_rad``) the yaw stays
     within 10 mrad of the truth over the 8 s (the bias alone, uncorrected, turns it by 16 mrad); a yaw
-    σ of π lets the linearised updates turn it by tenths of a radian."""
+    σ of π lets the linearised updates turn it by 1.1 and 1.8 rad."""
     from flowins.ins.initialization import InitialUncertainty, initial_covariance
 
     walk, t_imu, acc, gyro, tracks = _scene(seed=1, noise_px=0.3)
