@@ -189,6 +189,10 @@ def prepare_navigation(run: NavigationRun, *, config: NavigationConfig = Navigat
     enu = fixes = None
     if gnss is not None:
         enu, _, frame = gnss.enu(frame)
+        inflation = correlation_inflation(gnss.t_s, config.gnss_correlation_s).to(gnss.h_acc_m.dtype)
+        cov = gnss_noise(gnss.h_acc_m, gnss.v_acc_m, config.gnss_noise_scale) * inflation.reshape(-1, 1, 1)
+        events = gnss_fixes(gnss.t_s, enu, cov, gate=config.gnss_gate, name=gnss.name, heading=config.gnss_heading,
+                            recovery=config.gnss_recovery)
     start_gnss = gnss if gnss is not None else run.start_gnss
     if start_gnss is not None:
         start_enu = enu  # the GNSS updates' fixes, converted once
@@ -202,11 +206,6 @@ def prepare_navigation(run: NavigationRun, *, config: NavigationConfig = Navigat
     start = choose_start(imu, settings=config.start, fixes=fixes, truth=run.truth, forward_b=run.forward_b,
                          uncertainty=start_uncertainty(config.initial, reference=reference),
                          gravity_mps2=float(config.gravity_mps2), fused=gnss is not None)
-    if gnss is not None:
-        inflation = correlation_inflation(gnss.t_s, config.gnss_correlation_s).to(gnss.h_acc_m.dtype)
-        cov = gnss_noise(gnss.h_acc_m, gnss.v_acc_m, config.gnss_noise_scale) * inflation.reshape(-1, 1, 1)
-        events = gnss_fixes(gnss.t_s, enu, cov, gate=config.gnss_gate, name=gnss.name, heading=config.gnss_heading,
-                            recovery=config.gnss_recovery)
     t_end_s = float(imu.t_s[-1])
     before = [e for e in events if e.time_s < start.t_s]
     events = [e for e in events if e.time_s >= start.t_s]
