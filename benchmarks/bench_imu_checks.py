@@ -13,8 +13,10 @@ clean set with realistic imperfections, and what the filter scores with them.
    std 0.2-0.8 m/s²): the measured white floor against the simulator's, and the filter's RMSE
    with the measured model (``imu=auto`` on a recording that names no IMU), with ``phone``, and
    with the floor itself × 1 and × 10 (no preset below it).
+4. **Mirrored accelerometer axes** (x and y swapped, z or x negated) on a walk with GNSS: the
+   filter's RMSE and the run's warnings (``--sections 4``; no check looks for a mirror).
 
-    python benchmarks/bench_imu_checks.py [/tmp/gtsam/gtsam/Data ...] [--seeds 2] [--sections 1 2 3] [--rate 200]
+    python benchmarks/bench_imu_checks.py [/tmp/gtsam/gtsam/Data ...] [--seeds 2] [--sections 1 2 3 4] [--rate 200]
 
 A folder holding ``KittiEquivBiasedImu.txt`` (the gtsam 4.3.0 wheel's ``gtsam/Data``) is read
 as that file (t, dt, ax, ay, az, wx, wy, wz); any other folder through ``flowins.data.folder``.
@@ -124,6 +126,11 @@ def checks(paths: list[Path], seeds: int) -> None:
 
 
 def _score(rec, imu_model) -> float:
+    return _run(rec, imu_model)[0]
+
+
+def _run(rec, imu_model):
+    """The filter's horizontal RMSE on a simulated walk with GNSS, and the navigation result."""
     from flowins.geometry.geodesy import LocalTangentPlane
     from flowins.navigation import NavigationConfig, NavigationRun, navigate
     from flowins.state import STATE
@@ -133,7 +140,7 @@ def _score(rec, imu_model) -> float:
     shift = LocalTangentPlane(60.1699, 24.9384, 20.0).to_enu(f.origin_lat_deg, f.origin_lon_deg, f.origin_alt_m)
     t = result.filter.t_s
     truth = rec.walk.position(t) - rec.walk.position(rec.imu.t_s[:1])[0] - shift
-    return float((result.filter.node_mean[:, STATE.p] - truth)[:, :2].norm(dim=-1).pow(2).mean().sqrt())
+    return float((result.filter.node_mean[:, STATE.p] - truth)[:, :2].norm(dim=-1).pow(2).mean().sqrt()), result
 
 
 class _Rec:
@@ -195,11 +202,37 @@ def noise_score(seeds: int, rate_hz: float) -> None:
                   f"{_score(rec, phone):.2f} m, floor × 1 {_score(rec, bare[0]):.2f} m, × 10 {_score(rec, bare[1]):.2f} m")
 
 
+def mirror_score(seeds: int) -> None:
+    """Section 4: an accelerometer whose axes are mirrored (no check of its own looks for it)."""
+    import dataclasses
+
+    from flowins.data.synthetic import WalkConfig, synthetic_walk_recording
+    from flowins.evaluation.run_report import run_warnings
+    from flowins.sensor import resolve_imu
+
+    print("\n4. 120 s walk with GNSS, 2 s still start, simulated_walk noise, the accelerometer's axes mirrored: "
+          "horizontal RMSE and what the job warns")
+    mirrors = {"as recorded": ([0, 1, 2], (1.0, 1.0, 1.0)), "x, y swapped": ([1, 0, 2], (1.0, 1.0, 1.0)),
+               "z negated": ([0, 1, 2], (1.0, 1.0, -1.0)), "x negated": ([0, 1, 2], (-1.0, 1.0, 1.0))}
+    for seed in range(seeds):
+        clean = synthetic_walk_recording(duration_s=120.0, seed=seed, walk=WalkConfig(duration_s=120.0, stationary_s=2.0))
+        for name, (order, sign) in mirrors.items():
+            acc = clean.imu.acc_mps2[:, order] * torch.tensor(sign, dtype=clean.imu.acc_mps2.dtype)
+            rec = dataclasses.replace(clean, imu=dataclasses.replace(clean.imu, acc_mps2=acc))
+            try:
+                model = resolve_imu(_auto(), [_Rec(rec.imu, "simulated_walk")], recorded=True)  # the checks run here
+            except ValueError as error:
+                print(f"   seed {seed}, {name}: refused: {error}")
+                continue
+            rmse, result = _run(rec, model)
+            print(f"   seed {seed}, {name}: {rmse:.2f} m; warnings: {run_warnings(result) or 'none'}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("paths", nargs="*", type=Path, help="real IMU folders (KITTI from gtsam's wheel, flowins folders)")
     parser.add_argument("--seeds", type=int, default=2)
-    parser.add_argument("--sections", type=int, nargs="+", default=[1, 2, 3], choices=[1, 2, 3])
+    parser.add_argument("--sections", type=int, nargs="+", default=[1, 2, 3], choices=[1, 2, 3, 4])
     parser.add_argument("--rate", type=float, default=200.0, help="IMU rate of section 3's walks (Hz)")
     args = parser.parse_args()
     if 1 in args.sections:
@@ -208,6 +241,8 @@ def main() -> None:
         bias_score(args.seeds)
     if 3 in args.sections:
         noise_score(args.seeds, args.rate)
+    if 4 in args.sections:
+        mirror_score(args.seeds)
 
 
 if __name__ == "__main__":
