@@ -1,7 +1,6 @@
 """The multi-view track update in the filter, on the synthetic walk with exact landmark tracks."""
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import pytest
@@ -201,7 +200,7 @@ def test_tracks_do_not_turn_a_yaw_they_cannot_observe(window):
     (here the truth's). With the reference σ (``InitialUncertainty.reference_yaw_rad``) the yaw stays
     within 10 mrad of the truth over the 8 s (the bias alone, uncorrected, turns it by 16 mrad); a yaw
     σ of π lets the linearised updates turn it by 1.1 and 1.8 rad."""
-    from flowins.ins.initialization import InitialUncertainty, initial_covariance
+    from flowins.ins.initialization import InitialUncertainty, initial_covariance, start_uncertainty
 
     walk, t_imu, acc, gyro, tracks = _scene(seed=1, noise_px=0.3)
     mean0 = _truth(walk, t_imu[:1])[0]
@@ -209,7 +208,7 @@ def test_tracks_do_not_turn_a_yaw_they_cannot_observe(window):
     errors = {}
     for name, u in (("reference", InitialUncertainty(velocity_mps=0.5, acc_bias_mps2=0.05, acc_scale=1e-3)),
                     ("pi", InitialUncertainty(velocity_mps=0.5, acc_bias_mps2=0.05, acc_scale=1e-3, reference_yaw_rad=math.pi))):
-        cov0 = initial_covariance(mean0[STATE.q], dataclasses.replace(u, yaw_rad=u.reference_yaw_rad))
+        cov0 = initial_covariance(mean0[STATE.q], start_uncertainty(u, reference=True))
         m0, c0 = with_window(mean0, cov0, window)
         events = track_frames(tracks, CAMERA, TrackUpdate(window=window, sigma_px=0.3), t_min_s=T0, t_max_s=T1)
         noise = ProcessNoise(acc_noise=1e-3, gyro_noise=1e-4, acc_bias_walk=1e-4, gyro_bias_walk=1e-5)
