@@ -80,7 +80,10 @@ class FakeDevice(TorchFunctionMode):
     tensors tagged as on it; every op on a tagged tensor tags its results; ``x.device`` of a
     tagged tensor is ``meta``. An op that meets a tagged tensor and an untagged one (of one
     dimension or more) is recorded as a slip: on a GPU it is a CPU tensor meeting a CUDA one.
-    Indexing is allowed one way only, as on a GPU: a tensor on the device by CPU indices."""
+    Indexing is allowed one way only, as on a GPU: a tensor on the device by CPU indices.
+    Every read of a tagged tensor's values by the host (``tolist``, ``item``, ``bool``,
+    ``nonzero``, ``cpu``, ...) is recorded in :attr:`reads` by where it happened: on a GPU each
+    is a wait for the device's queue."""
 
     ALLOWED: typing.ClassVar[set] = {torch.Tensor.copy_, torch.Tensor.__setitem__, torch.Tensor.__getitem__, torch.Tensor.to,
                torch.Tensor.cpu, torch.as_tensor, torch.Tensor.index_select, torch.Tensor.tolist}
@@ -89,9 +92,15 @@ class FakeDevice(TorchFunctionMode):
     #: constants built for it outlive a mode); tensors compare by value, so no WeakSet
     tagged: typing.ClassVar[dict] = {}
 
+    #: the calls that read a tensor's values into the host
+    READS: typing.ClassVar[set] = {torch.Tensor.tolist, torch.Tensor.item, torch.Tensor.__bool__, torch.Tensor.__int__,
+                                   torch.Tensor.__float__, torch.Tensor.__index__, torch.nonzero, torch.Tensor.nonzero,
+                                   torch.Tensor.cpu, torch.Tensor.numpy, torch.equal}
+
     def __init__(self):
         super().__init__()
         self.slips = {}
+        self.reads = {}
 
     @classmethod
     def place(cls, *modules) -> None:
@@ -142,6 +151,9 @@ class FakeDevice(TorchFunctionMode):
             target = False
         if func is torch.Tensor.numpy and on:
             self._slip("numpy() of a tensor on the device")
+        if func in self.READS and on:
+            key = f"{func.__name__} at {_where()}"
+            self.reads[key] = self.reads.get(key, 0) + 1
         if func in (torch.Tensor.__getitem__, torch.Tensor.index_select) and on and not self._is(args[0]):
             self._slip(f"{func.__name__}: a CPU tensor {tuple(args[0].shape)} indexed by indices on the device")
         if on and func not in self.ALLOWED and target is None:

@@ -34,3 +34,16 @@ def test_the_fake_device_lets_through_what_a_gpu_allows(fake_device):
         assert back.to(x.device).device == FAKE and x.to("cpu").device == torch.device("cpu")
     assert mode.slips == {}
     assert back.tolist() == [7.0, 4.0]
+
+
+def test_the_fake_device_records_each_read_of_a_device_tensor_by_the_host(fake_device):
+    """``tolist``, ``item``, ``bool``, ``float``, ``nonzero`` and a move to the CPU of a tensor on
+    the device are reads (on a GPU each waits for its queue); the same calls on CPU tensors and
+    ops that keep their results on the device are not."""
+    with fake_device() as mode:
+        x = torch.arange(4.0, dtype=torch.float64, device=FAKE)
+        _ = (x * 2).any(), x.sum(), x[torch.tensor([1, 2])]  # no read
+        _ = torch.arange(3.0).tolist(), float(torch.ones(()))  # CPU tensors: no read
+        _ = x.tolist(), x[0].item(), bool(x.any()), float(x.sum()), torch.nonzero(x), x.cpu()
+    names = sorted(key.split(" at ")[0] for key in mode.reads)
+    assert names == ["__bool__", "__float__", "cpu", "item", "nonzero", "tolist"], mode.reads

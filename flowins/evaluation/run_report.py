@@ -99,9 +99,9 @@ def run_warnings(result: RunLog) -> list[str]:
                                           if len(resets) > rejected else "") if part)
         warnings.append(f"GNSS: the filter drifted from the fixes and was reset {len(resets)} time(s) ({why}; largest "
                         f"jump {worst['offset_m']:.1f} m at {worst['t_s']:.1f} s; filter.gnss_recovery)")
-    inflated = [e for e in log if e.get("kind") == "flow_inflate"]
+    inflated = [e for e in log if e.get("kind") == "flow" and e.get("inflated")]
     if inflated:
-        warnings.append(f"flow: {len(inflated)} time(s) most points of {inflated[0]['frames']} frames in a row failed "
+        warnings.append(f"flow: {len(inflated)} time(s) most points of {inflated[0]['gated_frames']} frames in a row failed "
                         f"the gate (first at {inflated[0]['t_s']:.1f} s); the velocity and gyroscope bias σ were "
                         "inflated to let the flow back in (filter.flow.recovery)")
     sigma = result.filter.node_cov[:, STATE.p, STATE.p].diagonal(dim1=-2, dim2=-1)[:, :2].sum(-1).sqrt()

@@ -108,6 +108,11 @@ class _RowStore:
         self.updated_count = needed
 
 
+def _cast(values: Tensor) -> type:
+    """The Python type a deferred log value of ``values``'s dtype becomes (:meth:`BatchChain.log_rows`)."""
+    return bool if values.dtype == torch.bool else float if values.is_floating_point() or values.is_complex() else int
+
+
 def raise_if_failed(failed: Tensor | None, what: str, rows: Sequence[int] | None = None,
                     t_s: Sequence[float] | None = None) -> None:
     """A ``ValueError`` naming ``what``, the batch rows where ``failed`` holds (``rows``: the
@@ -153,8 +158,14 @@ class BatchChain:
         #: per row: the times of its nodes, its log, what its events carry from one to the
         #: next (e.g. GNSS fixes held back for the heading), its changes of frame
         self.t_s: list[list[float]] = [[] for _ in range(rows)]
-        self.logs: list[list[dict[str, Any]]] = [[] for _ in range(rows)]
+        self._logs: list[list[dict[str, Any]]] = [[] for _ in range(rows)]
         self.memories: list[dict[str, Any]] = [{} for _ in range(rows)]
+        #: what events count from one to the next on the state's device, one entry per row
+        #: (e.g. the flow's gated frames in a row; :meth:`counter`): read by no one in the pass
+        self._counters: dict[str, Tensor] = {}
+        #: log values still on the device (:meth:`log_rows`): the entries (by their row's place),
+        #: each value's name and type, the values ``(r, k)``
+        self._pending: list[tuple[list[tuple[int, dict[str, Any]]], tuple[tuple[str, type], ...], Tensor]] = []
         self.frame_changes: list[list[tuple[int, Tensor, Tensor, Tensor]]] = [[] for _ in range(rows)]
         self._columns: list[list[int]] = [[] for _ in range(rows)]  # each row's own node columns
         self._current = [False] * rows  # whether the last column is the row's newest node
@@ -257,15 +268,33 @@ class BatchChain:
         index = torch.tensor(rows, device=self.mean.device)
         return self.mean[index], self.cov[index]
 
+    def counter(self, name: str, rows: Sequence[int]) -> Tensor:
+        """The counts ``name`` ``(r,)`` (int64, on the state's device; zero until set) of the rows ``rows``."""
+        counts = self._counters.get(name)
+        if counts is None:
+            counts = self._counters[name] = torch.zeros(self.rows, dtype=torch.int64, device=self.mean.device)
+        if list(rows) == list(range(self.rows)):
+            return counts
+        return counts[torch.tensor(rows, device=counts.device)]
+
+    def set_counter(self, name: str, rows: Sequence[int], counts: Tensor) -> None:
+        """Set the counts ``name`` of the rows ``rows`` to ``counts`` ``(r,)``."""
+        every = self.counter(name, range(self.rows))
+        if list(rows) == list(range(self.rows)):
+            self._counters[name] = counts
+        else:
+            self._counters[name] = every.index_copy(0, torch.tensor(rows, device=every.device), counts)
+
     def _check_current(self, rows: Sequence[int]) -> None:
         for b in rows:
             if not self._current[b]:
                 raise RuntimeError(f"BatchChain: row {b} has no current node (its run is over)")
 
     def update_rows(self, rows: Sequence[int], mean: Tensor, cov: Tensor,
-                    infos: Sequence[dict[str, Any]] | None = None) -> None:
+                    infos: Sequence[dict[str, Any]] | None = None, values: dict[str, Tensor] | None = None) -> None:
         """Replace the newest filtered Gaussian of the rows ``rows`` by ``mean`` ``(r, 26)``,
-        ``cov`` ``(r, 26, 26)``; ``infos[i]`` (when not empty) goes to row ``rows[i]``'s log."""
+        ``cov`` ``(r, 26, 26)``; ``infos[i]`` (when not empty) goes to row ``rows[i]``'s log, with
+        ``values`` (:meth:`log_rows`)."""
         self._check_current(rows)
         column, predicted = self._count - 1, self._pred_cov[-1]
         for b in rows:
@@ -276,7 +305,7 @@ class BatchChain:
             index = torch.tensor(rows, device=mean.device)
             self._mean[-1] = self._mean[-1].index_copy(0, index, mean.unsqueeze(1))
             self._cov[-1] = self._cov[-1].index_copy(0, index, cov.unsqueeze(1))
-        self.log_rows(rows, infos)
+        self.log_rows(rows, infos, values)
 
     def add_likelihood(self, rows: Sequence[int], nll: Tensor, count: Tensor) -> None:
         """Add an update's innovation negative log-likelihood ``nll`` ``(r,)`` of ``count`` ``(r,)``
@@ -287,11 +316,42 @@ class BatchChain:
             self._nll[b].append(nll[i])
             self._nll_count[b].append(count[i])
 
-    def log_rows(self, rows: Sequence[int], infos: Sequence[dict[str, Any]] | None) -> None:
-        """Append ``infos[i]`` (when not empty), with the node's time, to row ``rows[i]``'s log."""
-        for b, info in zip(rows, infos or ()):
+    @property
+    def logs(self) -> list[list[dict[str, Any]]]:
+        """Each row's log entries, their values complete (:meth:`settle_logs`)."""
+        self.settle_logs()
+        return self._logs
+
+    def log_rows(self, rows: Sequence[int], infos: Sequence[dict[str, Any]] | None,
+                 values: dict[str, Tensor] | None = None) -> None:
+        """Append ``infos[i]`` (when not empty), with the node's time, to row ``rows[i]``'s log.
+
+        ``values``: facts still on the device, ``(r,)`` tensors by name; entry ``i`` gets
+        ``values[name][i]`` (a ``bool``, ``int`` or ``float`` as the tensor's dtype) when the logs
+        are read (:attr:`logs`, :meth:`finish`): the pass does not wait for them, and all its
+        values come back in one read."""
+        entries = []
+        for i, (b, info) in enumerate(zip(rows, infos or ())):
             if info:
-                self.logs[b].append({"t_s": self.time_s(b), **info})
+                entry = {"t_s": self.time_s(b), **info}
+                self._logs[b].append(entry)
+                entries.append((i, entry))
+        if values and entries:
+            casts = tuple((name, _cast(t)) for name, t in values.items())
+            self._pending.append((entries, casts, torch.stack([t.detach().to(torch.float64) for t in values.values()], -1)))
+
+    def settle_logs(self) -> None:
+        """Write the log values :meth:`log_rows` left on the device into their entries (one read)."""
+        if not self._pending:
+            return
+        pending, self._pending = self._pending, []
+        flat = torch.cat([values.reshape(-1) for *_, values in pending]).tolist()
+        at = 0
+        for entries, casts, values in pending:
+            k = len(casts)
+            for i, entry in entries:
+                entry.update((name, cast(value)) for (name, cast), value in zip(casts, flat[at + k * i: at + k * (i + 1)]))
+            at += values.numel()
 
     def linear_predict_rows(self, rows: Sequence[int], A: Tensor, Q: Tensor, b: Tensor | None = None,
                             infos: Sequence[dict[str, Any]] | None = None, *, select: Tensor | None = None) -> None:

@@ -141,28 +141,38 @@ class Gate:
     def __post_init__(self) -> None:
         check_fields(self)
 
-    def threshold_for(self, dof: int | Tensor) -> float | Tensor:
+    def threshold_for(self, dof: int | Tensor, *, max_dof: int | None = None) -> float | Tensor:
         """The NIS threshold for ``dof`` degrees of freedom: an int, or a tensor of them (one per
-        block, the thresholds then a tensor of its shape)."""
+        block, the thresholds then a tensor of its shape), looked up in a table of the quantiles
+        for ``1 .. max_dof`` (the blocks' dimension; None: ``dof``'s largest, a read from its device)."""
         if self.threshold is not None:
             return self.threshold
-        if isinstance(dof, Tensor):  # chi2_quantile keeps each (probability, dof) it computed
-            thresholds = [chi2_quantile(self.probability, max(int(d), 1)) for d in dof.reshape(-1).tolist()]
-            quantile = torch.tensor(thresholds, dtype=torch.float64, device=dof.device).reshape(dof.shape)
+        if isinstance(dof, Tensor):
+            top = int(dof.max()) if max_dof is None else max_dof
+            table = _quantiles(self.probability, max(top, 1), dof.device)
+            quantile = table[(dof.long() - 1).clamp(0, table.shape[0] - 1)]
         else:
             quantile = chi2_quantile(self.probability, dof)
         return quantile * self.scale
 
-    def weights(self, nis: Tensor, dof: int | Tensor) -> Tensor:
-        """Weights in ``[0, 1]`` with the shape of ``nis`` (``dof`` an int, or one per block)."""
+    def weights(self, nis: Tensor, dof: int | Tensor, *, max_dof: int | None = None) -> Tensor:
+        """Weights in ``[0, 1]`` with the shape of ``nis`` (``dof`` an int, or one per block, each
+        at most ``max_dof``: :meth:`threshold_for`)."""
         if self.mode == "off":
             return torch.ones_like(nis)
-        threshold = self.threshold_for(dof)
+        threshold = self.threshold_for(dof, max_dof=max_dof)
         if isinstance(threshold, Tensor) and threshold.dtype != nis.dtype:
             threshold = threshold.to(nis.dtype)
         if self.mode == "hard":
             return (nis <= threshold).to(nis.dtype)
         return torch.sigmoid((threshold - nis) / self.softness)
+
+
+@cached_constant
+def _quantiles(probability: float, max_dof: int, device: torch.device) -> Tensor:
+    """``(max_dof,)`` float64: :func:`chi2_quantile` of ``probability`` for ``1 .. max_dof`` degrees of freedom."""
+    return torch.tensor([chi2_quantile(probability, d) for d in range(1, max_dof + 1)], dtype=torch.float64,
+                        device=device)
 
 
 # --------------------------------------------------------------------------- update
@@ -189,9 +199,9 @@ class Posterior(NamedTuple):
 
 
 def waits_cost(t: Tensor) -> bool:
-    """Whether reading a flag back from ``t``'s device would cost: on a GPU, or under ``torch.compile``
-    (a read breaks the graph)."""
-    return t.is_cuda or torch.compiler.is_compiling()
+    """Whether reading a flag back from ``t``'s device would cost: on any device but the CPU (a GPU
+    waits for its queue), or under ``torch.compile`` (a read breaks the graph)."""
+    return t.device.type != "cpu" or torch.compiler.is_compiling()
 
 
 def joseph_update(
@@ -229,21 +239,22 @@ def _cholesky_psd(cov: Tensor) -> tuple[Tensor, Tensor]:
     batch the jitter it alone would get; ``failed`` ``(...,)`` where none does (``F`` then
     from the largest). Where a read-back costs (:func:`waits_cost`) all jitters are factorised
     in one batched call; elsewhere the ladder stops at the first jitter every matrix takes."""
-    eye = _eye(cov.shape[-1], cov.dtype, cov.device)
+    eyes = _jittered_eyes(cov.shape[-1], cov.dtype, cov.device)  # (J, D, D): jitter · I, one per level
     scale = cov.diagonal(dim1=-2, dim2=-1).amax(-1, keepdim=True).unsqueeze(-1).detach().clamp_min(torch.finfo(cov.dtype).tiny)
     if waits_cost(cov):
-        levels = torch.tensor(_JITTERS, dtype=cov.dtype, device=cov.device).view(-1, *([1] * cov.ndim))
-        factors, info = torch.linalg.cholesky_ex(cov.unsqueeze(0) + (levels * scale) * eye)  # (J, ..., D, D)
+        levels = eyes.view(eyes.shape[0], *([1] * (cov.ndim - 2)), *eyes.shape[1:])
+        factors, info = torch.linalg.cholesky_ex(cov.unsqueeze(0) + scale.unsqueeze(0) * levels)  # (J, ..., D, D)
         ok = info == 0
         first = torch.where(ok.any(0), ok.to(torch.uint8).argmax(0), len(_JITTERS) - 1)
         F = torch.take_along_dim(factors, first[None, ..., None, None], 0)[0]
-        return F, ~ok.any(0)
-    F, info = torch.linalg.cholesky_ex(cov + scale * _scaled_eye(cov.shape[-1], _JITTERS[0], cov.dtype, cov.device))
-    for jitter in _JITTERS[1:]:
+        # in the column-major layout LAPACK's factor has: the products that follow round alike
+        return F.mT.contiguous().mT, ~ok.any(0)
+    F, info = torch.linalg.cholesky_ex(cov + scale * eyes[0])
+    for level in range(1, len(_JITTERS)):
         if not bool(info.any()):
             break
         failed = info != 0
-        retry, info_retry = torch.linalg.cholesky_ex(cov + (jitter * scale) * eye)
+        retry, info_retry = torch.linalg.cholesky_ex(cov + scale * eyes[level])
         F = torch.where(failed[..., None, None], retry, F)
         info = torch.where(failed, info_retry, info)
     return F, info != 0
@@ -255,8 +266,10 @@ def _eye(n: int, dtype: torch.dtype, device: torch.device) -> Tensor:
 
 
 @cached_constant
-def _scaled_eye(n: int, factor: float, dtype: torch.dtype, device: torch.device) -> Tensor:
-    return factor * torch.eye(n, dtype=dtype, device=device)
+def _jittered_eyes(n: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """``(J, n, n)``: each jitter of :data:`_JITTERS` times the identity (both ladders add the same
+    terms, so the CPU's and a GPU's factors agree to the bit)."""
+    return torch.tensor(_JITTERS, dtype=dtype, device=device)[:, None, None] * torch.eye(n, dtype=dtype, device=device)
 
 
 def scalar_update(
@@ -465,7 +478,7 @@ def ekf_update(
         nll = torch.cat(nll_list, -1) if likelihood else None
     else:
         nis, nll = block_nll(cov, innovation, H, noise_cov) if likelihood else (block_nis(cov, innovation, H, noise_cov), None)
-        weight = gate.weights(nis, dof)
+        weight = gate.weights(nis, dof, max_dof=innovation.shape[-1])
         w = weight.unsqueeze(-1)
         *batch, M, d = innovation.shape
         if d == 1:  # independent scalars (the epipolar flow update): D x D algebra

@@ -73,20 +73,13 @@ def update(
     if residual.ndim != 2:
         raise ValueError(f"update: residual must be (M, d) for one run, got {tuple(residual.shape)} "
                          "(update_rows updates rows of a batch)")
-    keep = likelihood and chain.likelihood
-    result = gated_update(chain.mean, chain.cov, H=H, residual=residual, noise_cov=noise_cov, gate=gate,
-                          sequential=sequential, valid=valid, likelihood=keep, dof=dof, noise_logdet=noise_logdet)
-    chain.batch.check_failed(result.failed, f"update ({info.get('kind', 'measurement')})", [chain.row])
-    if keep:
-        chain.add_likelihood(*likelihood_sums(result, residual.shape[-1] if dof is None else dof))
-    if info:
-        nis, accepted = _summary(result, valid).tolist()
-        info = {**info, "nis": nis, "accepted": accepted}
-    if valid is not None and not bool(valid.any()):
-        chain.batch.log_rows([chain.row], [info])
-    else:
-        chain.update(result, **info)
-    return result
+    result = update_rows(chain.batch, [chain.row], H=H.unsqueeze(0), residual=residual.unsqueeze(0),
+                         noise_cov=None if noise_cov is None else noise_cov.unsqueeze(0), gate=gate,
+                         sequential=sequential, valid=None if valid is None else valid.unsqueeze(0),
+                         likelihood=likelihood, infos=[info] if info else None,
+                         dof=None if dof is None else dof.unsqueeze(0),
+                         noise_logdet=None if noise_logdet is None else noise_logdet.unsqueeze(0))
+    return UpdateResult(*(None if t is None else t[0] for t in result))
 
 
 def update_rows(
@@ -103,22 +96,23 @@ def update_rows(
     infos: Sequence[dict[str, Any]] | None = None,
     dof: Tensor | None = None,
     noise_logdet: Tensor | None = None,
+    values: dict[str, Tensor] | None = None,
 ) -> UpdateResult:
     """:func:`update` of the rows ``rows`` of ``chain`` at once (``r`` of them).
 
     Shapes carry the rows first: H ``(r, M, d, D)``, residual ``(r, M, d)``, noise_cov
     ``(r, M, d, d)`` (or None, with noise_logdet ``(r, M)``: whitened blocks, as in :func:`update`),
-    valid and dof ``(r, M)``; ``infos[i]`` is row ``rows[i]``'s log entry. A row
-    without a valid block keeps its node and is only logged.
+    valid and dof ``(r, M)``; ``infos[i]`` is row ``rows[i]``'s log entry, completed by the
+    update's NIS and accepted weight and by ``values`` (``(r,)`` tensors by name) when the logs are
+    read (:meth:`~flowins.filter.chain.BatchChain.log_rows`). A row without a valid block keeps
+    its node's Gaussian. Where a read costs (a GPU, ``torch.compile``) nothing is read back.
     """
     result = step_rows(chain, rows, H=H, residual=residual, noise_cov=noise_cov, gate=gate, sequential=sequential,
                        valid=valid, likelihood=likelihood, dof=dof, noise_logdet=noise_logdet)
     if infos is not None:
-        summary = _summary(result, valid).tolist()
-        infos = [{**info, "nis": nis, "accepted": accepted} if info else info
-                 for info, (nis, accepted) in zip(infos, summary)]
-    updated = None if valid is None else valid.any(-1).tolist()
-    commit_rows(chain, rows, result.mean, result.cov, infos, updated=updated)
+        values = {**(values or {}), **dict(zip(("nis", "accepted"), _summary(result, valid).unbind(-1)))}
+    commit_rows(chain, rows, result.mean, result.cov, infos, updated=None if valid is None else valid.any(-1),
+                values=values)
     return result
 
 
@@ -164,21 +158,19 @@ def commit_rows(
     cov: Tensor,
     infos: Sequence[dict[str, Any]] | None,
     *,
-    updated: Sequence[bool] | None = None,
+    updated: Tensor | None = None,
+    values: dict[str, Tensor] | None = None,
 ) -> None:
     """Write the updated Gaussians ``mean`` ``(r, D)``, ``cov`` ``(r, D, D)`` as the newest
-    nodes of the rows ``rows``, with their log entries ``infos``; a row with
-    ``updated[i]`` False keeps its node and only gets its log entry."""
-    if updated is None or all(updated):
-        chain.update_rows(rows, mean, cov, infos)
-        return
-    infos = infos or [{}] * len(rows)
-    which = [i for i, has in enumerate(updated) if has]
-    if which:
-        picked = torch.tensor(which, device=mean.device)
-        chain.update_rows([rows[i] for i in which], mean[picked], cov[picked], [infos[i] for i in which])
-    skipped = [i for i, has in enumerate(updated) if not has]
-    chain.log_rows([rows[i] for i in skipped], [infos[i] for i in skipped])
+    nodes of the rows ``rows``, with their log entries ``infos`` and the entries' values still on
+    the device (``values``, :meth:`~flowins.filter.chain.BatchChain.log_rows`). A row with
+    ``updated[i]`` False ``(r,)`` keeps its node's Gaussian (it is written back as it was: the
+    pass reads no flag)."""
+    if updated is not None:
+        prior_mean, prior_cov = chain.newest(rows)
+        mean = torch.where(updated[:, None], mean, prior_mean)
+        cov = torch.where(updated[:, None, None], cov, prior_cov)
+    chain.update_rows(rows, mean, cov, infos, values=values)
 
 
 def gated_update(mean: Tensor, cov: Tensor, *, H: Tensor, residual: Tensor, noise_cov: Tensor | None,

@@ -13,9 +13,9 @@ from torch import Tensor
 from flowins.config import bounded, check_fields
 from flowins.constants import cached_constant
 from flowins.filter.augmentation import augment_pose_rows
-from flowins.filter.chain import BatchChain, ChainBuilder, RowBatchEvent
+from flowins.filter.chain import BatchChain, RowBatchEvent
 from flowins.filter.ekf import Gate, UpdateResult
-from flowins.filter.updater import commit_rows, gated_update, likelihood_sums
+from flowins.filter.updater import gated_update, likelihood_sums
 from flowins.flow.points import FlowPoints
 from flowins.measurements.flow import FlowCamera, FlowMeasurements, epipolar_update, flow_measurements
 from flowins.measurements.selection import select_points
@@ -31,8 +31,9 @@ class FlowRecovery:
     it. After ``after_frames`` consecutive frames with at least ``min_valid`` valid
     points of which at most ``max_accepted`` (a fraction) pass the gate, the velocity's
     σ is raised by ``velocity_sigma_mps`` and the gyroscope bias's by
-    ``gyro_bias_sigma_rps`` (a logged ``flow_inflate`` step), so that the next frames can
-    pull the filter back. 0 frames switches it off.
+    ``gyro_bias_sigma_rps``, so that the next frames can pull the filter back. 0 frames
+    switches it off. A frame's log entry says how many gated frames in a row it ends
+    (``gated_frames``) and whether it inflated (``inflated``).
     """
 
     after_frames: int = bounded(5, minimum=0)
@@ -44,12 +45,25 @@ class FlowRecovery:
     def __post_init__(self) -> None:
         check_fields(self)
 
-    def gated(self, valid: int, accepted: float) -> bool:
-        """Whether a frame with ``valid`` points of which ``accepted`` passed counts as gated."""
-        return valid >= max(self.min_valid, 1) and accepted <= self.max_accepted * valid
+    def step(self, gated: Tensor, mean: Tensor, cov: Tensor, *, valid: Tensor, accepted: Tensor
+             ) -> tuple[Tensor, Tensor, Tensor]:
+        """One frame of the recovery on ``r`` rows, read by no one in the pass: the frame counts as
+        gated with at least ``max(min_valid, 1)`` valid points of which at most ``max_accepted``
+        (a fraction) passed. From the rows' gated frames in a row before it ``gated`` ``(r,)``,
+        their updated Gaussians ``mean`` ``(r, D)``, ``cov`` ``(r, D, D)`` and the frame's counts
+        ``valid``, ``accepted`` ``(r,)``, returns the covariances with the inflation
+        (:meth:`inflation`) added where a row reaches ``after_frames`` gated frames, the gated
+        frames in a row with this one, and where it inflated (to start counting again).
+
+        The inflation belongs to the updated node, as a process noise ``Q`` with ``Φ = I`` at the
+        frame's time: the smoother's recursion through it is the one through a node of its own."""
+        now = (valid >= max(self.min_valid, 1)) & (accepted <= self.max_accepted * valid.to(accepted.dtype))
+        gated = torch.where(now, gated + 1, 0)
+        inflated = gated >= self.after_frames
+        return cov + inflated[:, None, None] * self.inflation(mean), gated, inflated
 
     def inflation(self, mean: Tensor) -> Tensor:
-        """``Q (D, D)``: the covariance added to the state ``mean`` ``(D,)``."""
+        """``Q (D, D)``: the covariance added to the state ``mean`` ``(..., D)``."""
         Q = mean.new_zeros(mean.shape[-1], mean.shape[-1])
         Q[STATE.v, STATE.v] = self.velocity_sigma_mps**2 * torch.eye(3, dtype=mean.dtype, device=mean.device)
         Q[STATE.b_w, STATE.b_w] = self.gyro_bias_sigma_rps**2 * torch.eye(3, dtype=mean.dtype, device=mean.device)
@@ -149,20 +163,6 @@ class FlowFrame(RowBatchEvent):
         u = frames[0].update
         augment_pose_rows(chain, rows, sigma_p0=u.sigma_p0, sigma_q0=u.sigma_q0, mode=u.augmentation_mode)
 
-    def _recover(self, chain: ChainBuilder, *, valid: int, accepted: float) -> None:
-        """Count consecutive gated frames; after ``recovery.after_frames`` inflate (:class:`FlowRecovery`)."""
-        r = self.update.recovery
-        if r.after_frames == 0:
-            return
-        gated = chain.memory.get("flow_gated", 0) + 1 if r.gated(valid, accepted) else 0
-        chain.memory["flow_gated"] = gated
-        if gated >= r.after_frames:
-            mean = chain.mean
-            eye = torch.eye(mean.shape[-1], dtype=mean.dtype, device=mean.device)
-            chain.linear_predict(eye, r.inflation(mean), kind="flow_inflate", name=self.name, frames=gated)
-            chain.memory["flow_gated"] = 0
-
-
 def _flow_update(chain: BatchChain, rows: list[int], frames: list[FlowFrame]) -> None:
     """The flow update of frames with points on the rows ``rows``, their logs and recovery."""
     first = frames[0]
@@ -204,18 +204,21 @@ def _flow_update(chain: BatchChain, rows: list[int], frames: list[FlowFrame]) ->
             weight = torch.where(go, accepted, weight)
             going = go
         x_i = new_mean
-    counts_list, weights = counts.tolist(), weight.tolist()
-    # a row updated iff its first iteration had a valid point
-    done = [c[0] > 0 for c in counts_list] if updated is None else updated.tolist()
-    logs = []
-    for i, (frame, (valid, degenerate, behind, low), accepted, has) in enumerate(zip(frames, counts_list, weights, done)):
-        logs.append(dict(kind="flow", name=frame.name, candidates=candidates[i],
-                         points=candidates[i] if u.n_points is None else min(u.n_points, candidates[i]),
-                         valid=int(valid), degenerate=int(degenerate), behind=int(behind), low_parallax=int(low),
-                         accepted=float(accepted) if has else 0.0))
-    commit_rows(chain, rows, new_mean, new_cov, logs, updated=done)
-    for b, frame, log in zip(rows, frames, logs):
-        frame._recover(chain.row(b), valid=log["valid"], accepted=log["accepted"])
+    # a row updated iff its first iteration had a valid point; the others keep their node
+    has = counts[:, 0] > 0 if updated is None else updated
+    prior_mean, prior_cov = mean, cov
+    new_mean = torch.where(has[:, None], new_mean, prior_mean)
+    new_cov = torch.where(has[:, None, None], new_cov, prior_cov)
+    values = dict(zip(("valid", "degenerate", "behind", "low_parallax"), counts.unbind(-1)))
+    values["accepted"] = torch.where(has, weight, 0.0)
+    if u.recovery.after_frames:
+        new_cov, gated, inflated = u.recovery.step(chain.counter("flow_gated", rows), new_mean, new_cov,
+                                                   valid=counts[:, 0], accepted=values["accepted"])
+        chain.set_counter("flow_gated", rows, torch.where(inflated, 0, gated))
+        values.update(gated_frames=gated, inflated=inflated)
+    logs = [dict(kind="flow", name=frame.name, candidates=n, points=n if u.n_points is None else min(u.n_points, n))
+            for frame, n in zip(frames, candidates)]
+    chain.update_rows(rows, new_mean, new_cov, logs, values=values)
 
 
 def flow_frames(pairs, camera, update: FlowUpdate, *, t_min_s: float, t_max_s: float, name: str = "flow",

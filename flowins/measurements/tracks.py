@@ -379,14 +379,12 @@ def _track_update(chain: BatchChain, rows: list[int], frames: list[TrackFrame]) 
     mask = torch.stack([_pad_rows(f.views.mask.to(mean.device), M) for f in frames])
     camera = stack_cameras([f.camera for f in frames])
     m = track_measurements(mean, uv, ages, mask, camera, u)
-    infos = []
-    counts = torch.stack((m.valid.sum(-1), m.n_degenerate, m.n_behind, m.n_low_parallax), -1).tolist()
-    for frame, (valid, degenerate, behind, low) in zip(frames, counts):
-        infos.append(dict(kind="tracks", name=frame.name, candidates=frame.views.candidates,
-                          tracks=int(frame.views.ages.shape[0]), valid=int(valid), degenerate=int(degenerate),
-                          behind=int(behind), low_parallax=int(low)))
+    infos = [dict(kind="tracks", name=frame.name, candidates=frame.views.candidates,
+                  tracks=int(frame.views.ages.shape[0])) for frame in frames]
+    counts = dict(zip(("valid", "degenerate", "behind", "low_parallax"),
+                      (m.valid.sum(-1), m.n_degenerate, m.n_behind, m.n_low_parallax)))
     update_rows(chain, rows, H=m.H, residual=m.residual, noise_cov=None, noise_logdet=m.noise_logdet, gate=u.gate,
-                valid=m.valid, dof=m.dof, infos=infos)
+                valid=m.valid, dof=m.dof, infos=infos, values=counts)
 
 
 def _pad_rows(t: Tensor, M: int) -> Tensor:

@@ -113,8 +113,8 @@ def test_flow_frames_in_float32_mix_no_dtypes_and_agree_with_float64(mixed_dtype
             smoothed = rts_smooth(track)
         assert mode.slips == {}, mode.slips
         assert track.node_mean.dtype == dtype and smoothed.node_cov.dtype == dtype
-        kinds = {e.get("kind") for e in track.log}
-        assert ("flow_inflate" in kinds) == (update is tight), kinds
+        inflated = any(e.get("inflated") for e in track.log)
+        assert inflated == (update is tight)
         ends[dtype, update is tight] = torch.stack((track.node_mean[-1, STATE.p], smoothed.node_mean[0, STATE.p])).double()
     # float32 rounds the pose copy and the flow update (why filter.dtype refuses it): 4 s drift apart by ~0.1 m
     assert float((ends[torch.float32, False] - ends[torch.float64, False]).norm(dim=-1).max()) < 0.2
@@ -145,4 +145,39 @@ def test_flow_frames_on_another_device_are_the_cpu_run(fake_device):
             assert mode.slips == {}, mode.slips
         (cpu, cpu_smoothed), (moved, smoothed) = tracks[-2:]
         assert torch.equal(moved.node_mean, cpu.node_mean) and torch.equal(smoothed.node_cov, cpu_smoothed.node_cov)
-        assert ("flow_inflate" in {e.get("kind") for e in moved.log}) == (update is updates[0])
+        assert any(e.get("inflated") for e in moved.log) == (update is updates[0])
+
+
+def test_a_pass_of_flow_zero_velocity_and_vehicle_updates_reads_its_device_only_when_it_ends(fake_device):
+    """On the fake device (``conftest.FakeDevice``, where every host read of a device tensor is
+    recorded, as a GPU would wait for each): flow frames (iterated, gated, with the recovery
+    counting and inflating), zero-velocity and vehicle updates read nothing back while the pass
+    runs; the pass's end reads its logs and its failure flags once each, however long it is.
+    The logs then hold the values of the same run on the CPU."""
+    from flowins.filter.ekf import Gate
+    from flowins.measurements.flow_update import FlowRecovery, FlowUpdate
+    from flowins.measurements.vehicle import VehicleSettings, VehicleUpdate
+    from flowins.measurements.zero_velocity import ZeroVelocity
+
+    run, _, _ = _flow_run(5.0, 7.0, 60, 3, own_camera=False)
+    update = FlowUpdate(iterations=2, n_points=40, gate=Gate(probability=0.9),
+                        recovery=FlowRecovery(after_frames=2, max_accepted=0.99))
+    vehicle = VehicleSettings(mode="on")
+    reads, logs = {}, {}
+    for end_s in (6.0, 7.0):
+        events = [FlowFrame(e.time_s, e.points, e.camera, update) for e in run.events if e.time_s <= end_s]
+        events += [ZeroVelocity(5.55, sigma_mps=0.5), VehicleUpdate(5.75, vehicle), VehicleUpdate(6.55, vehicle)]
+        for device in ("cpu", "meta"):
+            with fake_device() as mode:
+                track = run_filter(t_s=run.t_s, acc_mps2=run.acc_mps2, gyro_rps=run.gyro_rps, mean0=run.mean0.to(device),
+                                   cov0=run.cov0.to(device), noise=ProcessNoise(), events=events)
+            assert mode.slips == {}, mode.slips
+            logs[end_s, device] = track.log
+        reads[end_s] = mode.reads
+        kinds = {e["kind"] for e in track.log}
+        assert {"flow", "zero_velocity", "vehicle"} <= kinds, kinds
+        assert any(e.get("inflated") for e in track.log)  # the recovery acted in the pass
+        assert logs[end_s, "meta"] == logs[end_s, "cpu"]
+    assert reads[6.0] == reads[7.0], reads  # as many reads for 10 frames as for 20 ...
+    assert sum(reads[7.0].values()) <= 2 and all(key.split(" at ")[1].startswith("flowins/filter/chain.py")
+                                                  for key in reads[7.0]), reads  # ... and only the chain's, at its end

@@ -174,7 +174,8 @@ def test_gradient_of_the_soft_track_gate_matches_finite_differences():
 
 def test_the_track_update_on_another_device_is_the_cpu_run(fake_device):
     """Track frames (window 3), their window shifts and the smoother on the fake device of
-    ``conftest.FakeDevice``: no op meets a CPU tensor there, and the numbers are the CPU run's."""
+    ``conftest.FakeDevice``: no op meets a CPU tensor there, the filter's pass reads nothing back
+    from the device until it ends, and the numbers are the CPU run's."""
     walk, t_imu, acc, gyro, tracks = _scene(seed=4, noise_px=0.3)
     keep = t_imu <= T0 + 2.0
     t_imu, acc, gyro = t_imu[keep], acc[keep], gyro[keep]
@@ -186,9 +187,11 @@ def test_the_track_update_on_another_device_is_the_cpu_run(fake_device):
     with fake_device() as mode:
         run = FilterInput(t_imu, acc, gyro, mean0.to("meta"), cov0.to("meta"), events)
         moved = run_filters([run], noise=noise, output_every=10)[0]
+        reads = dict(mode.reads)
         smoothed = rts_smooth(moved)
         assert moved.node_mean.device.type == "meta" and smoothed.node_cov.device.type == "meta"
     assert mode.slips == {}, mode.slips
+    assert sum(reads.values()) <= 2 and all(" at flowins/filter/chain.py" in key for key in reads), reads
     assert sum(e["valid"] for e in moved.log if e["kind"] == "tracks") > 0
     assert torch.equal(moved.node_mean, cpu.node_mean) and torch.equal(smoothed.node_cov, rts_smooth(cpu).node_cov)
 

@@ -468,12 +468,12 @@ def test_gradients_stay_finite_through_degenerate_flow_geometry(case):
     loss.backward()
     grads = {n: params.raw[n].grad for n in params.learned}
     # no path: the limit pose step (σ_p0, σ_q0), no dropout moments, no vehicle constraint; with no valid
-    # point, the flow noise and gate
+    # point, the flow noise and gate (the frame's update is computed and not taken: a zero gradient)
     unused = {"sigma_p0", "sigma_q0", "dropout_p", "vehicle_lateral_sigma_mps", "vehicle_vertical_sigma_mps",
               "tracks_sigma_px", "tracks_gate_scale", "tracks_gate_softness"}
-    if n_valid == 0:
-        unused |= {"flow_sigma_scale", "flow_sigma_floor_px", "flow_gate_threshold", "flow_gate_softness"}
     assert {n for n, g in grads.items() if g is None} == unused
+    flow = {"flow_sigma_scale", "flow_sigma_floor_px", "flow_gate_threshold", "flow_gate_softness"}
+    assert {n for n in flow if float(grads[n].abs()) == 0.0} == (flow if n_valid == 0 else set())
     grads = {n: g for n, g in grads.items() if g is not None}
     assert all(bool(torch.isfinite(g)) for g in grads.values()), grads
     assert float(grads["gnss_noise_scale"].abs()) > 1e-8  # the loss does depend on the parameters
