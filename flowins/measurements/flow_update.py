@@ -63,11 +63,19 @@ class FlowRecovery:
         return cov + inflated[:, None, None] * self.inflation(mean), gated, inflated
 
     def inflation(self, mean: Tensor) -> Tensor:
-        """``Q (D, D)``: the covariance added to the state ``mean`` ``(..., D)``."""
-        Q = mean.new_zeros(mean.shape[-1], mean.shape[-1])
-        Q[STATE.v, STATE.v] = self.velocity_sigma_mps**2 * torch.eye(3, dtype=mean.dtype, device=mean.device)
-        Q[STATE.b_w, STATE.b_w] = self.gyro_bias_sigma_rps**2 * torch.eye(3, dtype=mean.dtype, device=mean.device)
-        return Q
+        """``Q (D, D)``: the covariance added to the state ``mean`` ``(..., D)`` (built once per
+        setting, size, dtype and device)."""
+        return _inflation(float(self.velocity_sigma_mps), float(self.gyro_bias_sigma_rps), mean.shape[-1], mean.dtype,
+                          mean.device)
+
+
+@cached_constant
+def _inflation(velocity_sigma_mps: float, gyro_bias_sigma_rps: float, dim: int, dtype: torch.dtype,
+               device: torch.device) -> Tensor:
+    Q = torch.zeros(dim, dim, dtype=dtype, device=device)
+    Q[STATE.v, STATE.v] = velocity_sigma_mps**2 * torch.eye(3, dtype=dtype, device=device)
+    Q[STATE.b_w, STATE.b_w] = gyro_bias_sigma_rps**2 * torch.eye(3, dtype=dtype, device=device)
+    return Q
 
 
 @dataclass(frozen=True)
