@@ -44,3 +44,18 @@ def clear_constants() -> None:
     """Forget every cached constant (they are rebuilt on next use)."""
     for build in _BUILDERS:
         build.cache_clear()
+
+
+@cached_constant
+def scalar(value: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """``value`` as a 0-dim tensor, built once per value, dtype and device."""
+    return torch.tensor(value, dtype=dtype, device=device)
+
+
+def scalar_like(value: float | torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """``value`` in ``like``'s dtype and device: a tensor (a learned parameter) cast there, itself
+    when it is there already; a number built once (:func:`scalar`), not copied from the host at
+    every use."""
+    if isinstance(value, torch.Tensor):
+        return value if value.dtype == like.dtype and value.device == like.device else value.to(like)
+    return scalar(float(value), like.dtype, like.device)

@@ -82,8 +82,10 @@ class FakeDevice(TorchFunctionMode):
     dimension or more) is recorded as a slip: on a GPU it is a CPU tensor meeting a CUDA one.
     Indexing is allowed one way only, as on a GPU: a tensor on the device by CPU indices.
     Every read of a tagged tensor's values by the host (``tolist``, ``item``, ``bool``,
-    ``nonzero``, ``cpu``, ...) is recorded in :attr:`reads` by where it happened: on a GPU each
-    is a wait for the device's queue."""
+    ``nonzero``, ``cpu``, ...) is recorded in :attr:`reads` by where it happened, and every copy
+    of host data to the device (``to`` of a CPU tensor, ``tensor`` / ``as_tensor`` made on the
+    device) in :attr:`copies`: on a GPU each read waits for the device's queue, and so does each
+    copy from pageable memory."""
 
     ALLOWED: typing.ClassVar[set] = {torch.Tensor.copy_, torch.Tensor.__setitem__, torch.Tensor.__getitem__, torch.Tensor.to,
                torch.Tensor.cpu, torch.as_tensor, torch.Tensor.index_select, torch.Tensor.tolist}
@@ -101,6 +103,7 @@ class FakeDevice(TorchFunctionMode):
         super().__init__()
         self.slips = {}
         self.reads = {}
+        self.copies = {}
 
     @classmethod
     def place(cls, *modules) -> None:
@@ -154,6 +157,9 @@ class FakeDevice(TorchFunctionMode):
         if func in self.READS and on:
             key = f"{func.__name__} at {_where()}"
             self.reads[key] = self.reads.get(key, 0) + 1
+        if target and func in (torch.tensor, torch.as_tensor, torch.Tensor.to) and not (args and self._is(args[0])):
+            key = f"{func.__name__} at {_where()}"
+            self.copies[key] = self.copies.get(key, 0) + 1
         if func in (torch.Tensor.__getitem__, torch.Tensor.index_select) and on and not self._is(args[0]):
             self._slip(f"{func.__name__}: a CPU tensor {tuple(args[0].shape)} indexed by indices on the device")
         if on and func not in self.ALLOWED and target is None:

@@ -47,3 +47,16 @@ def test_the_fake_device_records_each_read_of_a_device_tensor_by_the_host(fake_d
         _ = x.tolist(), x[0].item(), bool(x.any()), float(x.sum()), torch.nonzero(x), x.cpu()
     names = sorted(key.split(" at ")[0] for key in mode.reads)
     assert names == ["__bool__", "__float__", "cpu", "item", "nonzero", "tolist"], mode.reads
+    assert mode.copies == {}, mode.copies  # arange made on the device copies no host data
+
+
+def test_the_fake_device_records_each_copy_of_host_data_to_it(fake_device):
+    """``to`` of a CPU tensor and ``tensor`` / ``as_tensor`` made on the device copy host data
+    there; allocations on it, moves of its own tensors and moves back are no copies."""
+    with fake_device() as mode:
+        x = torch.zeros(3, dtype=torch.float64, device=FAKE)  # an allocation
+        _ = x.to(torch.float32), torch.as_tensor(x, device=FAKE), x.cpu()  # no host data moved
+        _ = torch.ones(2).to(FAKE), torch.ones(2).to(x), torch.tensor([1, 2], device=FAKE)
+        _ = torch.as_tensor([0.5], device=x.device)
+    names = sorted(key.split(" at ")[0] for key in mode.copies)
+    assert names == ["as_tensor", "tensor", "to"] and sum(mode.copies.values()) == 4, mode.copies

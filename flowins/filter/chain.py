@@ -51,10 +51,29 @@ class BatchEvent(Event, Protocol):
 
 class RowBatchEvent:
     """A base for :class:`BatchEvent` types whose one-run ``apply`` is their batch step on the
-    run's own row: a subclass writes ``batch_key`` and ``apply_batch`` only."""
+    run's own row: a subclass writes ``batch_key`` and ``apply_batch`` only.
+
+    An event type whose events carry data for the device may also define a classmethod
+    ``place(events, like) -> events``: the same events with their tensors in ``like``'s dtype
+    and device, moved together before the pass (:func:`place_events`), so that the pass copies
+    nothing from the host per event."""
 
     def apply(self, chain: ChainBuilder) -> None:
         type(self).apply_batch(chain.batch, [chain.row], [self])
+
+
+def place_events(events: Sequence[Event], like: Tensor) -> list[Event]:
+    """``events`` (in their order) with those of each type that defines ``place`` replaced by its
+    placed copies (:class:`RowBatchEvent`): one move per type, not one per event."""
+    by_type: dict[type, list[int]] = {}
+    for i, event in enumerate(events):
+        if hasattr(type(event), "place"):
+            by_type.setdefault(type(event), []).append(i)
+    out = list(events)
+    for kind, where in by_type.items():
+        for i, placed in zip(where, kind.place([events[i] for i in where], like), strict=True):
+            out[i] = placed
+    return out
 
 
 #: unflushed node columns a :class:`BatchChain` with row stores holds before it moves them to

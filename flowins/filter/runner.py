@@ -17,8 +17,8 @@ from torch import Tensor
 
 from flowins.memory import available_memory_bytes, describe_bytes
 from flowins.progress import progress as track_progress
-from flowins.filter.chain import BatchChain, BatchEvent, Event, FilterTrack
-from flowins.filter.propagation import plan_nodes, propagate_batched, propagate_reference
+from flowins.filter.chain import BatchChain, BatchEvent, Event, FilterTrack, place_events
+from flowins.filter.propagation import NodePlan, plan_nodes, propagate_batched, propagate_reference
 from flowins.ins.mechanization import STANDARD_GRAVITY_MPS2, ProcessNoise
 from flowins.state import NOISE_DIM, STATE_DIM, symmetrize, window_size
 
@@ -169,33 +169,20 @@ def run_filters(
     apply_events(chain, [plan.early for plan in plans])
     # every run's steps in one flat array, and a padding step (Δt = 0) at its end
     offsets = torch.tensor([0] + [plan.dt.shape[0] for plan in plans]).cumsum(0).tolist()
-    pad = offsets[-1]
     flat = None if B == 1 else [torch.cat([getattr(plan, name) for plan in plans] + [zero])
                                  for name, zero in (("acc", like.new_zeros(1, 3)), ("gyro", like.new_zeros(1, 3)),
                                                     ("dt", like.new_zeros(1)), ("variances", like.new_zeros(1, NOISE_DIM)))]
     count = max(len(plan.segments) for plan in plans)
+    steps = _place_steps([_segment_steps(plans, offsets, k) for k in range(count)], device)
     for k in track_progress(range(count), total=count, description=description, unit="update", enabled=progress):
         segments = [plan.segments[k] if k < len(plan.segments) else None for plan in plans]
-        L = max(last - first + 1 for first, last, *_ in filter(None, segments))
+        nodes, index, node_steps = steps[k]
         if B == 1:
             first, last = segments[0].first, segments[0].last
             acc, gyro, dt, variances = (getattr(plans[0], name)[first:last + 1].unsqueeze(0)
                                         for name in ("acc", "gyro", "dt", "variances"))
-            node_steps = [[step - first for step in segments[0].node_steps]]
         else:
-            index, node_steps = [], []
-            for offset, segment in zip(offsets, segments):
-                if segment is None:
-                    index.append([pad] * L)
-                    node_steps.append([])
-                    continue
-                first, last, steps = segment.first, segment.last, segment.node_steps
-                shift = L - (last - first + 1)  # padding steps first: the last step is the segment's
-                index.append([pad] * shift + list(range(offset + first, offset + last + 1)))
-                node_steps.append([step - first + shift for step in steps])
-            index = torch.tensor(index, device=device)
             acc, gyro, dt, variances = (part[index] for part in flat)
-        nodes = plan_nodes(node_steps, L, device=device)
         if jacobians == "analytic":
             out = propagate_batched(chain.mean, chain.cov, acc, gyro, dt, nodes, variances=variances,
                                     gravity_mps2=gravity_mps2, scheme=scheme)
@@ -208,6 +195,48 @@ def run_filters(
                         out.transition, out.mean, out.cov, real=nodes.real)
         apply_events(chain, [[] if segment is None else segment.events for segment in segments])
     return chain.finish()
+
+
+def _segment_steps(plans: Sequence[_Run], offsets: list[int], k: int) -> tuple[NodePlan, list[list[int]] | None,
+                                                                             list[list[int]]]:
+    """Segment ``k`` of every run, padded to one length ``L``: its node plan (on the host), the
+    index of each row's steps into the runs' flat steps (None for one run: a slice serves), and
+    each row's node steps."""
+    segments = [plan.segments[k] if k < len(plan.segments) else None for plan in plans]
+    L = max(last - first + 1 for first, last, *_ in filter(None, segments))
+    if len(plans) == 1:
+        node_steps = [[step - segments[0].first for step in segments[0].node_steps]]
+        return plan_nodes(node_steps, L), None, node_steps
+    pad = offsets[-1]
+    index, node_steps = [], []
+    for offset, segment in zip(offsets, segments):
+        if segment is None:
+            index.append([pad] * L)
+            node_steps.append([])
+            continue
+        first, last, steps = segment.first, segment.last, segment.node_steps
+        shift = L - (last - first + 1)  # padding steps first: the last step is the segment's
+        index.append([pad] * shift + list(range(offset + first, offset + last + 1)))
+        node_steps.append([step - first + shift for step in steps])
+    return plan_nodes(node_steps, L), index, node_steps
+
+
+def _place_steps(steps: list[tuple[NodePlan, list[list[int]] | None, list[list[int]]]], device: torch.device
+                 ) -> list[tuple[NodePlan, Tensor | None, list[list[int]]]]:
+    """The segments' node plans and step indices moved to ``device`` in one copy: a pass copies
+    nothing from the host per segment (on a GPU a copy from pageable memory waits for the queue)."""
+    parts = []
+    for plan, index, _ in steps:
+        parts += [plan.group, plan.node_step] + ([] if index is None else [torch.tensor(index)])
+    if not parts:
+        return []
+    moved = iter(torch.cat([p.reshape(-1) for p in parts]).to(device).split([p.numel() for p in parts]))
+    out = []
+    for plan, index, node_steps in steps:
+        group, node_step = next(moved).view(plan.group.shape), next(moved).view(plan.node_step.shape)
+        out.append((NodePlan(group, node_step, plan.real), None if index is None else next(moved).view(len(index), -1),
+                    node_steps))
+    return out
 
 
 def expected_nodes(run: FilterInput, output_every: int) -> int:
@@ -287,6 +316,7 @@ def _prepare(run: FilterInput, output_every: int, dtype: torch.dtype, device: to
     t_imu = torch.as_tensor(run.t_s, dtype=torch.float64)
     t0 = float(t_imu[0])
     events = sorted(run.events, key=lambda e: e.time_s)  # stable: same-time order kept
+    events = place_events(events, torch.empty(0, dtype=dtype, device=device))  # their data moved once, not per event
     plan = _schedule(t_imu, events, output_every)
     dt = torch.diff(plan.grid, prepend=t_imu[:1]).to(dtype=dtype, device=device)
     acc = torch.as_tensor(run.acc_mps2)[plan.sample].to(dtype=dtype, device=device)

@@ -3,6 +3,7 @@ order: flow update against the augmented previous pose, then pose forgetting and
 augmentation), with the point selection, noise, gate and recovery settings."""
 from __future__ import annotations
 
+import dataclasses
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -11,7 +12,7 @@ import torch
 from torch import Tensor
 
 from flowins.config import bounded, check_fields
-from flowins.constants import cached_constant
+from flowins.constants import cached_constant, scalar_like
 from flowins.filter.augmentation import augment_pose_rows
 from flowins.filter.chain import BatchChain, RowBatchEvent
 from flowins.filter.ekf import Gate, UpdateResult
@@ -149,16 +150,22 @@ class FlowFrame(RowBatchEvent):
     def noise_sigma(self, sigma_px: Tensor) -> Tensor:
         """``σ = sqrt((sigma_scale σ_flow)² + sigma_floor_px²)`` per component."""
         u = self.update
-        floor = u.sigma_floor_px
-        if not isinstance(floor, Tensor):
-            floor = _scalar(float(floor), sigma_px.dtype, sigma_px.device)
-        elif floor.dtype != sigma_px.dtype:
-            floor = floor.to(sigma_px.dtype)
-        return torch.hypot(u.sigma_scale * sigma_px, floor)
+        return torch.hypot(u.sigma_scale * sigma_px, scalar_like(u.sigma_floor_px, sigma_px))
 
     def batch_key(self) -> tuple:
         """Frames with the same update settings and Jacobians act together in a batch."""
         return (FlowFrame, id(self.update), self.jacobians)
+
+    @classmethod
+    def place(cls, frames: list[FlowFrame], like: Tensor) -> list[FlowFrame]:
+        """The frames with their points in ``like``'s dtype and device, all moved in one copy
+        (each frame's points a view of it)."""
+        points = [frame.points for frame in frames]
+        if all(p.uv1_px.dtype == like.dtype and p.uv1_px.device == like.device for p in points):
+            return list(frames)
+        moved = torch.cat([torch.cat(p[:3], -1) for p in points]).to(like).split([len(p) for p in points])
+        return [dataclasses.replace(frame, points=FlowPoints(m[:, 0:2], m[:, 2:4], m[:, 4:6]))
+                for frame, m in zip(frames, moved)]
 
     @classmethod
     def apply_batch(cls, chain: BatchChain, rows: list[int], frames: list[FlowFrame]) -> None:
@@ -178,7 +185,7 @@ def _flow_update(chain: BatchChain, rows: list[int], frames: list[FlowFrame]) ->
     mean, cov = chain.newest(rows)
     points, mask = stack_points([frame.points for frame in frames], like=mean)
     points = FlowPoints(points.uv1_px, points.flow_px, first.noise_sigma(points.sigma_px))
-    camera = stack_cameras([frame.camera for frame in frames])
+    camera = stack_cameras([frame.camera for frame in frames]).to(mean)  # a copy kept by the camera
     candidates = [len(frame.points) for frame in frames]
     if u.n_points is not None and max(candidates) > u.n_points:
         keep = select_points(mean, points, camera.K, camera.R_ci, n_points=u.n_points, method=u.selection,
@@ -294,11 +301,6 @@ def stack_points(points: list[FlowPoints], *, like: Tensor) -> tuple[FlowPoints,
         return stacked, None
     mask = torch.arange(M, device=like.device) < torch.tensor(counts, device=like.device).unsqueeze(-1)
     return stacked, mask
-
-
-@cached_constant
-def _scalar(value: float, dtype: torch.dtype, device: torch.device) -> Tensor:
-    return torch.tensor(value, dtype=dtype, device=device)
 
 
 def stack_cameras(cameras: list[FlowCamera]) -> FlowCamera:

@@ -40,6 +40,7 @@ Batches: every function takes a leading row dimension ``r`` (runs of the batched
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -48,7 +49,7 @@ import torch
 from torch import Tensor
 
 from flowins.config import bounded, check_fields
-from flowins.constants import cached_constant
+from flowins.constants import cached_constant, scalar_like
 from flowins.filter.augmentation import augment_pose_rows
 from flowins.filter.chain import BatchChain, RowBatchEvent
 from flowins.filter.ekf import Gate
@@ -243,7 +244,7 @@ def track_measurements(x: Tensor, uv_px: Tensor, ages: Tensor, mask: Tensor, cam
     low = ~(angle.amax(-1) >= update.min_parallax_rad) & ~degenerate & ~behind
     valid = real & ~degenerate & ~behind & ~low
     rowmask = (mask & valid.unsqueeze(-1)).to(x.dtype).repeat_interleave(2, -1)  # (r, M, 2V)
-    sigma = torch.as_tensor(update.sigma_px, **like)
+    sigma = scalar_like(update.sigma_px, x)
     white = rowmask / sigma  # the real rows of valid tracks, whitened (Π below is linear)
     residual = (uv_px - proj.pixel).flatten(-2) * white
     Hf = proj.H_point.reshape(r, M, 2 * V, 3) * rowmask.unsqueeze(-1)
@@ -358,6 +359,21 @@ class TrackFrame(RowBatchEvent):
         return (TrackFrame, id(self.update))
 
     @classmethod
+    def place(cls, frames: list[TrackFrame], like: Tensor) -> list[TrackFrame]:
+        """The frames with their views on ``like``'s device (pixels in its dtype), each kind of
+        tensor of all frames moved in one copy (each frame's a view of it)."""
+        views = [frame.views for frame in frames]
+        shapes = {tuple(v.uv_px.shape[1:]) for v in views}
+        if len(shapes) != 1 or all(v.uv_px.dtype == like.dtype and v.uv_px.device == like.device for v in views):
+            return list(frames)  # frames of unequal windows move one by one, as they update
+        counts = [v.uv_px.shape[0] for v in views]
+        uv, ages, mask = (torch.cat([getattr(v, name) for v in views]).to(**kind).split(counts)
+                          for name, kind in (("uv_px", {"dtype": like.dtype, "device": like.device}),
+                                             ("ages", {"device": like.device}), ("mask", {"device": like.device})))
+        return [dataclasses.replace(frame, views=v._replace(uv_px=a, ages=b, mask=c))
+                for frame, v, a, b, c in zip(frames, views, uv, ages, mask)]
+
+    @classmethod
     def apply_batch(cls, chain: BatchChain, rows: list[int], frames: list[TrackFrame]) -> None:
         u = frames[0].update
         dim = chain.mean.shape[-1]
@@ -377,7 +393,7 @@ def _track_update(chain: BatchChain, rows: list[int], frames: list[TrackFrame]) 
     uv = torch.stack([_pad_rows(f.views.uv_px.to(mean), M) for f in frames])
     ages = torch.stack([_pad_rows(f.views.ages.to(mean.device), M) for f in frames])
     mask = torch.stack([_pad_rows(f.views.mask.to(mean.device), M) for f in frames])
-    camera = stack_cameras([f.camera for f in frames])
+    camera = stack_cameras([f.camera for f in frames]).to(mean)  # a copy kept by the camera
     m = track_measurements(mean, uv, ages, mask, camera, u)
     infos = [dict(kind="tracks", name=frame.name, candidates=frame.views.candidates,
                   tracks=int(frame.views.ages.shape[0])) for frame in frames]

@@ -148,12 +148,13 @@ def test_flow_frames_on_another_device_are_the_cpu_run(fake_device):
         assert any(e.get("inflated") for e in moved.log) == (update is updates[0])
 
 
-def test_a_pass_of_flow_zero_velocity_and_vehicle_updates_reads_its_device_only_when_it_ends(fake_device):
-    """On the fake device (``conftest.FakeDevice``, where every host read of a device tensor is
-    recorded, as a GPU would wait for each): flow frames (iterated, gated, with the recovery
-    counting and inflating), zero-velocity and vehicle updates read nothing back while the pass
-    runs; the pass's end reads its logs and its failure flags once each, however long it is.
-    The logs then hold the values of the same run on the CPU."""
+def test_a_pass_of_flow_zero_velocity_and_vehicle_updates_waits_for_its_device_only_when_it_ends(fake_device):
+    """On the fake device (``conftest.FakeDevice``, which records every host read of a device
+    tensor and every copy of host data to it, as a GPU would wait for each): flow frames
+    (iterated, gated, with the recovery counting and inflating), zero-velocity and vehicle
+    updates read nothing back while the pass runs, and copy the same host data for 10 frames as
+    for 20 (the points, the steps and the node plans move once per pass); the pass's end reads its
+    logs and its failure flags once each. The logs then hold the values of the same run on the CPU."""
     from flowins.filter.ekf import Gate
     from flowins.measurements.flow_update import FlowRecovery, FlowUpdate
     from flowins.measurements.vehicle import VehicleSettings, VehicleUpdate
@@ -163,21 +164,21 @@ def test_a_pass_of_flow_zero_velocity_and_vehicle_updates_reads_its_device_only_
     update = FlowUpdate(iterations=2, n_points=40, gate=Gate(probability=0.9),
                         recovery=FlowRecovery(after_frames=2, max_accepted=0.99))
     vehicle = VehicleSettings(mode="on")
-    reads, logs = {}, {}
-    for end_s in (6.0, 7.0):
+    waits = []
+    for end_s in (6.0, 6.0, 7.0):  # the first pass builds the constants each device keeps
         events = [FlowFrame(e.time_s, e.points, e.camera, update) for e in run.events if e.time_s <= end_s]
-        events += [ZeroVelocity(5.55, sigma_mps=0.5), VehicleUpdate(5.75, vehicle), VehicleUpdate(6.55, vehicle)]
+        events += [ZeroVelocity(5.55, sigma_mps=0.5), VehicleUpdate(5.75, vehicle), VehicleUpdate(5.95, vehicle)]
+        logs = {}
         for device in ("cpu", "meta"):
             with fake_device() as mode:
                 track = run_filter(t_s=run.t_s, acc_mps2=run.acc_mps2, gyro_rps=run.gyro_rps, mean0=run.mean0.to(device),
                                    cov0=run.cov0.to(device), noise=ProcessNoise(), events=events)
             assert mode.slips == {}, mode.slips
-            logs[end_s, device] = track.log
-        reads[end_s] = mode.reads
-        kinds = {e["kind"] for e in track.log}
-        assert {"flow", "zero_velocity", "vehicle"} <= kinds, kinds
+            logs[device] = track.log
+        waits.append((mode.reads, mode.copies))
+        assert {"flow", "zero_velocity", "vehicle"} <= {e["kind"] for e in track.log}
         assert any(e.get("inflated") for e in track.log)  # the recovery acted in the pass
-        assert logs[end_s, "meta"] == logs[end_s, "cpu"]
-    assert reads[6.0] == reads[7.0], reads  # as many reads for 10 frames as for 20 ...
-    assert sum(reads[7.0].values()) <= 2 and all(key.split(" at ")[1].startswith("flowins/filter/chain.py")
-                                                  for key in reads[7.0]), reads  # ... and only the chain's, at its end
+        assert logs["meta"] == logs["cpu"]
+    (reads, copies), (reads_20, copies_20) = waits[1:]
+    assert reads == reads_20 and copies == copies_20, waits[1:]  # as many for 10 frames as for 20 ...
+    assert sum(reads.values()) <= 2 and all(" at flowins/filter/chain.py" in key for key in reads), reads  # ... at the end

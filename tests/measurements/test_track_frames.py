@@ -184,10 +184,15 @@ def test_the_track_update_on_another_device_is_the_cpu_run(fake_device):
     cpu = _run(walk, t_imu, acc, gyro, events, window=3)
     mean0, cov0 = cpu.node_mean[0], cpu.node_cov[0]
     noise = ProcessNoise(acc_noise=1e-3, gyro_noise=1e-4, acc_bias_walk=1e-4, gyro_bias_walk=1e-5)
+    copies = []
+    for frames in (len(events) // 2, len(events) // 2, len(events)):  # the first builds the device's constants
+        with fake_device() as mode:
+            run = FilterInput(t_imu, acc, gyro, mean0.to("meta"), cov0.to("meta"), events[:frames])
+            moved = run_filters([run], noise=noise, output_every=10)[0]
+            reads = dict(mode.reads)
+        copies.append(mode.copies)
+    assert copies[1] == copies[2], copies[1:]  # the views, steps and plans move once a pass, not once a frame
     with fake_device() as mode:
-        run = FilterInput(t_imu, acc, gyro, mean0.to("meta"), cov0.to("meta"), events)
-        moved = run_filters([run], noise=noise, output_every=10)[0]
-        reads = dict(mode.reads)
         smoothed = rts_smooth(moved)
         assert moved.node_mean.device.type == "meta" and smoothed.node_cov.device.type == "meta"
     assert mode.slips == {}, mode.slips
