@@ -179,12 +179,14 @@ class BatchChain:
         self.t_s: list[list[float]] = [[] for _ in range(rows)]
         self._logs: list[list[dict[str, Any]]] = [[] for _ in range(rows)]
         self.memories: list[dict[str, Any]] = [{} for _ in range(rows)]
-        #: what events count from one to the next on the state's device, one entry per row
-        #: (e.g. the flow's gated frames in a row; :meth:`counter`): read by no one in the pass
-        self._counters: dict[str, Tensor] = {}
-        #: log values still on the device (:meth:`log_rows`): the entries (by their row's place),
-        #: each value's name and type, the values ``(r, k)``
-        self._pending: list[tuple[list[tuple[int, dict[str, Any]]], tuple[tuple[str, type], ...], Tensor]] = []
+        #: what events carry from one to the next on the state's device, one entry per row
+        #: (e.g. the flow's gated frames in a row; :meth:`row_state`): read by no one in the pass
+        self._states: dict[str, Tensor] = {}
+        #: log values still on the device (:meth:`log_rows`): the entries (by their place in the
+        #: event's rows, with their row), each value's name and type, whether the last column says
+        #: which entries stay, the values ``(r, k)``
+        self._pending: list[tuple[list[tuple[int, int, dict[str, Any]]], tuple[tuple[str, type], ...], bool,
+                                  Tensor]] = []
         self.frame_changes: list[list[tuple[int, Tensor, Tensor, Tensor]]] = [[] for _ in range(rows)]
         self._columns: list[list[int]] = [[] for _ in range(rows)]  # each row's own node columns
         self._current = [False] * rows  # whether the last column is the row's newest node
@@ -287,22 +289,24 @@ class BatchChain:
         index = torch.tensor(rows, device=self.mean.device)
         return self.mean[index], self.cov[index]
 
-    def counter(self, name: str, rows: Sequence[int]) -> Tensor:
-        """The counts ``name`` ``(r,)`` (int64, on the state's device; zero until set) of the rows ``rows``."""
-        counts = self._counters.get(name)
-        if counts is None:
-            counts = self._counters[name] = torch.zeros(self.rows, dtype=torch.int64, device=self.mean.device)
+    def row_state(self, name: str, rows: Sequence[int], *, shape: tuple[int, ...] = (),
+                  dtype: torch.dtype = torch.int64) -> Tensor:
+        """What events carry under ``name`` for the rows ``rows``, ``(r, *shape)`` on the state's
+        device (zeros of ``dtype`` until set): counts, the first fix of a run of rejections."""
+        values = self._states.get(name)
+        if values is None:
+            values = self._states[name] = torch.zeros(self.rows, *shape, dtype=dtype, device=self.mean.device)
         if list(rows) == list(range(self.rows)):
-            return counts
-        return counts[torch.tensor(rows, device=counts.device)]
+            return values
+        return values[torch.tensor(rows, device=values.device)]
 
-    def set_counter(self, name: str, rows: Sequence[int], counts: Tensor) -> None:
-        """Set the counts ``name`` of the rows ``rows`` to ``counts`` ``(r,)``."""
-        every = self.counter(name, range(self.rows))
+    def set_row_state(self, name: str, rows: Sequence[int], values: Tensor) -> None:
+        """Set what events carry under ``name`` for the rows ``rows`` to ``values`` ``(r, ...)``."""
+        every = self.row_state(name, range(self.rows), shape=tuple(values.shape[1:]), dtype=values.dtype)
         if list(rows) == list(range(self.rows)):
-            self._counters[name] = counts
+            self._states[name] = values
         else:
-            self._counters[name] = every.index_copy(0, torch.tensor(rows, device=every.device), counts)
+            self._states[name] = every.index_copy(0, torch.tensor(rows, device=every.device), values)
 
     def _check_current(self, rows: Sequence[int]) -> None:
         for b in rows:
@@ -342,42 +346,54 @@ class BatchChain:
         return self._logs
 
     def log_rows(self, rows: Sequence[int], infos: Sequence[dict[str, Any]] | None,
-                 values: dict[str, Tensor] | None = None) -> None:
+                 values: dict[str, Tensor] | None = None, keep: Tensor | None = None) -> None:
         """Append ``infos[i]`` (when not empty), with the node's time, to row ``rows[i]``'s log.
 
         ``values``: facts still on the device, ``(r,)`` tensors by name; entry ``i`` gets
         ``values[name][i]`` (a ``bool``, ``int`` or ``float`` as the tensor's dtype) when the logs
         are read (:attr:`logs`, :meth:`finish`): the pass does not wait for them, and all its
-        values come back in one read."""
+        values come back in one read. ``keep`` ``(r,)`` bool: entry ``i`` stays in the log only
+        where it holds (an event that acted on some rows, decided on the device)."""
         entries = []
         for i, (b, info) in enumerate(zip(rows, infos or ())):
             if info:
                 entry = {"t_s": self.time_s(b), **info}
                 self._logs[b].append(entry)
-                entries.append((i, entry))
-        if values and entries:
-            casts = tuple((name, _cast(t)) for name, t in values.items())
-            self._pending.append((entries, casts, torch.stack([t.detach().to(torch.float64) for t in values.values()], -1)))
+                entries.append((i, b, entry))
+        if (values or keep is not None) and entries:
+            casts = tuple((name, _cast(t)) for name, t in (values or {}).items())
+            columns = [t.detach().to(torch.float64) for t in (values or {}).values()]
+            if keep is not None:
+                columns.append(keep.to(torch.float64))
+            self._pending.append((entries, casts, keep is not None, torch.stack(columns, -1)))
 
     def settle_logs(self) -> None:
-        """Write the log values :meth:`log_rows` left on the device into their entries (one read)."""
+        """Write the log values :meth:`log_rows` left on the device into their entries, and drop
+        the entries not kept (one read)."""
         if not self._pending:
             return
         pending, self._pending = self._pending, []
         flat = torch.cat([values.reshape(-1) for *_, values in pending]).tolist()
-        at = 0
-        for entries, casts, values in pending:
-            k = len(casts)
-            for i, entry in entries:
-                entry.update((name, cast(value)) for (name, cast), value in zip(casts, flat[at + k * i: at + k * (i + 1)]))
+        at, dropped = 0, {}
+        for entries, casts, kept, values in pending:
+            k = values.shape[-1]
+            for i, b, entry in entries:
+                row = flat[at + k * i: at + k * (i + 1)]
+                entry.update((name, cast(value)) for (name, cast), value in zip(casts, row))
+                if kept and not row[-1]:
+                    dropped.setdefault(b, set()).add(id(entry))
             at += values.numel()
+        for b, gone in dropped.items():
+            self._logs[b][:] = [entry for entry in self._logs[b] if id(entry) not in gone]
 
     def linear_predict_rows(self, rows: Sequence[int], A: Tensor, Q: Tensor, b: Tensor | None = None,
-                            infos: Sequence[dict[str, Any]] | None = None, *, select: Tensor | None = None) -> None:
+                            infos: Sequence[dict[str, Any]] | None = None, *, select: Tensor | None = None,
+                            values: dict[str, Tensor] | None = None, keep: Tensor | None = None) -> None:
         """A node at the same time on the rows ``rows``: ``m = A m + b``, ``P = A P Aᵀ + Q``
         (``A``, ``Q`` ``(r or 1, 26, 26)``, ``b`` ``(r or 1, 26)``). ``select`` ``(26,)``: ``A`` is
         the identity's rows ``select`` (a copy of state entries), so ``A m = m[select]`` and
-        ``A P Aᵀ = P[select][:, select]`` exactly, without matrix products."""
+        ``A P Aᵀ = P[select][:, select]`` exactly, without matrix products. ``infos``, ``values``,
+        ``keep``: the log entries (:meth:`log_rows`)."""
         self._check_current(rows)
         everyone = list(rows) == list(range(self.rows))
         index = None if everyone else torch.tensor(rows, device=A.device)
@@ -406,7 +422,7 @@ class BatchChain:
                 if old in self._updated[row]:  # the updated node moves, with its prediction
                     self._updated[row][column] = self._updated[row].pop(old)
         self._append(*(c.unsqueeze(1) for c in columns))
-        self.log_rows(rows, infos)
+        self.log_rows(rows, infos, values, keep)
 
     def _flush(self) -> None:
         """Move every column the chunk lists hold to the rows' stores; the lists are then empty.

@@ -227,9 +227,9 @@ def _flow_update(chain: BatchChain, rows: list[int], frames: list[FlowFrame]) ->
     values = dict(zip(("valid", "degenerate", "behind", "low_parallax"), counts.unbind(-1)))
     values["accepted"] = torch.where(has, weight, 0.0)
     if u.recovery.after_frames:
-        new_cov, gated, inflated = u.recovery.step(chain.counter("flow_gated", rows), new_mean, new_cov,
+        new_cov, gated, inflated = u.recovery.step(chain.row_state("flow_gated", rows), new_mean, new_cov,
                                                    valid=counts[:, 0], accepted=values["accepted"])
-        chain.set_counter("flow_gated", rows, torch.where(inflated, 0, gated))
+        chain.set_row_state("flow_gated", rows, torch.where(inflated, 0, gated))
         values.update(gated_frames=gated, inflated=inflated)
     logs = [dict(kind="flow", name=frame.name, candidates=n, points=n if u.n_points is None else min(u.n_points, n))
             for frame, n in zip(frames, candidates)]

@@ -16,6 +16,7 @@ filter then draws the information the fixes really hold (``τ = 0``: no change).
 """
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 from collections.abc import Hashable, Sequence
@@ -143,31 +144,46 @@ def reset_matrices(mean: Tensor, fixes: list[tuple[float, Tensor, Tensor]], reco
                    ) -> tuple[Tensor, Tensor, Tensor, bool]:
     """``(A (D, D), b (D,), Q (D, D), velocity_reset)`` of the reset to the last of
     ``fixes`` ``[(t_s, z (3,), R (3, 3)), ...]`` (:class:`GnssRecovery`) for a state ``mean``
-    ``(D,)``: ``p := z`` and every cloned pose's position moves with it (``p_k := p_k - p + z``),
-    so the relative poses the flow measures are kept."""
-    dim = mean.shape[-1]
-    A = torch.eye(dim, dtype=mean.dtype, device=mean.device)
-    b = mean.new_zeros(dim)
-    Q = mean.new_zeros(dim, dim)
-    t_last, z, R = fixes[-1]
+    ``(D,)`` (:func:`reset_rows` of one row)."""
+    (t_first, z_first, R_first), (t_last, z, R) = fixes[0], fixes[-1]
+    times = torch.tensor([[t_first], [t_last]], dtype=torch.float64, device=mean.device)
+    A, b, Q, with_velocity = reset_rows(mean[None], times[0], z_first[None], R_first[None], times[1], z[None], R[None],
+                                        recovery)
+    return A[0], b[0], Q[0], bool(with_velocity[0])
+
+
+def reset_rows(mean: Tensor, t_first: Tensor, z_first: Tensor, R_first: Tensor, t_last: Tensor, z: Tensor, R: Tensor,
+               recovery: GnssRecovery) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """``(A (r, D, D), b (r, D), Q (r, D, D), velocity_reset (r,))`` of the resets of ``r`` rows
+    (:class:`GnssRecovery`), each to its last fix ``(t_last (r,) float64, z (r, 3), R (r, 3, 3))``
+    from the first of its run ``(t_first, z_first, R_first)``, for the states ``mean`` ``(r, D)``:
+    ``p := z`` and every cloned pose's position moves with it (``p_k := p_k - p + z``), so the
+    relative poses the flow measures are kept; with ``recovery.velocity`` and fixes apart in
+    time, ``v := (z - z_first) / Δt``. Nothing is read back from the device."""
+    r, dim = mean.shape
+    like = {"dtype": mean.dtype, "device": mean.device}
+    eye3 = torch.eye(3, **like)
+    A = torch.eye(dim, **like).repeat(r, 1, 1)
+    b = mean.new_zeros(r, dim)
+    Q = mean.new_zeros(r, dim, dim)
+    z, R, z_first, R_first = (t.to(mean) for t in (z, R, z_first, R_first))
     positions = [p for p, _ in pose_slices(dim)]  # p, then each clone's
-    A[STATE.p, STATE.p] = 0.0
+    A[:, STATE.p, STATE.p] = 0.0
     for clone in positions[1:]:
-        A[clone, STATE.p] = -torch.eye(3, dtype=mean.dtype, device=mean.device)
+        A[:, clone, STATE.p] = -eye3
     for rows in positions:
-        b[rows] = z
+        b[:, rows] = z
         for cols in positions:
-            Q[rows, cols] = R
-    t_first, z_first, R_first = fixes[0]
-    span = t_last - t_first
-    with_velocity = recovery.velocity and span > 0
-    if with_velocity:
-        A[STATE.v, STATE.v] = 0.0
-        b[STATE.v] = (z - z_first) / span
-        Q[STATE.v, STATE.v] = (R + R_first) / span**2 + (0.5 * recovery.acceleration_sigma_mps2 * span) ** 2 * torch.eye(
-            3, dtype=mean.dtype, device=mean.device)
-    Q[STATE.b_a, STATE.b_a] = recovery.acc_bias_sigma_mps2**2 * torch.eye(3, dtype=mean.dtype, device=mean.device)
-    Q[STATE.b_w, STATE.b_w] = recovery.gyro_bias_sigma_rps**2 * torch.eye(3, dtype=mean.dtype, device=mean.device)
+            Q[:, rows, cols] = R
+    span64 = t_last - t_first
+    with_velocity = (span64 > 0) & recovery.velocity
+    span = torch.where(with_velocity, span64, 1.0).to(mean.dtype)[:, None, None]
+    off = with_velocity.to(mean.dtype)[:, None, None]
+    A[:, STATE.v, STATE.v] = (1.0 - off) * eye3
+    b[:, STATE.v] = off[:, 0] * (z - z_first) / span[:, 0]
+    Q[:, STATE.v, STATE.v] = off * ((R + R_first) / span**2 + (0.5 * recovery.acceleration_sigma_mps2 * span) ** 2 * eye3)
+    Q[:, STATE.b_a, STATE.b_a] = recovery.acc_bias_sigma_mps2**2 * eye3
+    Q[:, STATE.b_w, STATE.b_w] = recovery.gyro_bias_sigma_rps**2 * eye3
     return A, b, Q, with_velocity
 
 
@@ -188,11 +204,25 @@ class GnssFix(RowBatchEvent):
     name: str = "GNSS fix"
     heading: HeadingAlignment | None = None
     recovery: GnssRecovery | None = None
+    #: ``time_s`` as a float64 tensor on the filter's device (:meth:`place`; None: made when needed)
+    time_t: Tensor | None = None
 
     def batch_key(self) -> Hashable:
         """Fixes with the same gate, heading alignment, recovery and lever arm act together (a
         run's fixes share them, as do the runs of one navigation config)."""
         return (GnssFix, id(self.gate), id(self.heading), id(self.recovery), id(self.lever_arm_m))
+
+    @classmethod
+    def place(cls, fixes: list[GnssFix], like: Tensor) -> list[GnssFix]:
+        """The fixes with their positions and noises in ``like``'s dtype and device and their
+        times there in float64: one copy for each, each fix's a view of it."""
+        if all(f.time_t is not None and f.position_m.dtype == like.dtype and f.position_m.device == like.device
+               for f in fixes):
+            return list(fixes)
+        z = torch.stack([f.position_m for f in fixes]).to(like)
+        R = torch.stack([f.noise_cov for f in fixes]).to(like)
+        t = torch.tensor([f.time_s for f in fixes], dtype=torch.float64).to(like.device)
+        return [dataclasses.replace(f, position_m=z[i], noise_cov=R[i], time_t=t[i]) for i, f in enumerate(fixes)]
 
     @classmethod
     def apply_batch(cls, chain: BatchChain, rows: Sequence[int], fixes: Sequence[GnssFix]) -> None:
@@ -247,11 +277,48 @@ def _update_rows(chain: BatchChain, rows: list[int], fixes: list[GnssFix]) -> No
     predicted = mean[:, STATE.p] if lever is None else gnss_position(mean, lever)
     z = torch.stack([fix.position_m for fix in fixes]).to(mean)
     R = torch.stack([fix.noise_cov for fix in fixes]).to(mean)
-    update_rows(chain, rows, H=H.unsqueeze(1), residual=(z - predicted).unsqueeze(1), noise_cov=R.unsqueeze(1),
-                gate=first.gate, infos=[{"kind": "gnss", "name": fix.name} for fix in fixes])
-    for row, fix in zip(rows, fixes):
-        entry = chain.logs[row][-1]
-        fix._recover(chain.row(row), rejected=entry["accepted"] < 0.5, nis=entry["nis"])
+    result = update_rows(chain, rows, H=H.unsqueeze(1), residual=(z - predicted).unsqueeze(1),
+                         noise_cov=R.unsqueeze(1), gate=first.gate, infos=[{"kind": "gnss", "name": fix.name} for fix in fixes])
+    recovery = first.recovery
+    if recovery is None:
+        return
+    if recovery.nis_window:  # the window's NIS sums decide on the host: one read per fix
+        for row, fix in zip(rows, fixes):
+            entry = chain.logs[row][-1]
+            fix._recover(chain.row(row), rejected=entry["accepted"] < 0.5, nis=entry["nis"])
+    elif recovery.after_rejections:
+        _reset_after_rejections(chain, rows, fixes, z, R, rejected=result.weight[:, 0] < 0.5)
+
+
+def _reset_after_rejections(chain: BatchChain, rows: list[int], fixes: list[GnssFix], z: Tensor, R: Tensor, *,
+                            rejected: Tensor) -> None:
+    """Each row's run of rejected fixes, counted on the device, and its reset where the run reaches
+    ``after_rejections`` (:class:`GnssRecovery`): a node at the fix's time on every row, the reset
+    where a row resets and the identity elsewhere (:func:`reset_rows`; the smoother's recursion
+    through an identity node is the one without it), its ``gnss_reset`` log entry kept where it
+    reset. Nothing is read back from the device."""
+    recovery = fixes[0].recovery
+    mean, _ = chain.newest(rows)
+    t = torch.stack([fix.time_t if fix.time_t is not None else
+                     torch.tensor(fix.time_s, dtype=torch.float64, device=mean.device) for fix in fixes])
+    count = chain.row_state("gnss_rejected", rows)
+    state = {name: chain.row_state(f"gnss_rejected_{name}", rows, shape=shape, dtype=dtype)
+             for name, shape, dtype in (("t", (), torch.float64), ("z", (3,), mean.dtype), ("R", (3, 3), mean.dtype))}
+    starts = rejected & (count == 0)  # a run's first fix: the reset's velocity spans the run
+    state = {name: torch.where(starts.view(-1, *[1] * (now.ndim - 1)), now, state[name])
+             for name, now in (("t", t), ("z", z), ("R", R))}
+    count = torch.where(rejected, count + 1, 0)
+    reset = count >= recovery.after_rejections
+    A, b, Q, with_velocity = reset_rows(mean, state["t"], state["z"], state["R"], t, z, R, recovery)
+    eye = torch.eye(mean.shape[-1], dtype=mean.dtype, device=mean.device)
+    where = reset[:, None, None]
+    chain.linear_predict_rows(rows, torch.where(where, A, eye), torch.where(where, Q, 0.0), torch.where(reset[:, None], b, 0.0),
+                              [{"kind": "gnss_reset", "name": fix.name, "why": "rejected"} for fix in fixes],
+                              values={"offset_m": torch.linalg.vector_norm(z - mean[:, STATE.p], dim=-1),
+                                      "velocity": with_velocity, "rejected": count}, keep=reset)
+    chain.set_row_state("gnss_rejected", rows, torch.where(reset, 0, count))
+    for name, values in state.items():
+        chain.set_row_state(f"gnss_rejected_{name}", rows, values)
 
 
 def _hold_for_heading(chain: BatchChain, rows: Sequence[int], fixes: Sequence[GnssFix],

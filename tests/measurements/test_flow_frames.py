@@ -148,26 +148,33 @@ def test_flow_frames_on_another_device_are_the_cpu_run(fake_device):
         assert any(e.get("inflated") for e in moved.log) == (update is updates[0])
 
 
-def test_a_pass_of_flow_zero_velocity_and_vehicle_updates_waits_for_its_device_only_when_it_ends(fake_device):
+def test_a_pass_of_flow_gnss_zero_velocity_and_vehicle_updates_waits_for_its_device_only_when_it_ends(fake_device):
     """On the fake device (``conftest.FakeDevice``, which records every host read of a device
     tensor and every copy of host data to it, as a GPU would wait for each): flow frames
-    (iterated, gated, with the recovery counting and inflating), zero-velocity and vehicle
-    updates read nothing back while the pass runs, and copy the same host data for 10 frames as
-    for 20 (the points, the steps and the node plans move once per pass); the pass's end reads its
-    logs and its failure flags once each. The logs then hold the values of the same run on the CPU."""
+    (iterated, gated, with the recovery counting and inflating), GNSS fixes (three far off in a
+    row, so that the filter resets to them), zero-velocity and vehicle updates read nothing back
+    while the pass runs, and copy the same host data for 10 frames as for 20 (the points, the
+    fixes, the steps and the node plans move once per pass); the pass's end reads its logs and
+    its failure flags once each. The logs then hold the values of the same run on the CPU."""
     from flowins.filter.ekf import Gate
     from flowins.measurements.flow_update import FlowRecovery, FlowUpdate
+    from flowins.measurements.gnss import GnssFix, GnssRecovery
     from flowins.measurements.vehicle import VehicleSettings, VehicleUpdate
     from flowins.measurements.zero_velocity import ZeroVelocity
 
-    run, _, _ = _flow_run(5.0, 7.0, 60, 3, own_camera=False)
+    run, walk, _ = _flow_run(5.0, 7.0, 60, 3, own_camera=False)
     update = FlowUpdate(iterations=2, n_points=40, gate=Gate(probability=0.9),
                         recovery=FlowRecovery(after_frames=2, max_accepted=0.99))
-    vehicle = VehicleSettings(mode="on")
+    vehicle, gate, recovery = VehicleSettings(mode="on"), Gate(), GnssRecovery()
+    R = 0.25 * torch.eye(3, dtype=F64)
+    off = torch.tensor([30.0, 0.0, 0.0], dtype=F64)  # the fixes from 5.4 s on, 30 m off: a reset at the third
+    fixes = [GnssFix(t, walk.position(torch.tensor([t], dtype=F64))[0] + (off if t > 5.3 else 0.0), R, gate,
+                     recovery=recovery) for t in (5.15, 5.35, 5.55, 5.75, 5.95, 6.15)]
     waits = []
     for end_s in (6.0, 6.0, 7.0):  # the first pass builds the constants each device keeps
         events = [FlowFrame(e.time_s, e.points, e.camera, update) for e in run.events if e.time_s <= end_s]
         events += [ZeroVelocity(5.55, sigma_mps=0.5), VehicleUpdate(5.75, vehicle), VehicleUpdate(5.95, vehicle)]
+        events += [fix for fix in fixes if fix.time_s <= end_s]
         logs = {}
         for device in ("cpu", "meta"):
             with fake_device() as mode:
@@ -176,8 +183,11 @@ def test_a_pass_of_flow_zero_velocity_and_vehicle_updates_waits_for_its_device_o
             assert mode.slips == {}, mode.slips
             logs[device] = track.log
         waits.append((mode.reads, mode.copies))
-        assert {"flow", "zero_velocity", "vehicle"} <= {e["kind"] for e in track.log}
-        assert any(e.get("inflated") for e in track.log)  # the recovery acted in the pass
+        assert {"flow", "gnss", "zero_velocity", "vehicle"} <= {e["kind"] for e in track.log}
+        assert any(e.get("inflated") for e in track.log)  # the flow recovery acted in the pass
+        resets = [e for e in track.log if e["kind"] == "gnss_reset"]
+        assert [(round(e["t_s"], 2), e["rejected"], e["velocity"]) for e in resets] == [(5.75, 3, True)], resets
+        assert abs(resets[0]["offset_m"] - 30.0) < 1.0
         assert logs["meta"] == logs["cpu"]
     (reads, copies), (reads_20, copies_20) = waits[1:]
     assert reads == reads_20 and copies == copies_20, waits[1:]  # as many for 10 frames as for 20 ...
