@@ -80,8 +80,9 @@ else:
 PY
 
 s1() {
-  section "1. the device tests (tests/test_cuda.py: both devices agree)"
-  python -m pytest -q -p no:cacheprovider -o addopts="-ra --import-mode=importlib" -m cuda tests/test_cuda.py  # no xdist there
+  section "1. the device tests (tests/test_cuda.py: both devices agree; a pass's waits for the GPU)"
+  python -m pytest -q -p no:cacheprovider -o addopts="-ra --import-mode=importlib" -m cuda tests/test_cuda.py \
+    tests/measurements/test_flow_frames.py  # no xdist there
 }
 
 s2() {

@@ -24,6 +24,7 @@ import torch
 from torch import Tensor
 
 from flowins.config import bounded, check_fields
+from flowins.constants import cached_constant, scalar_like
 from flowins.filter.chain import BatchChain, RowBatchEvent
 from flowins.filter.updater import update_rows
 from flowins.geometry import quaternion as quat
@@ -82,8 +83,7 @@ def body_velocity_jacobians(q: Tensor, v: Tensor) -> tuple[Tensor, Tensor, Tenso
     q_conj = quat.conjugate(q)
     v_b = quat.rotate(q_conj, v)
     d_v = quat.to_matrix(q).transpose(-1, -2)
-    flip = torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=q.dtype, device=q.device)
-    d_q = quat.rotate_jacobian(q_conj, v) * flip  # ∂conj(q)/∂q = diag(1, -1, -1, -1)
+    d_q = quat.rotate_jacobian(q_conj, v) * _flip(q.dtype, q.device)  # ∂conj(q)/∂q = diag(1, -1, -1, -1)
     return v_b, d_v, d_q
 
 
@@ -105,17 +105,26 @@ class VehicleUpdate(RowBatchEvent):
         settings = events[0].settings
         mean, _ = chain.newest(rows)
         r, D = mean.shape
-        like = {"dtype": mean.dtype, "device": mean.device}
-        E = settings.rows().to(**like)
+        E = _rows(settings.forward_axis, settings.up_axis, mean.dtype, mean.device)
         v_b, d_v, d_q = body_velocity_jacobians(mean[:, STATE.q], mean[:, STATE.v])
         H = mean.new_zeros(r, 1, 2, D)
         H[:, 0, :, STATE.v] = E @ d_v
         H[:, 0, :, STATE.q] = E @ d_q
-        sigma = torch.stack([torch.as_tensor(s, **like) for s in (settings.lateral_sigma_mps,
-                                                                  settings.vertical_sigma_mps)])
+        sigma = torch.stack([scalar_like(s, mean) for s in (settings.lateral_sigma_mps, settings.vertical_sigma_mps)])
         update_rows(chain, rows, H=H, residual=-(v_b @ E.T).unsqueeze(1),
                     noise_cov=torch.diag_embed(sigma**2).expand(r, 1, 2, 2), likelihood=False,
                     infos=[{"kind": "vehicle", "name": e.name} for e in events])
+
+
+@cached_constant
+def _rows(forward_axis: str, up_axis: str, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """:meth:`VehicleSettings.rows` of these axes in ``dtype`` on ``device``, built once."""
+    return VehicleSettings(forward_axis=forward_axis, up_axis=up_axis).rows().to(dtype=dtype, device=device)
+
+
+@cached_constant
+def _flip(dtype: torch.dtype, device: torch.device) -> Tensor:
+    return torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=dtype, device=device)
 
 
 def vehicle_events(stream: VehicleConstraint, settings: VehicleSettings, context: NavigationContext) -> list:

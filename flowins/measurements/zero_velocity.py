@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from flowins.constants import scalar_like
 from flowins.filter.chain import BatchChain, RowBatchEvent
 from flowins.filter.updater import update_rows
 from flowins.state import STATE
@@ -33,7 +34,7 @@ class ZeroVelocity(RowBatchEvent):
         eye = torch.eye(3, dtype=mean.dtype, device=mean.device)
         H = mean.new_zeros(r, 1, 3, D)
         H[..., STATE.v] = eye
-        sigma = torch.as_tensor(events[0].sigma_mps, dtype=mean.dtype, device=mean.device)
+        sigma = scalar_like(events[0].sigma_mps, mean)
         update_rows(chain, rows, H=H, residual=-mean[:, STATE.v].unsqueeze(1),
                     noise_cov=(sigma**2 * eye).expand(r, 1, 3, 3), likelihood=False,
                     infos=[{"kind": "zero_velocity", "name": e.name} for e in events])

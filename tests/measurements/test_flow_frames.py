@@ -148,14 +148,10 @@ def test_flow_frames_on_another_device_are_the_cpu_run(fake_device):
         assert any(e.get("inflated") for e in moved.log) == (update is updates[0])
 
 
-def test_a_pass_of_flow_gnss_zero_velocity_and_vehicle_updates_waits_for_its_device_only_when_it_ends(fake_device):
-    """On the fake device (``conftest.FakeDevice``, which records every host read of a device
-    tensor and every copy of host data to it, as a GPU would wait for each): flow frames
-    (iterated, gated, with the recovery counting and inflating), GNSS fixes (three far off in a
-    row, so that the filter resets to them), zero-velocity and vehicle updates read nothing back
-    while the pass runs, and copy the same host data for 10 frames as for 20 (the points, the
-    fixes, the steps and the node plans move once per pass); the pass's end reads its logs and
-    its failure flags once each. The logs then hold the values of the same run on the CPU."""
+def _every_event_kind(end_s):
+    """The flow run of 5-7 s up to ``end_s`` with every kind of event: flow frames (iterated,
+    gated, with the recovery counting and inflating), GNSS fixes (from 5.4 s on 30 m off, so that
+    the third of them resets the filter), a zero-velocity and two vehicle updates."""
     from flowins.filter.ekf import Gate
     from flowins.measurements.flow_update import FlowRecovery, FlowUpdate
     from flowins.measurements.gnss import GnssFix, GnssRecovery
@@ -167,14 +163,24 @@ def test_a_pass_of_flow_gnss_zero_velocity_and_vehicle_updates_waits_for_its_dev
                         recovery=FlowRecovery(after_frames=2, max_accepted=0.99))
     vehicle, gate, recovery = VehicleSettings(mode="on"), Gate(), GnssRecovery()
     R = 0.25 * torch.eye(3, dtype=F64)
-    off = torch.tensor([30.0, 0.0, 0.0], dtype=F64)  # the fixes from 5.4 s on, 30 m off: a reset at the third
-    fixes = [GnssFix(t, walk.position(torch.tensor([t], dtype=F64))[0] + (off if t > 5.3 else 0.0), R, gate,
-                     recovery=recovery) for t in (5.15, 5.35, 5.55, 5.75, 5.95, 6.15)]
+    off = torch.tensor([30.0, 0.0, 0.0], dtype=F64)
+    events = [FlowFrame(e.time_s, e.points, e.camera, update) for e in run.events if e.time_s <= end_s]
+    events += [ZeroVelocity(5.55, sigma_mps=0.5), VehicleUpdate(5.75, vehicle), VehicleUpdate(5.95, vehicle)]
+    events += [GnssFix(t, walk.position(torch.tensor([t], dtype=F64))[0] + (off if t > 5.3 else 0.0), R, gate,
+                       recovery=recovery) for t in (5.15, 5.35, 5.55, 5.75, 5.95, 6.15) if t <= end_s]
+    return run, events
+
+
+def test_a_pass_of_every_event_kind_waits_for_its_device_only_when_it_ends(fake_device):
+    """On the fake device (``conftest.FakeDevice``, which records every host read of a device
+    tensor and every copy of host data to it, as a GPU would wait for each), a pass of flow
+    frames, GNSS fixes with a reset, zero-velocity and vehicle updates (:func:`_every_event_kind`)
+    reads nothing back while it runs, and copies the same host data for 10 frames as for 20 (the
+    points, the fixes, the steps and the node plans move once per pass); its end reads its logs
+    and its failure flags once each. The logs then hold the values of the same run on the CPU."""
     waits = []
     for end_s in (6.0, 6.0, 7.0):  # the first pass builds the constants each device keeps
-        events = [FlowFrame(e.time_s, e.points, e.camera, update) for e in run.events if e.time_s <= end_s]
-        events += [ZeroVelocity(5.55, sigma_mps=0.5), VehicleUpdate(5.75, vehicle), VehicleUpdate(5.95, vehicle)]
-        events += [fix for fix in fixes if fix.time_s <= end_s]
+        run, events = _every_event_kind(end_s)
         logs = {}
         for device in ("cpu", "meta"):
             with fake_device() as mode:
@@ -192,3 +198,29 @@ def test_a_pass_of_flow_gnss_zero_velocity_and_vehicle_updates_waits_for_its_dev
     (reads, copies), (reads_20, copies_20) = waits[1:]
     assert reads == reads_20 and copies == copies_20, waits[1:]  # as many for 10 frames as for 20 ...
     assert sum(reads.values()) <= 2 and all(" at flowins/filter/chain.py" in key for key in reads), reads  # ... at the end
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (torch.cuda.is_available())")
+def test_a_pass_of_every_event_kind_on_a_gpu_synchronises_as_often_for_10_frames_as_for_20():
+    """The pass of :func:`_every_event_kind` on a GPU under ``torch.cuda.set_sync_debug_mode``:
+    the operations that wait for the GPU (reads, copies from pageable memory) are the pass's
+    set-up and end, as many for 10 frames as for 20, and a handful in all (run by
+    ``benchmarks/gpu.sh``'s section 1)."""
+    import warnings
+
+    counts = []
+    for end_s in (6.0, 6.0, 7.0):  # the first pass builds the constants the GPU keeps
+        run, events = _every_event_kind(end_s)
+        mean0, cov0 = run.mean0.to("cuda"), run.cov0.to("cuda")
+        torch.cuda.synchronize()
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            torch.cuda.set_sync_debug_mode("warn")
+            try:
+                run_filter(t_s=run.t_s, acc_mps2=run.acc_mps2, gyro_rps=run.gyro_rps, mean0=mean0, cov0=cov0,
+                           noise=ProcessNoise(), events=events)
+            finally:
+                torch.cuda.set_sync_debug_mode("default")
+        counts.append(sum("synchroniz" in str(w.message) for w in caught))
+    assert counts[1] == counts[2] <= 24, counts  # the fake device counts 15: 13 copies in, 2 reads out
