@@ -1,14 +1,18 @@
-"""A flow frame's update under ``torch.compile``, against eager, on this machine.
+"""A filter step under ``torch.compile``, against eager, on this machine.
 
-The step is :func:`flowins.measurements.flow_update.flow_iteration` (triangulation, residual
-and closed-form Jacobians of ``--points`` flow points, their epipolar reduction and the
-gated scalar update of the 26-dim state), on ``--batch`` synthetic frames (a camera
-moving 0.12 m between frames and turning by about 0.6°, points 5-25 m ahead, 0.5 px flow
-noise, the last 10 points padding). For each batch size it prints the eager time per call,
-the compiled one (``--backend``, default ``inductor``: it needs a C++ compiler), their
-ratio, the compile time (the first call) and the largest difference of the outputs::
+``--step flow`` (the default): :func:`flowins.measurements.flow_update.flow_iteration`
+(triangulation, residual and closed-form Jacobians of ``--points`` flow points, their
+epipolar reduction and the gated scalar update of the 26-dim state), on ``--batch``
+synthetic frames (a camera moving 0.12 m between frames and turning by about 0.6°, points
+5-25 m ahead, 0.5 px flow noise, the last 10 points padding). ``--step propagation``:
+:func:`flowins.filter.propagation.propagate_batched` over ``--imu-steps`` IMU samples
+(100 Hz, one node at the end: the propagation between two flow frames at 10 Hz). For each
+batch size it prints the eager time per call, the compiled one (``--backend``, default
+``inductor``: it needs a C++ compiler), their ratio, the compile time (the first call; a
+second process finds inductor's code in its cache) and the largest difference of the outputs::
 
-    python benchmarks/bench_compile.py [--batch 1 8] [--points 256] [--backend inductor] [--repeats 50]
+    python benchmarks/bench_compile.py [--step flow|propagation] [--batch 1 8] [--points 256]
+                                       [--imu-steps 10] [--backend inductor] [--repeats 50]
 
 ``--backend eager`` checks only that the step is one graph (``fullgraph=True``: any graph
 break is an error), which needs no compiler.
@@ -20,9 +24,12 @@ import time
 
 import torch
 
+from flowins.constants import STANDARD_GRAVITY_MPS2
+from flowins.filter.propagation import NodePlan, plan_nodes, propagate_batched
 from flowins.flow.points import FlowPoints
 from flowins.geometry import quaternion as quat
 from flowins.measurements.flow import FlowCamera, camera_pose
+from flowins.ins.mechanization import ProcessNoise
 from flowins.measurements.flow_update import FlowUpdate, flow_iteration
 from flowins.state import STATE_DIM, make_state
 
@@ -68,32 +75,59 @@ def step(x, cov, points, camera, mask, min_parallax_px, update=FlowUpdate()):
     return it.result.mean, it.result.cov, it.result.weight.sum(-1), counts, it.result.failed
 
 
+def imu_run(batch: int, steps: int, seed: int = 0):
+    """``(x0, P0, acc, gyro, dt, variances, group, node_step)``: ``batch`` states moving at 1 m/s
+    and ``steps`` noisy 100 Hz IMU samples each, one node after the last."""
+    g = torch.Generator().manual_seed(seed)
+    q = quat.from_rotation_vector(0.1 * torch.randn(batch, 3, generator=g, dtype=F64))
+    x0 = make_state(p=torch.randn(batch, 3, generator=g, dtype=F64), v=torch.ones(batch, 3, dtype=F64), q=q)
+    P0 = 0.01 * torch.eye(STATE_DIM, dtype=F64).expand(batch, STATE_DIM, STATE_DIM).clone()
+    acc = torch.randn(batch, steps, 3, generator=g, dtype=F64) + torch.tensor([0.0, 0.0, 9.81], dtype=F64)
+    gyro = 0.1 * torch.randn(batch, steps, 3, generator=g, dtype=F64)
+    dt = torch.full((batch, steps), 0.01, dtype=F64)
+    plan = plan_nodes([[steps - 1]] * batch, steps)
+    return x0, P0, acc, gyro, dt, ProcessNoise().variances(dt), plan.group, plan.node_step
+
+
+def propagation(x0, P0, acc, gyro, dt, variances, group, node_step):
+    """The propagation's node means, covariances and transitions."""
+    real = [[True] * node_step.shape[-1]] * node_step.shape[0]
+    return tuple(propagate_batched(x0, P0, acc, gyro, dt, NodePlan(group, node_step, real), variances=variances,
+                                   gravity_mps2=STANDARD_GRAVITY_MPS2))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--step", choices=("flow", "propagation"), default="flow")
     parser.add_argument("--batch", type=int, nargs="+", default=[1, 8])
     parser.add_argument("--points", type=int, default=256)
+    parser.add_argument("--imu-steps", type=int, default=10)
     parser.add_argument("--backend", default="inductor")
     parser.add_argument("--repeats", type=int, default=50)
     args = parser.parse_args()
-    print(f"flow_iteration, {args.points} points a frame, float64, {torch.get_num_threads()} threads, "
-          f"backend {args.backend}")
+    if args.step == "flow":
+        what, fn, make = f"flow_iteration, {args.points} points a frame", step, lambda b: frame(b, args.points)
+    else:
+        what, fn, make = (f"propagate_batched, {args.imu_steps} IMU steps to one node", propagation,
+                          lambda b: imu_run(b, args.imu_steps))
+    print(f"{what}, float64, {torch.get_num_threads()} threads, backend {args.backend}")
     for batch in args.batch:
-        inputs = frame(batch, args.points)
+        inputs = make(batch)
         with torch.inference_mode():
             torch._dynamo.reset()
-            compiled = torch.compile(step, fullgraph=True, backend=args.backend, dynamic=False)
+            compiled = torch.compile(fn, fullgraph=True, backend=args.backend, dynamic=False)
             t0 = time.perf_counter()
             got = compiled(*inputs)
             compile_s = time.perf_counter() - t0
-            want = step(*inputs)
+            want = fn(*inputs)
             diff = max(float((a.double() - b.double()).abs().max()) for a, b in zip(got[:4], want[:4]))
             times = {}
-            for name, fn in (("eager", step), ("compiled", compiled)):
+            for name, call in (("eager", fn), ("compiled", compiled)):
                 for _ in range(3):
-                    fn(*inputs)
+                    call(*inputs)
                 t0 = time.perf_counter()
                 for _ in range(args.repeats):
-                    fn(*inputs)
+                    call(*inputs)
                 times[name] = (time.perf_counter() - t0) / args.repeats * 1e3
         print(f"  batch {batch}: eager {times['eager']:.3f} ms, compiled {times['compiled']:.3f} ms "
               f"({times['eager'] / times['compiled']:.2f}x), compile {compile_s:.1f} s, largest difference {diff:.1e}")
