@@ -182,6 +182,7 @@ class BatchChain:
         #: what events carry from one to the next on the state's device, one entry per row
         #: (e.g. the flow's gated frames in a row; :meth:`row_state`): read by no one in the pass
         self._states: dict[str, Tensor] = {}
+        self._row_indices: dict[tuple[int, ...], Tensor] = {}  # :meth:`row_index`
         #: log values still on the device (:meth:`log_rows`): the entries (by their place in the
         #: event's rows, with their row), each value's name and type, whether the last column says
         #: which entries stay, the values ``(r, k)``
@@ -286,8 +287,17 @@ class BatchChain:
         """The newest filtered mean ``(r, 26)`` and covariance ``(r, 26, 26)`` of the rows ``rows``."""
         if list(rows) == list(range(self.rows)):
             return self.mean, self.cov
-        index = torch.tensor(rows, device=self.mean.device)
+        index = self.row_index(rows)
         return self.mean[index], self.cov[index]
+
+    def row_index(self, rows: Sequence[int]) -> Tensor:
+        """``rows`` as an index on the state's device, kept for the pass (the same rows come back
+        event after event: their index is copied from the host once, not at every event)."""
+        key = tuple(rows)
+        index = self._row_indices.get(key)
+        if index is None:
+            index = self._row_indices[key] = torch.tensor(key, dtype=torch.long, device=self.mean.device)
+        return index
 
     def row_state(self, name: str, rows: Sequence[int], *, shape: tuple[int, ...] = (),
                   dtype: torch.dtype = torch.int64) -> Tensor:
@@ -298,7 +308,7 @@ class BatchChain:
             values = self._states[name] = torch.zeros(self.rows, *shape, dtype=dtype, device=self.mean.device)
         if list(rows) == list(range(self.rows)):
             return values
-        return values[torch.tensor(rows, device=values.device)]
+        return values[self.row_index(rows)]
 
     def set_row_state(self, name: str, rows: Sequence[int], values: Tensor) -> None:
         """Set what events carry under ``name`` for the rows ``rows`` to ``values`` ``(r, ...)``."""
@@ -306,7 +316,7 @@ class BatchChain:
         if list(rows) == list(range(self.rows)):
             self._states[name] = values
         else:
-            self._states[name] = every.index_copy(0, torch.tensor(rows, device=every.device), values)
+            self._states[name] = every.index_copy(0, self.row_index(rows), values)
 
     def _check_current(self, rows: Sequence[int]) -> None:
         for b in rows:
@@ -325,7 +335,7 @@ class BatchChain:
         if list(rows) == list(range(self.rows)):
             self._mean[-1], self._cov[-1] = mean.unsqueeze(1), cov.unsqueeze(1)
         else:
-            index = torch.tensor(rows, device=mean.device)
+            index = self.row_index(rows)
             self._mean[-1] = self._mean[-1].index_copy(0, index, mean.unsqueeze(1))
             self._cov[-1] = self._cov[-1].index_copy(0, index, cov.unsqueeze(1))
         self.log_rows(rows, infos, values)
@@ -396,7 +406,7 @@ class BatchChain:
         ``keep``: the log entries (:meth:`log_rows`)."""
         self._check_current(rows)
         everyone = list(rows) == list(range(self.rows))
-        index = None if everyone else torch.tensor(rows, device=A.device)
+        index = None if everyone else self.row_index(rows)
         mean, cov = self.newest(rows)
         if select is None:
             m, P = linear_predict(mean, cov, A, Q, None if b is None else b)

@@ -100,3 +100,26 @@ def test_the_final_frame_of_the_first_entries_is_the_whole_states_block():
     track.frame_changes = [(track.frame_changes[0][0], mixed, b, Q)]
     with pytest.raises(ValueError, match="in_final_frame.*mixes state entries"):
         track.in_final_frame(marginal=STATE_DIM)
+
+
+def test_deferred_log_values_arrive_when_the_log_is_read_and_entries_not_kept_leave_it():
+    """``log_rows(values=, keep=)``: the entries are in the log at once with their host facts; the
+    device values join them (as bool, int or float by dtype) when the log is read, and an entry
+    whose ``keep`` is False is gone from it. A state kept per row is set for some rows only."""
+    chain = BatchChain(3)
+    chain.add_nodes([[0.5], [0.5], [0.5]], torch.eye(STATE_DIM, dtype=F64).expand(3, 1, STATE_DIM, STATE_DIM),
+                    torch.zeros(3, 1, STATE_DIM, dtype=F64), torch.eye(STATE_DIM, dtype=F64).expand(3, 1, STATE_DIM, STATE_DIM))
+    chain.log_rows([2, 0], [{"kind": "a"}, {"kind": "a"}],
+                   values={"n": torch.tensor([7, 3]), "x": torch.tensor([0.25, 1.5], dtype=F64),
+                           "hit": torch.tensor([True, False])})
+    chain.log_rows([0, 1, 2], [{"kind": "b"}] * 3, values={"n": torch.tensor([1, 2, 3])},
+                   keep=torch.tensor([False, True, True]))
+    assert chain._logs[2][0] == {"t_s": 0.5, "kind": "a"}  # written, the values still on the device
+    logs = chain.logs
+    assert logs[0] == [{"t_s": 0.5, "kind": "a", "n": 3, "x": 1.5, "hit": False}]
+    assert logs[1] == [{"t_s": 0.5, "kind": "b", "n": 2}]
+    assert logs[2] == [{"t_s": 0.5, "kind": "a", "n": 7, "x": 0.25, "hit": True}, {"t_s": 0.5, "kind": "b", "n": 3}]
+    assert [type(v) for v in logs[2][0].values()] == [float, str, int, float, bool]
+    chain.set_row_state("count", [2, 0], torch.tensor([4, 5]))
+    assert chain.row_state("count", [0, 1, 2]).tolist() == [5, 0, 4]
+    assert chain.row_index([2, 0]) is chain.row_index([2, 0]) and chain.row_index([2, 0]).tolist() == [2, 0]
