@@ -550,11 +550,11 @@ class BatchChain:
 
     def _own_columns_by_row(self, chunks: list[Tensor]) -> list[Tensor]:
         """:meth:`_own_columns` row by row: one copy, each chunk taken whole where the row owns
-        all of it, else only the columns it owns."""
+        all of it, else only the columns it owns (their indices moved to the device at once)."""
         sizes = torch.tensor([c.shape[1] for c in chunks])
         ends = sizes.cumsum(0)
         starts = (ends - sizes).tolist()
-        out = []
+        plans, indices = [], []  # per row: (chunk, whole or the place of its index in indices)
         for b in range(self.rows):
             columns = torch.tensor(self._columns[b], dtype=torch.long)
             # how many of the row's columns fall in each chunk (columns are increasing)
@@ -564,12 +564,18 @@ class BatchChain:
                 if last == first:
                     continue
                 if last - first == chunk.shape[1]:
-                    pieces.append(chunk[b])
+                    pieces.append((chunk, None))
                 else:
-                    local = (columns[first:last] - start).to(chunk.device)
-                    pieces.append(chunk[b].index_select(0, local))
+                    pieces.append((chunk, len(indices)))
+                    indices.append(columns[first:last] - start)
                 first = last
-            out.append(torch.cat(pieces) if pieces else chunks[0][b, :0].clone())  # cat copies even one piece
+            plans.append(pieces)
+        if indices:
+            moved = torch.cat(indices).to(chunks[0].device).split([len(i) for i in indices])
+        out = []
+        for b, pieces in enumerate(plans):
+            parts = [chunk[b] if at is None else chunk[b].index_select(0, moved[at]) for chunk, at in pieces]
+            out.append(torch.cat(parts) if parts else chunks[0][b, :0].clone())  # cat copies even one piece
         return out
 
 

@@ -146,6 +146,9 @@ class FlowFrame(RowBatchEvent):
     #: ``"analytic"`` | ``"autodiff"``: how ``H_x``, ``H_r`` are computed
     #: (:func:`flowins.measurements.flow.flow_measurements`)
     jacobians: str = "analytic"
+    #: ``len(points)`` as a 0-dim int64 tensor on the filter's device (:meth:`place`; None: made
+    #: when needed)
+    count_t: Tensor | None = None
 
     def noise_sigma(self, sigma_px: Tensor) -> Tensor:
         """``σ = sqrt((sigma_scale σ_flow)² + sigma_floor_px²)`` per component."""
@@ -159,13 +162,16 @@ class FlowFrame(RowBatchEvent):
     @classmethod
     def place(cls, frames: list[FlowFrame], like: Tensor) -> list[FlowFrame]:
         """The frames with their points in ``like``'s dtype and device, all moved in one copy
-        (each frame's points a view of it)."""
+        (each frame's points a view of it), and their counts of points there (:attr:`count_t`)."""
         points = [frame.points for frame in frames]
-        if all(p.uv1_px.dtype == like.dtype and p.uv1_px.device == like.device for p in points):
+        if all(f.count_t is not None and f.points.uv1_px.dtype == like.dtype and f.points.uv1_px.device == like.device
+               for f in frames):
             return list(frames)
-        moved = torch.cat([torch.cat(p[:3], -1) for p in points]).to(like).split([len(p) for p in points])
-        return [dataclasses.replace(frame, points=FlowPoints(m[:, 0:2], m[:, 2:4], m[:, 4:6]))
-                for frame, m in zip(frames, moved)]
+        counts = [len(p) for p in points]
+        moved = torch.cat([torch.cat(p[:3], -1) for p in points]).to(like).split(counts)
+        count_t = torch.tensor(counts, dtype=torch.long).to(like.device)
+        return [dataclasses.replace(frame, points=FlowPoints(m[:, 0:2], m[:, 2:4], m[:, 4:6]), count_t=count_t[i])
+                for i, (frame, m) in enumerate(zip(frames, moved))]
 
     @classmethod
     def apply_batch(cls, chain: BatchChain, rows: list[int], frames: list[FlowFrame]) -> None:
@@ -183,7 +189,9 @@ def _flow_update(chain: BatchChain, rows: list[int], frames: list[FlowFrame]) ->
     first = frames[0]
     u = first.update
     mean, cov = chain.newest(rows)
-    points, mask = stack_points([frame.points for frame in frames], like=mean)
+    counts_t = [frame.count_t for frame in frames]
+    points, mask = stack_points([frame.points for frame in frames], like=mean,
+                                counts=None if any(c is None for c in counts_t) else counts_t)
     points = FlowPoints(points.uv1_px, points.flow_px, first.noise_sigma(points.sigma_px))
     camera = stack_cameras([frame.camera for frame in frames]).to(mean)  # a copy kept by the camera
     candidates = [len(frame.points) for frame in frames]
@@ -284,10 +292,13 @@ def flow_iteration(x_i: Tensor, mean: Tensor, cov: Tensor, points: FlowPoints, c
     return FlowIteration(m, result)
 
 
-def stack_points(points: list[FlowPoints], *, like: Tensor) -> tuple[FlowPoints, Tensor | None]:
+def stack_points(points: list[FlowPoints], *, like: Tensor, counts: list[Tensor] | None = None
+                 ) -> tuple[FlowPoints, Tensor | None]:
     """The points of ``r`` frames as one batch ``(r, M, 2)`` (dtype and device of ``like``) and
-    the mask of real points ``(r, M)`` (None when every frame has ``M`` points)."""
-    counts = [len(p) for p in points]
+    the mask of real points ``(r, M)`` (None when every frame has ``M`` points), made from
+    ``counts``, the frames' counts of points as 0-dim tensors on ``like``'s device when given (no
+    copy from the host)."""
+    counts_t, counts = counts, [len(p) for p in points]
     M = max(counts)
     if len(points) == 1:
         stacked = [points[0][k].unsqueeze(0) for k in range(3)]
@@ -299,7 +310,8 @@ def stack_points(points: list[FlowPoints], *, like: Tensor) -> tuple[FlowPoints,
     stacked = FlowPoints(*(x if x.dtype == like.dtype and x.device == like.device else x.to(like) for x in stacked))
     if all(c == M for c in counts):
         return stacked, None
-    mask = torch.arange(M, device=like.device) < torch.tensor(counts, device=like.device).unsqueeze(-1)
+    lengths = torch.tensor(counts, device=like.device) if counts_t is None else torch.stack(counts_t)
+    mask = torch.arange(M, device=like.device) < lengths.unsqueeze(-1)
     return stacked, mask
 
 

@@ -90,6 +90,29 @@ def test_flow_frames_of_unequal_runs_in_one_batch_equal_each_run_alone():
             torch.testing.assert_close(x, y, rtol=0, atol=1e-10 * max(1.0, float(y.abs().max())))
 
 
+def test_a_batch_of_unequal_runs_copies_as_much_to_its_device_for_10_frames_as_for_20(fake_device):
+    """Two runs with their own spans, point counts and frame times in one pass on the fake
+    device (``conftest.FakeDevice``): the rows that take part in an event differ from event to
+    event and the frames' points are padded to one count with a mask, yet the pass copies the
+    same host data for 10 frames as for 20 (a set of rows' index once, the mask from the counts
+    placed with the points) and reads nothing until its end."""
+    import dataclasses
+
+    runs = [_flow_run(5.0, 7.0, 60, 1, own_camera=False)[0], _flow_run(5.03, 6.6, 90, 2, own_camera=True)[0]]
+    waits = []
+    for end_s in (6.0, 6.0, 7.0):  # the first pass builds the constants the device keeps
+        with fake_device() as mode:
+            cut = [dataclasses.replace(run, mean0=run.mean0.to("meta"), cov0=run.cov0.to("meta"),
+                                       events=[e for e in run.events if e.time_s <= end_s]) for run in runs]
+            run_filters(cut, noise=ProcessNoise())
+        assert mode.slips == {}, mode.slips
+        waits.append((mode.reads, mode.copies))
+    (reads, copies), (reads_20, copies_20) = waits[1:]
+    assert reads == reads_20 and all(" at flowins/filter/chain.py" in key for key in reads), waits[1:]
+    # no place copies more for 20 frames (the end moves each part's column indices at once, when it has any)
+    assert copies_20.keys() <= copies.keys() and all(copies_20[k] <= copies[k] for k in copies_20), waits[1:]
+
+
 @pytest.mark.slow
 def test_flow_frames_in_float32_mix_no_dtypes_and_agree_with_float64(mixed_dtypes):
     """Every tensor the flow update, the pose augmentation, the recovery and the smoother build
