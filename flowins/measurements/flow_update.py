@@ -184,6 +184,7 @@ class FlowFrame(RowBatchEvent):
         u = frames[0].update
         augment_pose_rows(chain, rows, sigma_p0=u.sigma_p0, sigma_q0=u.sigma_q0, mode=u.augmentation_mode)
 
+
 def _flow_update(chain: BatchChain, rows: list[int], frames: list[FlowFrame]) -> None:
     """The flow update of frames with points on the rows ``rows``, their logs and recovery."""
     first = frames[0]
