@@ -109,3 +109,53 @@ def test_drift_metrics_match_a_track_at_its_own_rate_to_the_truth():
     assert abs(m["kitti_translation_pct"] - 1.0) < 1e-3 and m["kitti_segments"] > 0
     short = drift_metrics(t_est[:51], p_est[:51], q_est[:51], t_ref[:251], p_ref[:251], q_ref[:251])
     assert short["kitti_translation_pct"] is None and short["rpe_pairs"] == 0
+
+
+def _devkit_drift(T_gt, T_est, lengths, step=10):
+    """The KITTI odometry devkit's ``calcSequenceErrors`` as its C++ writes it, in plain loops
+    over 4 x 4 poses: ``dist`` the truth's path length, from every ``step``-th first frame and
+    each length the first frame whose distance exceeds the first's by more than the length,
+    ``pose_error = inverse(Δ_result) Δ_gt``, the rotation error ``acos(clamp((tr - 1) / 2))``
+    and the translation error's norm, each over the length; returned as their means."""
+    dist = [0.0]
+    for i in range(1, len(T_gt)):
+        dist.append(dist[-1] + float(torch.linalg.vector_norm(T_gt[i][:3, 3] - T_gt[i - 1][:3, 3])))
+    r_errs, t_errs = [], []
+    for first in range(0, len(T_gt), step):
+        for length in lengths:
+            last = next((i for i in range(first, len(dist)) if dist[i] > dist[first] + length), -1)
+            if last == -1:
+                continue
+            delta_gt = torch.linalg.inv(T_gt[first]) @ T_gt[last]
+            delta_result = torch.linalg.inv(T_est[first]) @ T_est[last]
+            error = torch.linalg.inv(delta_result) @ delta_gt
+            d = 0.5 * (float(error[0, 0] + error[1, 1] + error[2, 2]) - 1.0)
+            r_errs.append(math.acos(max(min(d, 1.0), -1.0)) / length)
+            t_errs.append(float(torch.linalg.vector_norm(error[:3, 3])) / length)
+    return sum(t_errs) / len(t_errs), sum(r_errs) / len(r_errs), len(t_errs)
+
+
+def test_kitti_drift_is_the_devkit_s_on_a_three_dimensional_drive():
+    """A wavy 3-D drive (turning, climbing, rolling) and an estimate off it by a slowly growing
+    rotation and a wandering translation: flowins' drift equals the devkit's computation written
+    out as its C++ does it (:func:`_devkit_drift`), segment count included."""
+    from flowins.geometry import quaternion as quat
+
+    t = torch.arange(0.0, 600.0, 0.5, dtype=F64)
+    p = torch.stack((10.0 * t, 80.0 * torch.sin(t / 40.0), 5.0 * torch.sin(t / 15.0)), -1)
+    R = quat.to_matrix(quat.from_rotation_vector(torch.stack((0.05 * torch.sin(t / 7.0), 0.03 * torch.cos(t / 11.0),
+                                                              0.4 * torch.sin(t / 40.0)), -1)))
+    R_est = R @ quat.to_matrix(quat.from_rotation_vector(torch.stack((1e-4 * t, -2e-4 * t, 3e-4 * t), -1)))
+    p_est = p + torch.stack((0.01 * t, 2.0 * torch.sin(t / 30.0), 0.002 * t**1.2), -1)
+    lengths = (100.0, 200.0, 400.0, 800.0)
+
+    def poses(R, p):
+        T = torch.eye(4, dtype=F64).repeat(R.shape[0], 1, 1)
+        T[:, :3, :3], T[:, :3, 3] = R, p
+        return T
+
+    t_err, r_err, count = _devkit_drift(poses(R, p), poses(R_est, p_est), lengths)
+    ours = kitti_drift(R, p, R_est, p_est, lengths_m=lengths)
+    assert ours.segments == count > 100
+    assert abs(ours.translation_pct - 100.0 * t_err) <= 1e-9 * 100.0 * t_err
+    assert abs(ours.rotation_deg_per_m - math.degrees(r_err)) <= 1e-9 * math.degrees(r_err)
