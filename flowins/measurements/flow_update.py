@@ -196,24 +196,60 @@ def _flow_update(chain: BatchChain, rows: list[int], frames: list[FlowFrame]) ->
     points = FlowPoints(points.uv1_px, points.flow_px, first.noise_sigma(points.sigma_px))
     camera = stack_cameras([frame.camera for frame in frames]).to(mean)  # a copy kept by the camera
     candidates = [len(frame.points) for frame in frames]
-    if u.n_points is not None and max(candidates) > u.n_points:
+    step = flow_frame_step(mean, cov, points, camera, mask, update=u,
+                           select=u.n_points is not None and max(candidates) > u.n_points,
+                           gated=chain.row_state("flow_gated", rows) if u.recovery.after_frames else None,
+                           jacobians=first.jacobians, likelihood=chain.likelihood)
+    chain.check_failed(step.failed, "flow update", rows)
+    if chain.likelihood:
+        chain.add_likelihood(rows, step.nll, step.nll_count)
+    if step.gated is not None:
+        chain.set_row_state("flow_gated", rows, step.gated)
+    logs = [dict(kind="flow", name=frame.name, candidates=n, points=n if u.n_points is None else min(u.n_points, n))
+            for frame, n in zip(frames, candidates)]
+    chain.update_rows(rows, step.mean, step.cov, logs, values=step.values)
+
+
+class FlowFrameStep(NamedTuple):
+    """A flow frame's update of ``r`` rows (:func:`flow_frame_step`)."""
+
+    mean: Tensor  # (r, D) the rows' new Gaussians: the prior where no point was valid,
+    cov: Tensor  # (r, D, D) with the recovery's inflation where it acted
+    values: dict[str, Tensor]  # (r,) each: the log's facts (counts, accepted, gated frames, inflated)
+    gated: Tensor | None  # (r,) the gated frames in a row to carry to the next frame (None: no recovery)
+    failed: Tensor | None  # (r,) bool: a factorisation failed in some iteration
+    nll: Tensor | None  # (r,) the prior's innovation likelihood and its count of scalars (with ``likelihood``)
+    nll_count: Tensor | None
+
+
+def flow_frame_step(mean: Tensor, cov: Tensor, points: FlowPoints, camera: FlowCamera, mask: Tensor | None, *,
+                    update: FlowUpdate, select: bool, gated: Tensor | None = None, jacobians: str = "analytic",
+                    likelihood: bool = False) -> FlowFrameStep:
+    """A flow frame's whole update of the priors ``(mean, cov)`` ``(r, D)``, ``(r, D, D)`` from its
+    points ``(r, M, 2)`` (``σ`` the noise used; ``mask`` ``(r, M)`` the real ones): with ``select``
+    the ``update.n_points`` the selection keeps (:func:`~flowins.measurements.selection.select_points`),
+    the iterated update (:func:`flow_iteration`, ``update.iterations`` times; a row whose points
+    are all invalid at an iteration stops there, keeping its previous result and that iteration's
+    counts), the prior kept where no point was valid, and the recovery (:meth:`FlowRecovery.step`)
+    from the rows' gated frames in a row ``gated`` ``(r,)``. A pure function of tensors that reads
+    nothing back: without a gradient, ``torch.compile(fullgraph=True)`` takes it whole (a test
+    holds it)."""
+    u = update
+    if select:
         keep = select_points(mean, points, camera.K, camera.R_ci, n_points=u.n_points, method=u.selection,
                              cell_px=u.cell_px, mask=mask)  # (r, n)
         packed = torch.cat(points[:3], -1).gather(-2, keep.unsqueeze(-1).expand(*keep.shape, 6))  # one gather
         points = FlowPoints(packed[..., 0:2], packed[..., 2:4], packed[..., 4:6])
         mask = None if mask is None else mask.gather(-1, keep)
-    sigma = points.sigma_px
-    min_parallax = torch.linalg.vector_norm(sigma, dim=-1) * (u.min_parallax_sigma / 2**0.5)
-    # iterated EKF, linearised at x_i and applied to the prior (mean, cov); a row whose
-    # points are all invalid at an iteration stops there, keeping its previous result (none
-    # in the first iteration: no update) and that iteration's counts
-    x_i = mean
-    for iteration in range(u.iterations):
-        it = flow_iteration(x_i, mean, cov, points, camera, mask, min_parallax, update=u, jacobians=first.jacobians,
-                            first=iteration == 0, likelihood=iteration == 0 and chain.likelihood)
-        chain.check_failed(it.result.failed, "flow update", rows)
-        if iteration == 0 and chain.likelihood:  # the likelihood of the prior's prediction: the first iteration's only
-            chain.add_likelihood(rows, *likelihood_sums(it.result, 1))
+    min_parallax = torch.linalg.vector_norm(points.sigma_px, dim=-1) * (u.min_parallax_sigma / 2**0.5)
+    x_i, failed, nll = mean, None, (None, None)
+    for iteration in range(u.iterations):  # linearised at x_i, applied to the prior
+        it = flow_iteration(x_i, mean, cov, points, camera, mask, min_parallax, update=u, jacobians=jacobians,
+                            first=iteration == 0, likelihood=iteration == 0 and likelihood)
+        if it.result.failed is not None:
+            failed = it.result.failed if failed is None else failed | it.result.failed
+        if iteration == 0 and likelihood:  # the likelihood of the prior's prediction: the first iteration's only
+            nll = likelihood_sums(it.result, 1)
         m, step = it.measurements, it.result
         counts_now = torch.stack((m.valid.sum(-1), m.n_degenerate, m.n_behind, m.n_low_parallax), -1)
         accepted = step.weight.sum(-1)
@@ -230,19 +266,17 @@ def _flow_update(chain: BatchChain, rows: list[int], frames: list[FlowFrame]) ->
         x_i = new_mean
     # a row updated iff its first iteration had a valid point; the others keep their node
     has = counts[:, 0] > 0 if updated is None else updated
-    prior_mean, prior_cov = mean, cov
-    new_mean = torch.where(has[:, None], new_mean, prior_mean)
-    new_cov = torch.where(has[:, None, None], new_cov, prior_cov)
+    new_mean = torch.where(has[:, None], new_mean, mean)
+    new_cov = torch.where(has[:, None, None], new_cov, cov)
     values = dict(zip(("valid", "degenerate", "behind", "low_parallax"), counts.unbind(-1)))
     values["accepted"] = torch.where(has, weight, 0.0)
-    if u.recovery.after_frames:
-        new_cov, gated, inflated = u.recovery.step(chain.row_state("flow_gated", rows), new_mean, new_cov,
-                                                   valid=counts[:, 0], accepted=values["accepted"])
-        chain.set_row_state("flow_gated", rows, torch.where(inflated, 0, gated))
+    carried = None
+    if gated is not None:
+        new_cov, gated, inflated = u.recovery.step(gated, new_mean, new_cov, valid=counts[:, 0],
+                                                   accepted=values["accepted"])
         values.update(gated_frames=gated, inflated=inflated)
-    logs = [dict(kind="flow", name=frame.name, candidates=n, points=n if u.n_points is None else min(u.n_points, n))
-            for frame, n in zip(frames, candidates)]
-    chain.update_rows(rows, new_mean, new_cov, logs, values=values)
+        carried = torch.where(inflated, 0, gated)
+    return FlowFrameStep(new_mean, new_cov, values, carried, failed, *nll)
 
 
 def flow_frames(pairs, camera, update: FlowUpdate, *, t_min_s: float, t_max_s: float, name: str = "flow",
