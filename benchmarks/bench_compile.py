@@ -4,14 +4,16 @@
 (triangulation, residual and closed-form Jacobians of ``--points`` flow points, their
 epipolar reduction and the gated scalar update of the 26-dim state), on ``--batch``
 synthetic frames (a camera moving 0.12 m between frames and turning by about 0.6°, points
-5-25 m ahead, 0.5 px flow noise, the last 10 points padding). ``--step propagation``:
+5-25 m ahead, 0.5 px flow noise, the last 10 points padding). ``--step frame``: the frame's
+whole update, :func:`flowins.measurements.flow_update.flow_frame_step` (the parallax
+selection of 3/4 of the points, two iterations, the recovery's count). ``--step propagation``:
 :func:`flowins.filter.propagation.propagate_batched` over ``--imu-steps`` IMU samples
 (100 Hz, one node at the end: the propagation between two flow frames at 10 Hz). For each
 batch size it prints the eager time per call, the compiled one (``--backend``, default
 ``inductor``: it needs a C++ compiler), their ratio, the compile time (the first call; a
 second process finds inductor's code in its cache) and the largest difference of the outputs::
 
-    python benchmarks/bench_compile.py [--step flow|propagation] [--batch 1 8] [--points 256]
+    python benchmarks/bench_compile.py [--step flow|frame|propagation] [--batch 1 8] [--points 256]
                                        [--imu-steps 10] [--backend inductor] [--repeats 50]
 
 ``--backend eager`` checks only that the step is one graph (``fullgraph=True``: any graph
@@ -30,7 +32,7 @@ from flowins.flow.points import FlowPoints
 from flowins.geometry import quaternion as quat
 from flowins.measurements.flow import FlowCamera, camera_pose
 from flowins.ins.mechanization import ProcessNoise
-from flowins.measurements.flow_update import FlowUpdate, flow_iteration
+from flowins.measurements.flow_update import FlowUpdate, flow_frame_step, flow_iteration
 from flowins.state import STATE_DIM, make_state
 
 F64 = torch.float64
@@ -75,6 +77,13 @@ def step(x, cov, points, camera, mask, min_parallax_px, update=FlowUpdate()):
     return it.result.mean, it.result.cov, it.result.weight.sum(-1), counts, it.result.failed
 
 
+def whole_frame(x, cov, points, camera, mask, min_parallax_px, gated):
+    """:func:`flow_frame_step`'s outputs as plain tensors (3/4 of the points kept, two iterations)."""
+    update = FlowUpdate(n_points=3 * points.uv1_px.shape[-2] // 4, iterations=2)
+    out = flow_frame_step(x, cov, points, camera, mask, update=update, select=True, gated=gated)
+    return out.mean, out.cov, out.values["accepted"], out.values["valid"], out.gated
+
+
 def imu_run(batch: int, steps: int, seed: int = 0):
     """``(x0, P0, acc, gyro, dt, variances, group, node_step)``: ``batch`` states moving at 1 m/s
     and ``steps`` noisy 100 Hz IMU samples each, one node after the last."""
@@ -98,7 +107,7 @@ def propagation(x0, P0, acc, gyro, dt, variances, group, node_step):
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--step", choices=("flow", "propagation"), default="flow")
+    parser.add_argument("--step", choices=("flow", "frame", "propagation"), default="flow")
     parser.add_argument("--batch", type=int, nargs="+", default=[1, 8])
     parser.add_argument("--points", type=int, default=256)
     parser.add_argument("--imu-steps", type=int, default=10)
@@ -107,6 +116,9 @@ def main() -> None:
     args = parser.parse_args()
     if args.step == "flow":
         what, fn, make = f"flow_iteration, {args.points} points a frame", step, lambda b: frame(b, args.points)
+    elif args.step == "frame":
+        what, fn, make = (f"flow_frame_step, {args.points} points a frame", whole_frame,
+                          lambda b: (*frame(b, args.points), torch.zeros(b, dtype=torch.long)))
     else:
         what, fn, make = (f"propagate_batched, {args.imu_steps} IMU steps to one node", propagation,
                           lambda b: imu_run(b, args.imu_steps))
