@@ -77,11 +77,16 @@ def step(x, cov, points, camera, mask, min_parallax_px, update=FlowUpdate()):
     return it.result.mean, it.result.cov, it.result.weight.sum(-1), counts, it.result.failed
 
 
-def whole_frame(x, cov, points, camera, mask, min_parallax_px, gated):
-    """:func:`flow_frame_step`'s outputs as plain tensors (3/4 of the points kept, two iterations)."""
-    update = FlowUpdate(n_points=3 * points.uv1_px.shape[-2] // 4, iterations=2)
-    out = flow_frame_step(x, cov, points, camera, mask, update=update, select=True, gated=gated)
-    return out.mean, out.cov, out.values["accepted"], out.values["valid"], out.gated
+def whole_frame(points: int):
+    """A function of a frame's tensors giving :func:`flow_frame_step`'s outputs as plain tensors
+    (3/4 of the ``points`` kept, two iterations)."""
+    update = FlowUpdate(n_points=3 * points // 4, iterations=2)  # built outside the graph
+
+    def run(x, cov, points, camera, mask, min_parallax_px, gated):
+        out = flow_frame_step(x, cov, points, camera, mask, update=update, select=True, gated=gated)
+        return out.mean, out.cov, out.values["accepted"], out.values["valid"], out.gated
+
+    return run
 
 
 def imu_run(batch: int, steps: int, seed: int = 0):
@@ -117,7 +122,7 @@ def main() -> None:
     if args.step == "flow":
         what, fn, make = f"flow_iteration, {args.points} points a frame", step, lambda b: frame(b, args.points)
     elif args.step == "frame":
-        what, fn, make = (f"flow_frame_step, {args.points} points a frame", whole_frame,
+        what, fn, make = (f"flow_frame_step, {args.points} points a frame", whole_frame(args.points),
                           lambda b: (*frame(b, args.points), torch.zeros(b, dtype=torch.long)))
     else:
         what, fn, make = (f"propagate_batched, {args.imu_steps} IMU steps to one node", propagation,
