@@ -190,9 +190,9 @@ def _flow_update(chain: BatchChain, rows: list[int], frames: list[FlowFrame]) ->
     first = frames[0]
     u = first.update
     mean, cov = chain.newest(rows)
-    counts_t = [frame.count_t for frame in frames]
+    lengths = [frame.count_t for frame in frames]
     points, mask = stack_points([frame.points for frame in frames], like=mean,
-                                counts=None if any(c is None for c in counts_t) else counts_t)
+                                lengths=None if any(n is None for n in lengths) else lengths)
     points = FlowPoints(points.uv1_px, points.flow_px, first.noise_sigma(points.sigma_px))
     camera = stack_cameras([frame.camera for frame in frames]).to(mean)  # a copy kept by the camera
     candidates = [len(frame.points) for frame in frames]
@@ -327,13 +327,13 @@ def flow_iteration(x_i: Tensor, mean: Tensor, cov: Tensor, points: FlowPoints, c
     return FlowIteration(m, result)
 
 
-def stack_points(points: list[FlowPoints], *, like: Tensor, counts: list[Tensor] | None = None
+def stack_points(points: list[FlowPoints], *, like: Tensor, lengths: list[Tensor] | None = None
                  ) -> tuple[FlowPoints, Tensor | None]:
     """The points of ``r`` frames as one batch ``(r, M, 2)`` (dtype and device of ``like``) and
     the mask of real points ``(r, M)`` (None when every frame has ``M`` points), made from
-    ``counts``, the frames' counts of points as 0-dim tensors on ``like``'s device when given (no
+    ``lengths``, the frames' counts of points as 0-dim tensors on ``like``'s device when given (no
     copy from the host)."""
-    counts_t, counts = counts, [len(p) for p in points]
+    counts = [len(p) for p in points]
     M = max(counts)
     if len(points) == 1:
         stacked = [points[0][k].unsqueeze(0) for k in range(3)]
@@ -345,8 +345,8 @@ def stack_points(points: list[FlowPoints], *, like: Tensor, counts: list[Tensor]
     stacked = FlowPoints(*(x if x.dtype == like.dtype and x.device == like.device else x.to(like) for x in stacked))
     if all(c == M for c in counts):
         return stacked, None
-    lengths = torch.tensor(counts, device=like.device) if counts_t is None else torch.stack(counts_t)
-    mask = torch.arange(M, device=like.device) < lengths.unsqueeze(-1)
+    rows = torch.tensor(counts, device=like.device) if lengths is None else torch.stack(lengths)
+    mask = torch.arange(M, device=like.device) < rows.unsqueeze(-1)
     return stacked, mask
 
 

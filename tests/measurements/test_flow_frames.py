@@ -246,4 +246,4 @@ def test_a_pass_of_every_event_kind_on_a_gpu_synchronises_as_often_for_10_frames
             finally:
                 torch.cuda.set_sync_debug_mode("default")
         counts.append(sum("synchroniz" in str(w.message) for w in caught))
-    assert counts[1] == counts[2] <= 24, counts  # the fake device counts 15: 13 copies in, 2 reads out
+    assert counts[1] == counts[2] <= 24, counts  # the set-up's copies and the end's two reads
