@@ -21,6 +21,7 @@ import torch
 from flowins.config import build
 
 if TYPE_CHECKING:
+    from flowins.data.streams import ImuStream
     from flowins.geometry.geodesy import LocalTangentPlane
 
 
@@ -36,6 +37,8 @@ class NavigationContext:
     frame: LocalTangentPlane | None
     #: the filter's dtype
     dtype: torch.dtype
+    #: the run's IMU readings (a kind whose model needs them, such as the vehicle constraint's lever arm)
+    imu: ImuStream | None = None
 
 
 @dataclass(frozen=True)

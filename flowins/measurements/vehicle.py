@@ -1,15 +1,31 @@
-"""A wheeled vehicle's motion constraint: no sideways and no vertical velocity in its own frame.
+"""A wheeled vehicle's motion constraint: no sideways and no vertical velocity at its non-slipping point.
 
-A car does not slip sideways or leave the road, so between GNSS fixes its velocity in the
-vehicle frame is ``(v_forward, 0, 0)`` (the non-holonomic constraint of wheeled-vehicle
-navigation, as ai-imu-dr uses). With the IMU's axes along the vehicle's (``forward_axis``,
-``up_axis``; KITTI's OXTS: x forward, z up) the pseudo-measurement is
+A car does not slip sideways or leave the road, so between GNSS fixes the velocity of the
+middle of its rear axle, in the vehicle frame, is ``(v_forward, 0, 0)`` (the non-holonomic
+constraint of wheeled-vehicle navigation, as ai-imu-dr uses). The IMU sits elsewhere and
+need not be aligned with the car:
 
-    0 = e_lateralᵀ C(q)ᵀ v + n_lat,   0 = e_upᵀ C(q)ᵀ v + n_up,
+* ``forward_axis``, ``up_axis`` name the IMU axes that point the car's way (KITTI's OXTS: x
+  forward, z up); ``A (3, 3)`` has the IMU's forward, left (up × forward) and up unit axes as
+  rows;
+* ``mount_pitch_rad``, ``mount_yaw_rad`` turn the IMU from there: ``R_m = Rz(ψ_m) Ry(θ_m)``,
+  the attitude's Euler convention (:func:`~flowins.geometry.quaternion.from_euler`, roll 0),
+  so the IMU's forward axis points ``ψ_m`` to the left of the car's, and tilts ``θ_m`` down;
+  ``C_cb = R_m A`` takes IMU-frame vectors to the car's frame;
+* ``lever_*_m`` place the non-slipping point ``r_c`` from the IMU along the car's forward, left
+  and up axes.
 
-``n ~ N(0, diag(σ_lat², σ_up²))``, applied every ``1 / rate_hz`` seconds from the start.
-Its Jacobian has blocks on the velocity (``e_kᵀ C(q)ᵀ``) and on the quaternion
-(:func:`~flowins.geometry.quaternion.rotate_jacobian` of the conjugate). The kind registers
+With ``ω = ω̃ - b_w`` the IMU's rate (``ω̃`` the gyroscope's reading at the update's time,
+the sample that covers it) the point's velocity in the car's frame is
+``v_c = C_cb C(q)ᵀ v + (C_cb ω) × r_c``, and the pseudo-measurement is
+
+    0 = S v_c + n,   S = [e_left; e_up],   n ~ N(0, diag(σ_lat², σ_up²)),
+
+applied every ``1 / rate_hz`` seconds from the start. Its Jacobian has blocks on the
+velocity (``S C_cb C(q)ᵀ``), the quaternion (``S C_cb`` times
+:func:`~flowins.geometry.quaternion.rotate_jacobian` of the conjugate) and the gyroscope's
+bias (``S [r_c]ₓ C_cb``). The mounting and the lever arm may be tensors with a gradient
+(``train.py`` learns them as ``vehicle_mount_*`` and ``vehicle_lever_*``). The kind registers
 itself as ``vehicle``: a run uses it when its streams hold ``vehicle`` (a
 :class:`VehicleConstraint`: ``filter.measurements.vehicle.mode=on``, or ``auto`` on a
 recording whose metadata names ``platform: vehicle``).
@@ -17,6 +33,7 @@ recording whose metadata names ``platform: vehicle``).
 from __future__ import annotations
 
 from collections.abc import Hashable, Sequence
+import dataclasses
 from dataclasses import dataclass
 from typing import Literal
 
@@ -33,6 +50,8 @@ from flowins.state import STATE
 
 AXES = {"x": (0, 1.0), "-x": (0, -1.0), "y": (1, 1.0), "-y": (1, -1.0), "z": (2, 1.0), "-z": (2, -1.0)}
 MODES = ("auto", "on", "off")
+#: the largest mounting angle (rad) the constraint takes: beyond it name other axes
+MAX_MOUNT_RAD = 0.5
 
 
 @dataclass(frozen=True)
@@ -45,10 +64,17 @@ class VehicleSettings:
     lateral_sigma_mps: float | Tensor = bounded(1.0, above=0.0)
     vertical_sigma_mps: float | Tensor = bounded(1.0, above=0.0)
     #: pseudo-measurements per second
-    rate_hz: float = bounded(5.0, above=0.0)
+    rate_hz: float = bounded(1.0, above=0.0)
     #: the IMU axes along the vehicle's forward and up directions
     forward_axis: Literal["x", "-x", "y", "-y", "z", "-z"] = "x"
     up_axis: Literal["x", "-x", "y", "-y", "z", "-z"] = "z"
+    #: the IMU turned from those axes (rad): its forward axis this far down (pitch) and to the left (yaw)
+    mount_pitch_rad: float | Tensor = bounded(0.0, above=-MAX_MOUNT_RAD, below=MAX_MOUNT_RAD)
+    mount_yaw_rad: float | Tensor = bounded(0.0, above=-MAX_MOUNT_RAD, below=MAX_MOUNT_RAD)
+    #: the non-slipping point (the rear axle's middle) from the IMU along the vehicle's forward, left, up axes (m)
+    lever_forward_m: float | Tensor = bounded(0.0, above=-10.0, below=10.0)
+    lever_left_m: float | Tensor = bounded(0.0, above=-10.0, below=10.0)
+    lever_up_m: float | Tensor = bounded(0.0, above=-10.0, below=10.0)
 
     def __post_init__(self) -> None:
         check_fields(self)
@@ -56,15 +82,33 @@ class VehicleSettings:
             raise ValueError(f"VehicleSettings.forward_axis={self.forward_axis!r} and up_axis={self.up_axis!r} "
                              "are the same axis")
 
-    def rows(self) -> tuple[Tensor, Tensor]:
-        """``E (2, 3)``: the body's lateral and up unit axes as rows (the up axis with its sign)."""
-        up_i, up_s = AXES[self.up_axis]
-        fwd_i, _ = AXES[self.forward_axis]
-        lateral_i = 3 - up_i - fwd_i
-        E = torch.zeros(2, 3, dtype=torch.float64)
-        E[0, lateral_i] = 1.0
-        E[1, up_i] = up_s
-        return E
+    def axes(self) -> Tensor:
+        """``A (3, 3)``: the IMU's forward, left and up unit axes as rows (float64)."""
+        return _axes(self.forward_axis, self.up_axis, torch.float64, torch.device("cpu")).clone()
+
+    def rows(self) -> Tensor:
+        """``E (2, 3)``: the IMU's left and up unit axes as rows, with no mounting turn (float64)."""
+        return self.axes()[1:]
+
+    def vehicle_from_imu(self, like: Tensor) -> Tensor:
+        """``C_cb (3, 3)`` in ``like``'s dtype and device: IMU-frame vectors into the vehicle's frame."""
+        A = _axes(self.forward_axis, self.up_axis, like.dtype, like.device)
+        if _zero(self.mount_pitch_rad) and _zero(self.mount_yaw_rad):
+            return A
+        pitch, yaw = scalar_like(self.mount_pitch_rad, like), scalar_like(self.mount_yaw_rad, like)
+        return quat.to_matrix(quat.from_euler(torch.zeros_like(pitch), pitch, yaw)) @ A
+
+    def lever_arm(self, like: Tensor) -> Tensor | None:
+        """``r_c (3,)``: the non-slipping point from the IMU in the vehicle's frame; None where it is 0."""
+        parts = (self.lever_forward_m, self.lever_left_m, self.lever_up_m)
+        if all(_zero(p) for p in parts):
+            return None
+        return torch.stack([scalar_like(p, like) for p in parts])
+
+
+def _zero(value: float | Tensor) -> bool:
+    """A plain 0 (a tensor, which may carry a gradient, counts as set)."""
+    return not isinstance(value, Tensor) and value == 0.0
 
 
 @dataclass(frozen=True)
@@ -87,12 +131,31 @@ def body_velocity_jacobians(q: Tensor, v: Tensor) -> tuple[Tensor, Tensor, Tenso
     return v_b, d_v, d_q
 
 
+def constraint_terms(mean: Tensor, gyro_rps: Tensor, C_cb: Tensor, lever_c: Tensor | None) -> tuple[Tensor, Tensor]:
+    """``(h (..., 2), H (..., 2, D))`` of the pseudo-measurement (module docstring) at the states
+    ``mean (..., D)`` with the gyroscope's readings ``gyro_rps (..., 3)``: the sideways and
+    vertical velocity of the non-slipping point in the vehicle frame, and its Jacobian."""
+    v_b, d_v, d_q = body_velocity_jacobians(mean[..., STATE.q], mean[..., STATE.v])
+    E = C_cb[1:]  # (2, 3): the vehicle's left and up axes in the IMU frame
+    h = v_b @ E.transpose(-1, -2)
+    H = mean.new_zeros(*mean.shape[:-1], 2, mean.shape[-1])
+    H[..., STATE.v] = E @ d_v
+    H[..., STATE.q] = E @ d_q
+    if lever_c is not None:
+        omega_c = (gyro_rps - mean[..., STATE.b_w]) @ C_cb.transpose(-1, -2)
+        h = h + torch.linalg.cross(omega_c, lever_c.expand_as(omega_c))[..., 1:]
+        H[..., STATE.b_w] = (quat.skew(lever_c) @ C_cb)[1:]  # ∂(C ω × r)/∂b_w = [r]ₓ C
+    return h, H
+
+
 @dataclass(frozen=True)
 class VehicleUpdate(RowBatchEvent):
-    """One non-holonomic pseudo-measurement at ``time_s`` (module docstring)."""
+    """One non-holonomic pseudo-measurement at ``time_s`` (module docstring), with the
+    gyroscope's reading ``gyro_rps (3,)`` that covers it."""
 
     time_s: float
     settings: VehicleSettings
+    gyro_rps: Tensor
     name: str = "vehicle constraint"
 
     def batch_key(self) -> Hashable:
@@ -100,26 +163,37 @@ class VehicleUpdate(RowBatchEvent):
         return (VehicleUpdate, id(self.settings))
 
     @classmethod
+    def place(cls, updates: list[VehicleUpdate], like: Tensor) -> list[VehicleUpdate]:
+        """The updates with their gyroscope readings in ``like``'s dtype and device: one copy,
+        each update's a view of it."""
+        if all(u.gyro_rps.dtype == like.dtype and u.gyro_rps.device == like.device for u in updates):
+            return list(updates)
+        gyro = torch.stack([u.gyro_rps for u in updates]).to(like)
+        return [dataclasses.replace(u, gyro_rps=gyro[i]) for i, u in enumerate(updates)]
+
+    @classmethod
     def apply_batch(cls, chain: BatchChain, rows: Sequence[int], events: Sequence[VehicleUpdate]) -> None:
         """The pseudo-measurements ``events[i]`` (one settings) on the rows ``rows[i]``, as one update."""
         settings = events[0].settings
         mean, _ = chain.newest(rows)
-        r, D = mean.shape
-        E = _rows(settings.forward_axis, settings.up_axis, mean.dtype, mean.device)
-        v_b, d_v, d_q = body_velocity_jacobians(mean[:, STATE.q], mean[:, STATE.v])
-        H = mean.new_zeros(r, 1, 2, D)
-        H[:, 0, :, STATE.v] = E @ d_v
-        H[:, 0, :, STATE.q] = E @ d_q
+        r = mean.shape[0]
+        gyro = torch.stack([e.gyro_rps for e in events]).to(mean)
+        h, H = constraint_terms(mean, gyro, settings.vehicle_from_imu(mean), settings.lever_arm(mean))
         sigma = torch.stack([scalar_like(s, mean) for s in (settings.lateral_sigma_mps, settings.vertical_sigma_mps)])
-        update_rows(chain, rows, H=H, residual=-(v_b @ E.T).unsqueeze(1),
+        update_rows(chain, rows, H=H.unsqueeze(1), residual=-h.unsqueeze(1),
                     noise_cov=torch.diag_embed(sigma**2).expand(r, 1, 2, 2), likelihood=False,
                     infos=[{"kind": "vehicle", "name": e.name} for e in events])
 
 
 @cached_constant
-def _rows(forward_axis: str, up_axis: str, dtype: torch.dtype, device: torch.device) -> Tensor:
-    """:meth:`VehicleSettings.rows` of these axes in ``dtype`` on ``device``, built once."""
-    return VehicleSettings(forward_axis=forward_axis, up_axis=up_axis).rows().to(dtype=dtype, device=device)
+def _axes(forward_axis: str, up_axis: str, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """``A (3, 3)`` of :meth:`VehicleSettings.axes` in ``dtype`` on ``device``, built once."""
+    fwd_i, fwd_s = AXES[forward_axis]
+    up_i, up_s = AXES[up_axis]
+    forward = torch.zeros(3, dtype=torch.float64)
+    up = torch.zeros(3, dtype=torch.float64)
+    forward[fwd_i], up[up_i] = fwd_s, up_s
+    return torch.stack((forward, torch.linalg.cross(up, forward), up)).to(dtype=dtype, device=device)
 
 
 @cached_constant
@@ -127,13 +201,25 @@ def _flip(dtype: torch.dtype, device: torch.device) -> Tensor:
     return torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=dtype, device=device)
 
 
+def gyro_at(t_imu_s: Tensor, gyro_rps: Tensor, times_s: Tensor) -> Tensor:
+    """``(N, 3)``: the gyroscope's reading that covers each of ``times_s (N,)``: the sample ``k``
+    with ``t_{k-1} < t <= t_k`` (an integrating IMU's sample ``k`` is the rate over that
+    interval; the first sample at or before the first time)."""
+    k = torch.searchsorted(t_imu_s.contiguous(), times_s.to(t_imu_s.dtype).contiguous(), side="left")
+    return gyro_rps[k.clamp(max=len(t_imu_s) - 1)]
+
+
 def vehicle_events(stream: VehicleConstraint, settings: VehicleSettings, context: NavigationContext) -> list:
     """A :class:`VehicleUpdate` every ``1 / rate_hz`` s after the start (none with ``mode=off``)."""
     if settings.mode == "off":
         return []
+    if context.imu is None:
+        raise ValueError("vehicle constraint: the run's context has no IMU (NavigationContext.imu); "
+                         "its updates need the gyroscope's readings")
     step = 1.0 / settings.rate_hz
-    times = torch.arange(context.t_start_s + step, context.t_end_s + 1e-9, step, dtype=torch.float64).tolist()
-    return [VehicleUpdate(t, settings) for t in times]
+    times = torch.arange(context.t_start_s + step, context.t_end_s + 1e-9, step, dtype=torch.float64)
+    gyro = gyro_at(context.imu.t_s, context.imu.gyro_rps, times)
+    return [VehicleUpdate(t, settings, gyro[i]) for i, t in enumerate(times.tolist())]
 
 
 register(MeasurementKind("vehicle", VehicleSettings, vehicle_events, default_stream=VehicleConstraint))

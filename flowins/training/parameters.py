@@ -14,6 +14,13 @@ An angle's 1-σ has an absolute ceiling ``c`` too (:data:`CEILINGS`: roll/pitch 
 ``π``): above the start, ``B`` is replaced by ``B⁺ = min(B, ln(c / θ₀))``, so the value stays
 below ``c`` (and at ``θ₀`` when it starts at or above it) with the same slope of 1 at the start.
 
+A signed parameter (:data:`SIGNED`: the vehicle constraint's mounting angles and lever arm)
+moves by a step ``u`` per unit of ``a`` within a largest magnitude ``W`` (its bound, in its
+own units: ``model.bounds.<name>``, default :data:`SIGNED`'s):
+``θ = W tanh(atanh(θ₀ / W) + u a / W)`` (written as ``θ₀`` plus a difference of tanh, so that it
+is exactly ``θ₀`` at ``a = 0``), with a slope ``u`` at
+``θ₀ = 0``, and ``|θ| < W`` whatever ``a`` is; it may start at 0 or below.
+
 Near the start ``d ln θ / d a = sech²(a / B) ≈ 1``, so the learning rate is in units of
 ``ln θ`` (of ``logit θ`` for the dropout rate): ai-imu-dr's factor ``10^tanh(a)`` on its
 learned covariances, widened to ``b`` decades and with a slope of 1 at the start. A bound
@@ -43,6 +50,8 @@ The parameters (units of the filter config, ``configs/filter/default.yaml``):
 ``flow_sigma_floor_px``
 ``dropout_p``               Monte Carlo dropout rate of the flow network
 ``vehicle_*_sigma_mps``     σ of the vehicle constraint's sideways and vertical velocity
+``vehicle_mount_*_rad``     the IMU's mounting turn from the vehicle's axes (pitch, yaw; signed)
+``vehicle_lever_*_m``       the non-slipping point from the IMU (forward, left, up; signed)
 ``tracks_sigma_px``         1-σ of a tracked pixel in the multi-view track update
 ``*_gate_threshold``,       the χ² gates of the flow points and the GNSS fixes: soft
 ``*_gate_softness``         (``sigmoid((threshold - NIS) / softness)``) while training,
@@ -95,6 +104,11 @@ _FIELDS: dict[str, tuple[str, str]] = {
     "gnss_gate_softness": ("gate", "gnss"),
     "vehicle_lateral_sigma_mps": ("vehicle", "lateral_sigma_mps"),
     "vehicle_vertical_sigma_mps": ("vehicle", "vertical_sigma_mps"),
+    "vehicle_mount_pitch_rad": ("vehicle", "mount_pitch_rad"),
+    "vehicle_mount_yaw_rad": ("vehicle", "mount_yaw_rad"),
+    "vehicle_lever_forward_m": ("vehicle", "lever_forward_m"),
+    "vehicle_lever_left_m": ("vehicle", "lever_left_m"),
+    "vehicle_lever_up_m": ("vehicle", "lever_up_m"),
     "tracks_sigma_px": ("tracks", "sigma_px"),
     "tracks_gate_scale": ("gate", "tracks"),
     "tracks_gate_softness": ("gate", "tracks"),
@@ -102,7 +116,15 @@ _FIELDS: dict[str, tuple[str, str]] = {
 }
 #: names a checkpoint written before they existed lacks: it loads with their defaults
 ADDED_NAMES: frozenset[str] = frozenset({"vehicle_lateral_sigma_mps", "vehicle_vertical_sigma_mps", "tracks_sigma_px",
-                                         "tracks_gate_scale", "tracks_gate_softness"})
+                                         "tracks_gate_scale", "tracks_gate_softness", "vehicle_mount_pitch_rad",
+                                         "vehicle_mount_yaw_rad", "vehicle_lever_forward_m", "vehicle_lever_left_m",
+                                         "vehicle_lever_up_m"})
+#: signed parameters: name -> (step u per unit of the coordinate, largest magnitude W), in the
+#: parameter's units (the module docstring); W stays inside VehicleSettings' own limits
+SIGNED: dict[str, tuple[float, float]] = {
+    "vehicle_mount_pitch_rad": (0.01, 0.3), "vehicle_mount_yaw_rad": (0.01, 0.3),
+    "vehicle_lever_forward_m": (0.1, 5.0), "vehicle_lever_left_m": (0.1, 5.0), "vehicle_lever_up_m": (0.1, 5.0),
+}
 NAMES: tuple[str, ...] = tuple(_FIELDS)
 #: the noise parameters (what a "mis-tuned" start multiplies)
 NOISE_NAMES: tuple[str, ...] = (
@@ -115,7 +137,7 @@ NOISE_NAMES: tuple[str, ...] = (
 LEVEL_NAMES: tuple[str, ...] = (*NOISE_NAMES, "vehicle_lateral_sigma_mps", "vehicle_vertical_sigma_mps",
                                 "tracks_sigma_px")
 #: frozen unless the config says otherwise
-FROZEN_BY_DEFAULT = frozenset({"initial_position_m", "initial_yaw_rad"})
+FROZEN_BY_DEFAULT = frozenset({"initial_position_m", "initial_yaw_rad", *SIGNED})
 #: how far a learned value may go from its start, in decades each way (``model.bound_decades``)
 DEFAULT_BOUND_DECADES = 2.0
 #: absolute ceilings whatever the start and the bound: an angle's 1-σ beyond these means nothing
@@ -150,11 +172,14 @@ class ModelSettings:
             one alignment per sequence, at its start; :func:`~flowins.training.unroll.window_loss`).
         segment_s: the segment durations (s) of ``loss=segments``.
         mistune: every noise parameter's start multiplied by this.
-        start: starting values replacing the filter config's, by parameter name.
+        start: starting values replacing the filter config's, by parameter name (>= 0, any
+            sign for those of :data:`SIGNED`).
         learn, freeze: the names learned (None: all but the frozen-by-default ones) and kept.
         bound_decades: how far a learned value may go from its start, in decades each way
             (the module docstring); None: unbounded.
-        bounds: ``bound_decades`` replaced for these names (a number > 0, or None).
+        bounds: ``bound_decades`` replaced for these names (a number > 0, or None); for those
+            of :data:`SIGNED` their largest magnitude in their units (None or left out:
+            :data:`SIGNED`'s).
         checkpoint: a ``train.py`` checkpoint whose learned values the filter uses.
     """
 
@@ -182,7 +207,11 @@ class ModelSettings:
         for name, value in self.start.items():
             if name not in NAMES:
                 raise ValueError(f"model.start.{name}: unknown parameter; expected names from {', '.join(NAMES)}")
-            if not value >= 0.0:
+            if name in SIGNED:
+                if not abs(value) < SIGNED[name][1]:
+                    raise ValueError(f"model.start.{name}={value!r}: expected a number of magnitude < "
+                                     f"{SIGNED[name][1]:g}")
+            elif not value >= 0.0:
                 raise ValueError(f"model.start.{name}={value!r}: expected a number >= 0")
         for key in ("learn", "freeze", "innovation_learns"):
             for name in getattr(self, key) or ():
@@ -210,8 +239,9 @@ class ModelSettings:
         return group
 
     def parameter_bounds(self) -> dict[str, float | None]:
-        """Every parameter's bound in decades (None: unbounded): ``bounds``, else ``bound_decades``."""
-        return {n: self.bounds.get(n, self.bound_decades) for n in NAMES}
+        """Every parameter's bound in decades (None: unbounded): ``bounds``, else ``bound_decades``;
+        a signed one's largest magnitude from ``bounds``, else None (:data:`SIGNED`'s)."""
+        return {n: self.bounds.get(n, None if n in SIGNED else self.bound_decades) for n in NAMES}
 
 
 def _check_start(name: str, value: float) -> float:
@@ -219,6 +249,9 @@ def _check_start(name: str, value: float) -> float:
     if name == "dropout_p":
         if not 0.0 < value < 1.0:
             raise ValueError(f"dropout_p must be in (0, 1), got {value}")
+    elif name in SIGNED:
+        if not math.isfinite(value):
+            raise ValueError(f"{name} must be finite, got {value}")
     elif not value >= 0.0 or not math.isfinite(value):
         raise ValueError(f"{name} must be finite and >= 0, got {value}")
     return value
@@ -242,6 +275,10 @@ def _bounded_value(name: str, a: Tensor, center: Tensor, bound_decades: Tensor,
     module docstring's maps, for tensors of any (broadcast) shape. Exactly ``center`` at
     ``a = 0``; free of NaN for every ``a``."""
     unbounded = torch.isinf(bound_decades)
+    if name in SIGNED:  # bound_decades holds the largest magnitude W here
+        W = bound_decades
+        c = torch.atanh(center / W)  # θ₀ + W (tanh(c + u a / W) - tanh c): θ₀ exactly at a = 0
+        return center + W * (torch.tanh(c + SIGNED[name][0] * a / W) - torch.tanh(c))
     scale = torch.where(unbounded, torch.ones_like(bound_decades), bound_decades * math.log(10.0))
     s = torch.where(unbounded, a, scale * torch.tanh(a / scale))  # B tanh(a / B); a itself for B = ∞
     if name != "dropout_p":
@@ -346,13 +383,19 @@ class FilterParameters(nn.Module):
         self.raw = nn.ParameterDict()
         for name in NAMES:
             value = _check_start(name, float(start[name]))
-            if name in learn and value == 0.0:
+            if name in SIGNED:  # always bounded: None (or left out) is its default largest magnitude
+                width = bounds.get(name) or SIGNED[name][1]
+                if not abs(value) < float(width):
+                    raise ValueError(f"FilterParameters: {name} starts at {value}, which its largest magnitude "
+                                     f"{width} (model.bounds.{name}) must exceed")
+            elif name in learn and value == 0.0:
                 raise ValueError(
                     f"FilterParameters: {name} starts at 0, which a factor on its start cannot leave; "
                     f"give it a positive start (model.start.{name}) or freeze it"
                 )
             centers[name] = torch.tensor(value, **f64)
-            decades[name] = torch.tensor(_check_bound(name, bounds.get(name, DEFAULT_BOUND_DECADES)), **f64)
+            bound = (width if name in SIGNED else bounds.get(name, DEFAULT_BOUND_DECADES))
+            decades[name] = torch.tensor(_check_bound(name, bound), **f64)
             self.raw[name] = nn.Parameter(torch.zeros((), **f64), requires_grad=name in learn)
         self.center = _Tensors(centers)
         self.bound = _Tensors(decades)
@@ -371,7 +414,7 @@ class FilterParameters(nn.Module):
         return {n: float(self.value(n).detach()) for n in NAMES}
 
     def bounds(self) -> dict[str, float | None]:
-        """Each parameter's bound in decades (None: unbounded)."""
+        """Each parameter's bound in decades (None: unbounded); a signed one's largest magnitude."""
         return {n: None if math.isinf(b := float(self.bound[n])) else b for n in NAMES}
 
     def apply(self, config: NavigationConfig, *, training: bool,
@@ -382,6 +425,8 @@ class FilterParameters(nn.Module):
         v = {n: self.value(n) for n in NAMES}
         if not training:
             v = {n: float(x.detach()) for n, x in v.items()}
+        # a signed parameter kept at its start is a plain number: a plain 0 leaves its term out
+        v.update({n: float(v[n].detach()) for n in SIGNED if training and not self.raw[n].requires_grad})
         noise = replace(config.noise, **{f: v[n] for n, (w, f) in _FIELDS.items() if w == "noise"})
         initial = InitialUncertainty(**{**config.initial.__dict__,
                                         **{f: v[n] for n, (w, f) in _FIELDS.items() if w == "initial"}})
@@ -396,8 +441,7 @@ class FilterParameters(nn.Module):
 
         flow = replace(config.flow_update, sigma_scale=v["flow_sigma_scale"], sigma_floor_px=v["flow_sigma_floor_px"],
                        sigma_p0=v["sigma_p0"], sigma_q0=v["sigma_q0"], gate=gate("flow", config.flow_update.gate))
-        vehicle = replace(_vehicle(config), lateral_sigma_mps=v["vehicle_lateral_sigma_mps"],
-                          vertical_sigma_mps=v["vehicle_vertical_sigma_mps"])
+        vehicle = replace(_vehicle(config), **{f: v[n] for n, (w, f) in _FIELDS.items() if w == "vehicle"})
         return replace(config, noise=noise, initial=initial, gnss_noise_scale=v["gnss_noise_scale"],
                        device=config.device if device is None else device,
                        gnss_gate=gate("gnss", config.gnss_gate), flow_update=flow,
@@ -428,10 +472,11 @@ class FilterParameters(nn.Module):
                 default = float(starting_values(NavigationConfig())[n])
                 if "center" in layouts:  # at its start: a = 0
                     found["center"][n] = torch.tensor(default, dtype=torch.float64)
-                    found["bound"][n] = torch.tensor(DEFAULT_BOUND_DECADES, dtype=torch.float64)
+                    found["bound"][n] = torch.tensor(SIGNED[n][1] if n in SIGNED else DEFAULT_BOUND_DECADES,
+                                                     dtype=torch.float64)
                     raw[n] = torch.zeros((), dtype=torch.float64)
-                else:  # log space
-                    raw[n] = torch.tensor(math.log(default), dtype=torch.float64)
+                else:  # log space; a signed parameter as itself
+                    raw[n] = torch.tensor(default if n in SIGNED else math.log(default), dtype=torch.float64)
         missing = {kind: [n for n in NAMES if n not in found[kind]] for kind in ("raw", *layouts)}
         if missing := {kind: names for kind, names in missing.items() if names}:
             what = "; ".join(f"missing {names}" if kind == "raw" else f"missing the {kind} of {names}"
@@ -448,7 +493,8 @@ class FilterParameters(nn.Module):
         if not layouts:
             return cls.from_raw({n: raw[n].reshape(()) for n in NAMES})
         center, bound = found["center"], found["bound"]
-        bad = [f"center.{n}" for n in NAMES if not plausible(center[n], low=0.0) or not math.isfinite(float(center[n]))]
+        bad = [f"center.{n}" for n in NAMES if not plausible(center[n], low=-math.inf if n in SIGNED else 0.0)
+               or not math.isfinite(float(center[n]))]
         bad += [f"bound.{n}" for n in NAMES if not (isinstance(bound[n], Tensor) and bound[n].numel() == 1
                                                     and bound[n].is_floating_point() and float(bound[n]) > 0)]
         if bad:
@@ -466,14 +512,14 @@ class FilterParameters(nn.Module):
 
     @classmethod
     def from_raw(cls, raw: Mapping[str, float | Tensor]) -> FilterParameters:
-        """Frozen parameters at the values whose log (logit for ``dropout_p``) is ``raw``, one per
-        name (-inf: a value of 0): the layout of checkpoints and ``selection.json`` histories
-        without start values and bounds."""
+        """Frozen parameters at the values whose log (logit for ``dropout_p``; the value itself
+        for those of :data:`SIGNED`) is ``raw``, one per name (-inf: a value of 0): the layout of
+        checkpoints and ``selection.json`` histories without start values and bounds."""
         values = {}
         for n in NAMES:
             x = torch.as_tensor(raw[n], dtype=torch.float64)
-            values[n] = float(torch.sigmoid(x) if n == "dropout_p" else torch.exp(x))
-        return cls(values, learn=(), bounds={n: None for n in NAMES}, ceilings={})
+            values[n] = float(x if n in SIGNED else torch.sigmoid(x) if n == "dropout_p" else torch.exp(x))
+        return cls(values, learn=(), bounds={n: SIGNED[n][1] if n in SIGNED else None for n in NAMES}, ceilings={})
 
     def extra_repr(self) -> str:
         return ", ".join(f"{n}={v:.4g}" for n, v in self.values().items())

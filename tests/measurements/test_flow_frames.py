@@ -184,11 +184,13 @@ def _every_event_kind(end_s):
     run, walk, _ = _flow_run(5.0, 7.0, 60, 3, own_camera=False)
     update = FlowUpdate(iterations=2, n_points=40, gate=Gate(probability=0.9),
                         recovery=FlowRecovery(after_frames=2, max_accepted=0.99))
-    vehicle, gate, recovery = VehicleSettings(mode="on"), Gate(), GnssRecovery()
+    vehicle = VehicleSettings(mode="on", mount_yaw_rad=0.03, lever_forward_m=-1.0)
+    gate, recovery = Gate(), GnssRecovery()
     R = 0.25 * torch.eye(3, dtype=F64)
     off = torch.tensor([30.0, 0.0, 0.0], dtype=F64)
     events = [FlowFrame(e.time_s, e.points, e.camera, update) for e in run.events if e.time_s <= end_s]
-    events += [ZeroVelocity(5.55, sigma_mps=0.5), VehicleUpdate(5.75, vehicle), VehicleUpdate(5.95, vehicle)]
+    events += [ZeroVelocity(5.55, sigma_mps=0.5), VehicleUpdate(5.75, vehicle, run.gyro_rps[0]),
+               VehicleUpdate(5.95, vehicle, run.gyro_rps[1])]
     events += [GnssFix(t, walk.position(torch.tensor([t], dtype=F64))[0] + (off if t > 5.3 else 0.0), R, gate,
                        recovery=recovery) for t in (5.15, 5.35, 5.55, 5.75, 5.95, 6.15) if t <= end_s]
     return run, events

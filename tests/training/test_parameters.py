@@ -16,6 +16,7 @@ from flowins.training.parameters import (
     FROZEN_BY_DEFAULT,
     NAMES,
     FilterParameters,
+    SIGNED,
     starting_values,
 )
 
@@ -25,9 +26,11 @@ CHI2_0999_DOF3 = 16.26623619623813
 
 
 def some_start() -> dict[str, float]:
-    """A distinct positive value per name (so a mix-up of two fields shows), dropout_p in (0, 1)."""
+    """A distinct positive value per name (so a mix-up of two fields shows), dropout_p in (0, 1),
+    the signed ones small and of both signs."""
     start = {name: 0.01 * (i + 1) * (1.7 ** i) for i, name in enumerate(NAMES)}
     start["dropout_p"] = 0.37
+    start.update({name: (-1) ** i * 0.01 * (i + 1) for i, name in enumerate(SIGNED)})
     return start
 
 
@@ -39,8 +42,9 @@ def test_values_are_the_start_exactly_at_zero_coordinates():
     for name in NAMES:
         assert float(params.raw[name].detach()) == 0.0, name
         assert params.raw[name].dtype == torch.float64
-        assert float(params.center[name]) == start[name] and float(params.bound[name]) == 2.0, name
-    assert params.bounds() == {n: 2.0 for n in NAMES}
+        bound = SIGNED[name][1] if name in SIGNED else 2.0  # a signed one's largest magnitude
+        assert float(params.center[name]) == start[name] and float(params.bound[name]) == bound, name
+    assert params.bounds() == {n: SIGNED[n][1] if n in SIGNED else 2.0 for n in NAMES}
 
 
 @pytest.mark.parametrize("p", [1e-6, 0.2, 0.37, 0.5, 0.93, 1 - 1e-9])
@@ -191,7 +195,7 @@ def test_unknown_names_raise():
 
 def test_frozen_parameters_have_no_gradient_and_the_default_freezes_position_and_yaw():
     default = FilterParameters(some_start())
-    assert FROZEN_BY_DEFAULT == {"initial_position_m", "initial_yaw_rad"}
+    assert FROZEN_BY_DEFAULT == {"initial_position_m", "initial_yaw_rad", *SIGNED}  # a vehicle's mounting too
     for name in NAMES:
         assert default.raw[name].requires_grad == (name not in FROZEN_BY_DEFAULT), name
     assert set(default.learned) == set(NAMES) - FROZEN_BY_DEFAULT
@@ -296,8 +300,8 @@ def test_from_checkpoint_refuses_values_that_are_not_single_numbers(tmp_path):
     assert FilterParameters.from_checkpoint(path).values()["acc_scale_walk"] == pytest.approx(
         some_start()["acc_scale_walk"] * 1e-2, rel=1e-12)
     # in the layout with raw values only, -inf in log space is a value of 0 (a random walk switched off)
-    legacy = {"params.raw." + n: torch.tensor(math.log(v), dtype=torch.float64) for n, v in some_start().items()
-              if n != "dropout_p"}
+    legacy = {"params.raw." + n: torch.tensor(v if n in SIGNED else math.log(v), dtype=torch.float64)
+              for n, v in some_start().items() if n != "dropout_p"}
     legacy["params.raw.dropout_p"] = torch.tensor(0.0, dtype=torch.float64)
     path = tmp_path / "zero.ckpt"
     torch.save({"state_dict": {**legacy, "params.raw.acc_scale_walk": minus_inf}}, path)
@@ -316,7 +320,7 @@ def test_from_checkpoint_refuses_values_that_are_not_single_numbers(tmp_path):
 # the prior: each value is its start times a bounded factor
 # ---------------------------------------------------------------------------
 
-POSITIVE = [n for n in NAMES if n != "dropout_p"]
+POSITIVE = [n for n in NAMES if n != "dropout_p" and n not in SIGNED]
 
 
 def _at(params: FilterParameters, a: dict[str, float]) -> FilterParameters:
@@ -381,7 +385,8 @@ def test_unbounded_is_log_and_logit_space():
     parameters ``log start + a`` of an unbounded module, for any a."""
     start = some_start()
     params = FilterParameters(start, bounds={n: None for n in NAMES}, ceilings={})
-    assert params.bounds() == {n: None for n in NAMES}
+    # a signed parameter is always bounded: None is its default largest magnitude
+    assert params.bounds() == {n: SIGNED[n][1] if n in SIGNED else None for n in NAMES}
     for a in (-40.0, -2.5, 0.7, 30.0):
         values = _at(params, {n: a for n in NAMES}).values()
         for name in POSITIVE:
@@ -433,8 +438,8 @@ def test_model_bounds_override_bound_decades_by_name():
     model = build(ModelSettings, {"bound_decades": 1.0, "bounds": {"acc_noise": 0.5, "gyro_noise": None},
                                   "start": walks}, "model")
     bounds = model.parameter_bounds()
-    assert bounds == {n: {"acc_noise": 0.5, "gyro_noise": None}.get(n, 1.0) for n in NAMES}
-    assert ModelSettings().parameter_bounds() == {n: 2.0 for n in NAMES}
+    assert bounds == {n: {"acc_noise": 0.5, "gyro_noise": None}.get(n, None if n in SIGNED else 1.0) for n in NAMES}
+    assert ModelSettings().parameter_bounds() == {n: None if n in SIGNED else 2.0 for n in NAMES}
     assert build(ModelSettings, {"bound_decades": None}, "model").parameter_bounds() == {n: None for n in NAMES}
     sets = parameter_sets({"model": model, "flow": {}}, NavigationConfig())
     assert sets.bounds == bounds
@@ -545,17 +550,17 @@ def test_a_checkpoint_of_log_space_values_loads_as_those_values(tmp_path):
     """The layout without starts and bounds: ``raw.<name>`` is the value's log (logit)."""
     values = some_start()
     values["gyro_bias_walk"] = 14.7  # anywhere: no bound applies to a stored value
-    raw = {n: torch.tensor(_logit(v) if n == "dropout_p" else math.log(v), dtype=torch.float64)
-           for n, v in values.items()}
+    raw = {n: torch.tensor(_logit(v) if n == "dropout_p" else v if n in SIGNED else math.log(v), dtype=torch.float64)
+           for n, v in values.items()}  # a signed value is stored as itself
     path = tmp_path / "old.ckpt"
     torch.save({"epoch": 2, "state_dict": {"params.raw." + n: x for n, x in raw.items()}}, path)
     loaded = FilterParameters.from_checkpoint(path)
     for name in NAMES:
         assert loaded.values()[name] == pytest.approx(values[name], rel=1e-12), name
         # the very value the log-space formula gives
-        legacy = torch.sigmoid(raw[name]) if name == "dropout_p" else torch.exp(raw[name])
+        legacy = torch.sigmoid(raw[name]) if name == "dropout_p" else raw[name] if name in SIGNED else torch.exp(raw[name])
         assert loaded.values()[name] == float(legacy), name
-    assert loaded.bounds() == {n: None for n in NAMES}
+    assert loaded.bounds() == {n: SIGNED[n][1] if n in SIGNED else None for n in NAMES}
     assert FilterParameters.from_raw(raw).values() == loaded.values()
     # a checkpoint with some starts but not all is refused, naming what is missing
     state = {**{"params.raw." + n: x for n, x in raw.items()}, "params.center.acc_noise": torch.tensor(1e-3)}
@@ -614,3 +619,51 @@ def test_noise_level_likelihood_needs_two_noise_parameters_in_model_learn():
         ModelSettings(noise_level="likelihood", learn=("acc_noise", "gyro_noise", "flow_gate_threshold"),
                       freeze=("gyro_noise",))
     assert ModelSettings(noise_level="likelihood", learn=("acc_noise", "gyro_noise")).learn == ("acc_noise", "gyro_noise")
+
+
+def test_signed_parameters_move_by_their_step_within_their_largest_magnitude():
+    """A vehicle's mounting and lever arm: ``θ = W tanh(atanh(θ₀ / W) + u a / W)`` (plain floats
+    here), any sign, ``θ₀`` at ``a = 0``, ``|θ| < W`` for every ``a``, the slope ``u`` at
+    ``θ₀ = 0``, and the gradient a central difference."""
+    start = some_start() | {"vehicle_mount_yaw_rad": 0.0, "vehicle_lever_forward_m": -1.2}
+    params = FilterParameters(start, learn=list(SIGNED), bounds={"vehicle_lever_forward_m": 2.0})
+    assert float(params.bound["vehicle_lever_forward_m"]) == 2.0 and float(params.bound["vehicle_mount_yaw_rad"]) == 0.3
+    for name in SIGNED:
+        u = SIGNED[name][0]
+        W = float(params.bound[name])
+        for a in (-1e4, -3.0, 0.0, 0.4, 25.0, 1e4):
+            value = float(_at(params, {name: a}).value(name).detach())
+            expected = W * math.tanh(math.atanh(start[name] / W) + u * a / W)
+            assert value == pytest.approx(expected, rel=1e-12, abs=1e-15), (name, a)
+            assert abs(value) <= W, (name, a)
+        _at(params, {name: 0.0})
+        assert float(params.value(name).detach()) == start[name]
+        a = torch.tensor(0.3, dtype=torch.float64, requires_grad=True)
+        with torch.no_grad():
+            params.raw[name].copy_(a)
+        params.raw[name].grad = None
+        params.value(name).backward()
+        h = 1e-6
+        with torch.no_grad():
+            difference = float(_at(params, {name: 0.3 + h}).value(name)) - float(_at(params, {name: 0.3 - h}).value(name))
+        assert float(params.raw[name].grad) == pytest.approx(difference / (2 * h), rel=1e-7)
+        _at(params, {name: 0.0})
+    params.raw["vehicle_mount_yaw_rad"].grad = None
+    params.value("vehicle_mount_yaw_rad").backward()
+    assert float(params.raw["vehicle_mount_yaw_rad"].grad) == pytest.approx(SIGNED["vehicle_mount_yaw_rad"][0], rel=1e-12)
+    with pytest.raises(ValueError, match="vehicle_lever_up_m starts at 6.0, which its largest magnitude 5.0"):
+        FilterParameters(start | {"vehicle_lever_up_m": 6.0})
+
+
+def test_learned_mounting_reaches_the_vehicle_constraint():
+    """``apply`` writes the signed values into the vehicle settings: tensors while learning them,
+    plain numbers (0 leaves the term out) when they are kept."""
+    from flowins.measurements.vehicle import VehicleSettings
+
+    start = starting_values(NavigationConfig()) | {"vehicle_mount_pitch_rad": -0.02, "vehicle_lever_up_m": 0.7}
+    params = FilterParameters(start, learn=["vehicle_mount_pitch_rad"])
+    config = params.apply(NavigationConfig(measurements={"vehicle": VehicleSettings(mode="on")}), training=True)
+    vehicle = config.measurements["vehicle"]
+    assert isinstance(vehicle.mount_pitch_rad, torch.Tensor) and vehicle.mount_pitch_rad.requires_grad
+    assert float(vehicle.mount_pitch_rad) == -0.02 and vehicle.lever_up_m == 0.7 and vehicle.mount_yaw_rad == 0.0
+    assert vehicle.mode == "on"

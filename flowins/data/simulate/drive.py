@@ -7,11 +7,20 @@ IMU has automotive-grade MEMS errors. There is no camera. The ground truth is ex
 
 Trajectory (closed form in the velocity): speed ``v(t)``, heading ``ψ(t)`` and road
 grade ``θ(t)`` are sums of sinusoids, so the velocity
-``v [cos θ cos ψ, cos θ sin ψ, sin θ]`` and its derivatives are exact; the position is
-its integral by 8-point Gauss–Legendre quadrature over 0.25 s pieces (exact to
-rounding for these smooth inputs). The body axes: x along the velocity, z up from the
-road, rolled by ``roll_per_lateral_rad`` per m/s² of lateral acceleration.
-World frame: local ENU with its origin at the start of the drive.
+``v [cos θ cos ψ, cos θ sin ψ, sin θ]`` of the car's non-slipping point (the middle of its
+rear axle) and its derivatives are exact; the position is its integral by 8-point
+Gauss–Legendre quadrature over 0.25 s pieces (exact to rounding for these smooth inputs).
+The car's axes: x along the velocity, z up from the road, rolled by
+``roll_per_lateral_rad`` per m/s² of lateral acceleration.
+
+The IMU is mounted on the car: its axes are the car's turned by ``imu_mount_yaw_rad`` about
+the car's up axis, then ``imu_mount_pitch_rad`` about the turned lateral axis (the
+attitude's Euler convention, :func:`~flowins.geometry.quaternion.from_euler`; the vehicle
+constraint's ``mount_*_rad``), and the non-slipping point lies ``imu_lever_m`` from it
+along the car's forward, left and up axes (the constraint's ``lever_*_m``). The readings,
+the GNSS fixes and the ground truth are the IMU's (both 0 by default: the IMU's axes are the
+car's, at the non-slipping point). World frame: local ENU with its origin at the start of
+the drive.
 """
 from __future__ import annotations
 
@@ -24,6 +33,7 @@ from typing import Any
 import numpy as np
 import torch
 from torch import Tensor
+from torch.func import jacfwd, vmap
 
 from flowins.cache import cache_root, content_key, folder_lock, library_versions, source_digest
 from flowins.data.sequence import Sequence
@@ -68,6 +78,11 @@ class DriveConfig:
     gravity_mps2: float = STANDARD_GRAVITY_MPS2
     #: constant biases, clipping and dropped rows of the IMU (none by default)
     imperfections: Imperfections = Imperfections()
+    #: the IMU turned from the car's axes (rad; module docstring)
+    imu_mount_pitch_rad: float = 0.0
+    imu_mount_yaw_rad: float = 0.0
+    #: the car's non-slipping point from the IMU along the car's forward, left and up axes (m)
+    imu_lever_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
         if not isinstance(self.imperfections, Imperfections):
@@ -101,10 +116,15 @@ def _wave_integral(t: Tensor, terms: tuple[tuple[float, float, float], ...]) -> 
 
 
 class Drive:
-    """Closed-form velocity and attitude of the drive, its position by quadrature; batched over times."""
+    """Closed-form velocity and attitude of the drive, its position by quadrature; batched over
+    times. ``quaternion``, ``rotation``, ``velocity`` and ``position`` are the IMU's; ``car_*``
+    the car's (its non-slipping point's)."""
 
     def __init__(self, config: DriveConfig = DriveConfig()):
         self.config = config
+        c = config
+        self._mounted = c.imu_mount_pitch_rad != 0.0 or c.imu_mount_yaw_rad != 0.0
+        self._lever = any(x != 0.0 for x in c.imu_lever_m)
 
     def speed(self, t: Tensor) -> Tensor:
         return self.config.mean_speed_mps + _waves(t, _SPEED)
@@ -116,22 +136,51 @@ class Drive:
         roll = self.config.roll_per_lateral_rad * lateral
         return roll, -grade, yaw  # body pitch is minus the grade (nose up climbing)
 
-    def quaternion(self, t: Tensor) -> Tensor:
-        """``(..., 4)`` body->world orientation."""
+    def car_quaternion(self, t: Tensor) -> Tensor:
+        """``(..., 4)`` car->world orientation."""
         return quat.from_euler(*self._angles(t))
+
+    def quaternion(self, t: Tensor) -> Tensor:
+        """``(..., 4)`` IMU->world orientation: the car's turned by the mounting."""
+        q = self.car_quaternion(t)
+        if not self._mounted:
+            return q
+        c = self.config
+        mount = quat.from_euler(*(torch.tensor(a, dtype=t.dtype) for a in (0.0, c.imu_mount_pitch_rad,
+                                                                            c.imu_mount_yaw_rad)))
+        return quat.multiply(q, mount.expand_as(q))
 
     def rotation(self, t: Tensor) -> Tensor:
         return quat.to_matrix(self.quaternion(t))
 
+    def _lever_world(self, t: Tensor) -> Tensor:
+        """``(..., 3)``: the non-slipping point from the IMU in the world frame, ``C_wc(t) r_c``."""
+        r = torch.tensor(self.config.imu_lever_m, dtype=t.dtype)
+        return (quat.to_matrix(self.car_quaternion(t)) @ r).reshape(*t.shape, 3)
+
     def velocity(self, t: Tensor) -> Tensor:
-        """``(..., 3)`` ENU velocity, m/s."""
+        """``(..., 3)`` ENU velocity of the IMU, m/s: the car's less the lever arm's turn."""
+        v = self.car_velocity(t)
+        if not self._lever:
+            return v
+        turn = vmap(jacfwd(self._lever_world))(t.reshape(-1))
+        return v - turn.reshape(*t.shape, 3)
+
+    def position(self, t: Tensor) -> Tensor:
+        """``(..., 3)`` ENU position of the IMU (the car's non-slipping point at ``t = 0`` is the origin)."""
+        p = self.car_position(t)
+        return p - self._lever_world(t) if self._lever else p
+
+    def car_velocity(self, t: Tensor) -> Tensor:
+        """``(..., 3)`` ENU velocity of the car's non-slipping point, m/s."""
         _, minus_grade, yaw = self._angles(t)
         grade = -minus_grade
         direction = torch.stack((torch.cos(grade) * torch.cos(yaw), torch.cos(grade) * torch.sin(yaw), torch.sin(grade)), -1)
         return self.speed(t).unsqueeze(-1) * direction
 
-    def position(self, t: Tensor) -> Tensor:
-        """``(..., 3)`` ENU position (origin at ``t = 0``): the velocity's integral."""
+    def car_position(self, t: Tensor) -> Tensor:
+        """``(..., 3)`` ENU position of the car's non-slipping point (origin at ``t = 0``): the
+        velocity's integral."""
         nodes, weights = np.polynomial.legendre.leggauss(8)
         nodes, weights = torch.tensor(nodes, dtype=t.dtype), torch.tensor(weights, dtype=t.dtype)
         flat = t.reshape(-1)
@@ -139,7 +188,7 @@ class Drive:
         breaks = torch.unique(torch.cat((torch.arange(0.0, top, 0.25, dtype=t.dtype), flat, flat.new_zeros(1))))
         a, b = breaks[:-1], breaks[1:]
         mid, half = 0.5 * (a + b), 0.5 * (b - a)
-        samples = self.velocity(mid[:, None] + half[:, None] * nodes)  # (pieces, 8, 3)
+        samples = self.car_velocity(mid[:, None] + half[:, None] * nodes)  # (pieces, 8, 3)
         pieces = half[:, None] * (weights[None, :, None] * samples).sum(1)
         at_breaks = torch.cat((breaks.new_zeros(1, 3), torch.cumsum(pieces, 0)))
         return at_breaks[torch.searchsorted(breaks, flat)].reshape(*t.shape, 3)
