@@ -7,6 +7,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import KW_ONLY, dataclass, field
+from functools import partial
 from typing import Any, Literal
 
 import torch
@@ -31,6 +32,7 @@ from flowins.measurements.registry import NavigationContext, registered_events
 from flowins.measurements.tracks import TrackUpdate, track_frames
 from flowins.measurements.vehicle import VehicleConstraint  # noqa: F401  (registers the kind "vehicle")
 from flowins.measurements.zero_velocity import ZeroVelocity
+from flowins.mounting_pass import fit_mountings
 from flowins.second_pass import smoother_tracks
 from flowins.state import STATE_DIM
 from flowins.start import Start, StartSettings, choose_start
@@ -105,6 +107,9 @@ class NavigationResult:
     #: what the smoother ran on where a second pass was tried (``filter.gnss_heading.second_pass``,
     #: :func:`~flowins.second_pass.smoother_tracks`): ``{"pass": "second" | "first", "reason": ...}``; None: the one pass
     smoother_pass: dict[str, Any] | None = None
+    #: the vehicle constraint's fitted mounting (``filter.measurements.vehicle.mounting=fit``,
+    #: :func:`~flowins.mounting_pass.fit_mountings`): what it found and whether it is used; None: not asked
+    vehicle_mounting: dict[str, Any] | None = None
 
     @property
     def gnss_accepted(self) -> Tensor | None:
@@ -279,6 +284,7 @@ def navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig = 
 
 def _navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig,
                     progress: bool) -> list[NavigationResult]:
+    runs, mountings = fit_mountings(runs, config, partial(_navigate_batch, progress=progress))
     setups = [prepare_navigation(run, config=config) for run in runs]
     inputs = []
     for run, setup in zip(runs, setups):
@@ -295,5 +301,5 @@ def _navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig,
                              gnss_t_s=None if run.gnss is None else run.gnss.t_s, gnss_enu_m=setup.gnss_enu_m,
                              gnss_h_acc_m=None if run.gnss is None else run.gnss.h_acc_m,
                              flow_pairs_outside=setup.flow_pairs_outside, start=setup.start,
-                             gnss_before_start=setup.gnss_before_start)
-            for run, setup, track, smoother, which in zip(runs, setups, tracks, smoothed, passes)]
+                             gnss_before_start=setup.gnss_before_start, vehicle_mounting=mounting)
+            for run, setup, track, smoother, which, mounting in zip(runs, setups, tracks, smoothed, passes, mountings)]

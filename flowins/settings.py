@@ -225,6 +225,11 @@ def train_settings(cfg: Mapping[str, Any]) -> TrainSettings:
         raise ValueError(f"trainer.accelerator={accelerator} (trainer=gpu): torch {torch.__version__} sees no CUDA GPU "
                          "here (torch.cuda.is_available() is False); use trainer=cpu, or install torch's CUDA build")
     check_filter_settings(cfg, recorded=settings.recorded)
+    vehicle = (cfg["filter"].get("measurements") or {}).get("vehicle") or {}
+    if vehicle.get("mounting") == "fit":
+        raise ValueError("filter.measurements.vehicle.mounting=fit: a first pass per run is evaluate.py's; train.py "
+                         "takes the mounting as given (filter.measurements.vehicle.mount_*_rad, lever_*_m) or learns "
+                         "it (model.learn: vehicle_mount_*_rad, vehicle_lever_*_m)")
     check_flow(cfg["flow"])
     return settings
 

@@ -13,7 +13,7 @@ import torch
 from flowins.flow.flownet2 import FlowNet2Provider, load_checkpoint
 from flowins.flow.spynet import spynet_state_dict
 from flowins.serialization import load_tensors
-from flowins.training.parameters import NAMES, FilterParameters
+from flowins.training.parameters import NAMES, SIGNED, FilterParameters
 
 
 class Payload:
@@ -35,7 +35,7 @@ def _malicious(tmp_path, name: str, wrap) -> tuple:
 
 
 def _parameters_checkpoint(payload) -> dict:
-    params = FilterParameters({n: 0.5 if n == "dropout_p" else 1.0 for n in NAMES})
+    params = FilterParameters({n: 0.5 if n == "dropout_p" else 0.0 if n in SIGNED else 1.0 for n in NAMES})
     return {"state_dict": {"params." + k: v for k, v in params.state_dict().items()}, "hyper_parameters": payload}
 
 

@@ -2,6 +2,7 @@
 statistics and the warnings a reader of the table must know (read from the run's log)."""
 from __future__ import annotations
 
+import math
 from collections.abc import Sized
 from typing import Any, Protocol
 
@@ -16,6 +17,7 @@ class RunLog(Protocol):
     gnss_before_start: int
     start: Any  # Start: t_s, as_dict()
     smoother_pass: dict[str, Any] | None
+    vehicle_mounting: dict[str, Any] | None
 
     @property
     def flow_log(self) -> list[dict]: ...
@@ -29,8 +31,8 @@ class RunLog(Protocol):
 
 def run_summary(result: RunLog) -> dict[str, Any]:
     """What the run did, for ``metrics.json``: GNSS fixes accepted, how it started, its
-    GNSS resets, fixes before the start, the heading alignment and which pass the smoother
-    ran on (each when present)."""
+    GNSS resets, fixes before the start, the heading alignment, which pass the smoother
+    ran on and the vehicle constraint's fitted mounting (each when present)."""
     out: dict[str, Any] = {}
     if result.gnss_accepted is not None:
         out["gnss_accepted"] = int(result.gnss_accepted.sum())
@@ -47,7 +49,19 @@ def run_summary(result: RunLog) -> dict[str, Any]:
         out["heading_alignment"] = heading  # filter.gnss_heading: when and how the heading was set (or given up)
     if result.smoother_pass is not None:
         out["smoother_pass"] = result.smoother_pass
+    if result.vehicle_mounting is not None:
+        out["vehicle_mounting"] = result.vehicle_mounting  # filter.measurements.vehicle.mounting=fit
     return out
+
+
+def mounting_line(record: dict[str, Any]) -> str:
+    """One line on the vehicle constraint's fitted mounting (``filter.measurements.vehicle.mounting=fit``)."""
+    if "mount_yaw_rad" not in record:
+        return f"vehicle mounting not fitted: {record['reason']}"
+    lever = ", ".join(f"{x:.2f}" for x in record["lever_m"])
+    return (f"vehicle mounting {'fitted' if record['used'] else 'fitted, not used'}: pitch "
+            f"{math.degrees(record['mount_pitch_rad']):.2f}°, yaw {math.degrees(record['mount_yaw_rad']):.2f}°, "
+            f"lever arm ({lever}) m; {record['reason']}")
 
 
 def flow_statistics(result: RunLog, pairs: Sized) -> dict[str, Any]:

@@ -36,7 +36,8 @@ from flowins.jobs.cli import console_logging
 from flowins.measurements.flow import FlowCamera
 from flowins.measurements.vehicle import VehicleSettings, platform_streams
 from flowins.batching import batch_workers
-from flowins.evaluation.run_report import flow_statistics, run_summary, run_warnings, track_statistics
+from flowins.evaluation.run_report import (flow_statistics, mounting_line, run_summary, run_warnings,
+                                           track_statistics)
 from flowins.navigation import NavigationConfig, NavigationResult, NavigationRun, navigate_batch
 from flowins.settings import evaluate_settings, filter_setup
 from flowins.state import STATE, STATE_DIM
@@ -228,6 +229,8 @@ def _score(name: str, cfg: Mapping[str, Any], recs: list[Recording], results: li
         for entry in m.get("heading_alignment", []):
             if entry["status"] == "never set":
                 log.info(f"  {'':<16} GNSS: {entry['fixes']} fixes held for the heading to the end: {entry['reason']}")
+        if mounting := m.get("vehicle_mounting"):
+            log.info(f"  {'':<16} {mounting_line(mounting)}")
         return Row(name, sources, m["filter_rmse_m"], m["smoother_rmse_m"], note, seconds=m["seconds"],
                    start=result.start.describe() if result.start is not None else ""), m
     seconds = seconds_per_run * len(recs)

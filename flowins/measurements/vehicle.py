@@ -75,6 +75,11 @@ class VehicleSettings:
     lever_forward_m: float | Tensor = bounded(0.0, above=-10.0, below=10.0)
     lever_left_m: float | Tensor = bounded(0.0, above=-10.0, below=10.0)
     lever_up_m: float | Tensor = bounded(0.0, above=-10.0, below=10.0)
+    #: given: the mounting and lever arm above; fit: estimated per run from a first pass without
+    #: the constraint (:func:`fit_mounting`, :mod:`flowins.mounting_pass`), used where it explains
+    #: the track (its residual falls to ``fit_max_residual`` of its start or less), the above otherwise
+    mounting: Literal["given", "fit"] = "given"
+    fit_max_residual: float = bounded(0.25, above=0.0, maximum=1.0)
 
     def __post_init__(self) -> None:
         check_fields(self)
@@ -113,7 +118,10 @@ def _zero(value: float | Tensor) -> bool:
 
 @dataclass(frozen=True)
 class VehicleConstraint:
-    """The stream that switches the constraint on for a run (it carries no data)."""
+    """The stream that switches the constraint on for a run; ``mounting``: the run's own fitted
+    mounting, which replaces the settings' (``mounting=fit``)."""
+
+    mounting: MountingFit | None = None
 
 
 def platform_streams(platform: str | None) -> dict[str, VehicleConstraint]:
@@ -209,6 +217,80 @@ def gyro_at(t_imu_s: Tensor, gyro_rps: Tensor, times_s: Tensor) -> Tensor:
     return gyro_rps[k.clamp(max=len(t_imu_s) - 1)]
 
 
+@dataclass(frozen=True)
+class MountingFit:
+    """:func:`fit_mounting`'s estimate: the settings' ``mount_*_rad`` and ``lever_*_m`` values."""
+
+    mount_pitch_rad: float
+    mount_yaw_rad: float
+    lever_m: tuple[float, float, float]
+    #: RMS of the constraint's residual (m/s) over the samples used, before and after the fit
+    rms_before_mps: float
+    rms_after_mps: float
+    #: samples used (those at or above the speed)
+    samples: int
+
+    @property
+    def explains(self) -> float:
+        """The residual's RMS after the fit as a part of its RMS before."""
+        return self.rms_after_mps / max(self.rms_before_mps, 1e-300)
+
+    def applied_to(self, settings: VehicleSettings) -> VehicleSettings:
+        """``settings`` with this mounting and lever arm."""
+        forward, left, up = self.lever_m
+        return dataclasses.replace(settings, mount_pitch_rad=self.mount_pitch_rad, mount_yaw_rad=self.mount_yaw_rad,
+                                   lever_forward_m=forward, lever_left_m=left, lever_up_m=up)
+
+    def as_dict(self) -> dict:
+        return {"mount_pitch_rad": self.mount_pitch_rad, "mount_yaw_rad": self.mount_yaw_rad,
+                "lever_m": list(self.lever_m), "residual_mps": [self.rms_before_mps, self.rms_after_mps],
+                "samples": self.samples}
+
+    def overrides(self) -> list[str]:
+        """The fit as ``filter.measurements.vehicle.*`` overrides."""
+        key = "filter.measurements.vehicle."
+        names = ("lever_forward_m", "lever_left_m", "lever_up_m")
+        return ([f"{key}mount_pitch_rad={self.mount_pitch_rad:.5f}", f"{key}mount_yaw_rad={self.mount_yaw_rad:.5f}"]
+                + [f"{key}{n}={x:.3f}" for n, x in zip(names, self.lever_m)])
+
+
+def fit_mounting(mean: Tensor, gyro_rps: Tensor, *, forward_axis: str = "x", up_axis: str = "z",
+                 min_speed_mps: float = 3.0, lever_prior_m: float = 2.0, iterations: int = 4) -> MountingFit:
+    """The IMU's mounting and the lever arm that best explain a track as a car's: Gauss–Newton
+    on the constraint's residual ``h`` (module docstring) over the states ``mean (N, D)`` (a
+    smoothed track of a run *without* the constraint, which would pull the track to its own
+    mounting) moving at ``min_speed_mps`` or faster, with their gyroscope readings
+    ``gyro_rps (N, 3)``. The lever arm has a zero-mean prior of ``lever_prior_m`` per axis: its
+    sideways and up parts show only in roll and pitch rates, which a car has little of.
+
+    The yaw shows in the sideways velocity (``ψ v_forward``), the pitch in the vertical one
+    (``-θ v_forward``), the lever arm's forward part in the sideways velocity of turns (``ω_z r``).
+    A track whose heading is off by ``δ`` gives a yaw off by ``δ``: the fit is as good as the
+    smoothed track's heading."""
+    moving = mean[..., STATE.v].norm(dim=-1) >= min_speed_mps
+    n = int(moving.sum())
+    if n < 10:
+        raise ValueError(f"fit_mounting: {n} samples at {min_speed_mps} m/s or faster; expected at least 10")
+    x, w = mean[moving].detach().to(torch.float64), gyro_rps[moving].detach().to(torch.float64)
+
+    def residual(p: Tensor) -> Tensor:
+        settings = VehicleSettings(forward_axis=forward_axis, up_axis=up_axis, mount_pitch_rad=p[0],
+                                   mount_yaw_rad=p[1], lever_forward_m=p[2], lever_left_m=p[3], lever_up_m=p[4])
+        h, _ = constraint_terms(x, w, settings.vehicle_from_imu(x), settings.lever_arm(x))
+        return torch.cat((h.reshape(-1), p[2:] / lever_prior_m))
+
+    p = torch.zeros(5, dtype=torch.float64)
+    before = residual(p)[:-3]
+    for _ in range(iterations):
+        J = torch.func.jacfwd(residual)(p)
+        step = torch.linalg.lstsq(J, -residual(p).unsqueeze(-1)).solution.squeeze(-1)
+        p = p + step
+        p[:2] = p[:2].clamp(-0.9 * MAX_MOUNT_RAD, 0.9 * MAX_MOUNT_RAD)
+    after = residual(p)[:-3]
+    rms = lambda r: float(r.pow(2).mean().sqrt())  # noqa: E731
+    return MountingFit(float(p[0]), float(p[1]), tuple(float(a) for a in p[2:]), rms(before), rms(after), n)
+
+
 def vehicle_events(stream: VehicleConstraint, settings: VehicleSettings, context: NavigationContext) -> list:
     """A :class:`VehicleUpdate` every ``1 / rate_hz`` s after the start (none with ``mode=off``)."""
     if settings.mode == "off":
@@ -216,6 +298,8 @@ def vehicle_events(stream: VehicleConstraint, settings: VehicleSettings, context
     if context.imu is None:
         raise ValueError("vehicle constraint: the run's context has no IMU (NavigationContext.imu); "
                          "its updates need the gyroscope's readings")
+    if stream.mounting is not None:
+        settings = stream.mounting.applied_to(settings)
     step = 1.0 / settings.rate_hz
     times = torch.arange(context.t_start_s + step, context.t_end_s + 1e-9, step, dtype=torch.float64)
     gyro = gyro_at(context.imu.t_s, context.imu.gyro_rps, times)

@@ -271,3 +271,56 @@ def test_from_next_to_nothing_the_constraint_sigmas_learn_down_on_a_car():
         at_one = late_outage_error(torch.tensor(0.0, dtype=F64))
     assert float(grad) > 0.0, float(grad)
     assert float(at_one) < float(at_start.detach()), (float(at_one), float(at_start.detach()))
+
+
+def test_the_mounting_fit_finds_an_imu_mounted_off_the_cars_axes_from_the_smoothed_track():
+    """A 300 s drive whose IMU is turned 2° (pitch) and 3° (yaw) from the car's axes, 1 m ahead of
+    its non-slipping point: fitted on the smoothed track of a run without the constraint, the
+    mounting comes within 0.5° of the truth and the lever arm's forward part within 0.3 m, and
+    the constraint's residual falls to a fifth."""
+    from flowins.measurements.vehicle import fit_mounting
+
+    config = DriveConfig(duration_s=300.0, outage_s=0.0, imu_mount_pitch_rad=math.radians(2.0),
+                         imu_mount_yaw_rad=math.radians(3.0), imu_lever_m=(-1.0, 0.0, 0.0))
+    seq = drive_sequence(config)[0]
+    e = AUTOMOTIVE_IMU
+    noise = ProcessNoise(acc_noise=e.acc_noise, gyro_noise=e.gyro_noise, acc_bias_walk=e.acc_bias_walk,
+                         gyro_bias_walk=e.gyro_bias_walk)
+    smoothed = navigate(NavigationRun(seq.imu, seq.gnss), config=NavigationConfig(noise=noise)).smoother
+    gyro = gyro_at(seq.imu.t_s, seq.imu.gyro_rps, torch.as_tensor(smoothed.t_s, dtype=F64))
+    fit = fit_mounting(smoothed.node_mean, gyro)
+    assert abs(math.degrees(fit.mount_pitch_rad) - 2.0) < 0.5 and abs(math.degrees(fit.mount_yaw_rad) - 3.0) < 0.5, fit
+    assert abs(fit.lever_m[0] + 1.0) < 0.3, fit
+    assert fit.rms_after_mps < 0.2 * fit.rms_before_mps and fit.samples > 1000
+    assert "filter.measurements.vehicle.mount_yaw_rad=0.05" in " ".join(fit.overrides())
+    with pytest.raises(ValueError, match="0 samples at 100.0 m/s or faster"):
+        fit_mounting(smoothed.node_mean, gyro, min_speed_mps=100.0)
+
+
+@pytest.mark.slow
+def test_mounting_fit_runs_a_first_pass_and_uses_the_fit_where_it_explains_the_track():
+    """``mounting=fit``: the run's mounting comes from a first pass without the constraint, and
+    the run equals one given those values; where the fit must explain more than it can
+    (``fit_max_residual``) the configured mounting stays, and the record says why."""
+    config = DriveConfig(duration_s=300.0, outage_s=0.0, imu_mount_pitch_rad=math.radians(2.0),
+                         imu_mount_yaw_rad=math.radians(3.0), imu_lever_m=(-1.0, 0.0, 0.0))
+    seq = drive_sequence(config)[0]
+    e = AUTOMOTIVE_IMU
+    noise = ProcessNoise(acc_noise=e.acc_noise, gyro_noise=e.gyro_noise, acc_bias_walk=e.acc_bias_walk,
+                         gyro_bias_walk=e.gyro_bias_walk)
+    run = NavigationRun(seq.imu, seq.gnss)
+    fitted = navigate(run, config=NavigationConfig(noise=noise, measurements={
+        "vehicle": VehicleSettings(mode="on", mounting="fit")}))
+    record = fitted.vehicle_mounting
+    assert record["used"] and record["residual_mps"][1] < 0.25 * record["residual_mps"][0], record
+    assert abs(math.degrees(record["mount_yaw_rad"]) - 3.0) < 0.5, record
+    lever = dict(zip(("lever_forward_m", "lever_left_m", "lever_up_m"), record["lever_m"]))
+    given = navigate(run, config=NavigationConfig(noise=noise, measurements={"vehicle": VehicleSettings(
+        mode="on", mount_pitch_rad=record["mount_pitch_rad"], mount_yaw_rad=record["mount_yaw_rad"], **lever)}))
+    torch.testing.assert_close(fitted.filter.node_mean, given.filter.node_mean, rtol=0, atol=1e-9)
+    assert given.vehicle_mounting is None
+    strict = navigate(run, config=NavigationConfig(noise=noise, measurements={
+        "vehicle": VehicleSettings(mode="on", mounting="fit", fit_max_residual=0.01)}))
+    assert not strict.vehicle_mounting["used"] and "fit_max_residual=0.01" in strict.vehicle_mounting["reason"]
+    plain = navigate(run, config=NavigationConfig(noise=noise, measurements={"vehicle": VehicleSettings(mode="on")}))
+    torch.testing.assert_close(strict.filter.node_mean, plain.filter.node_mean, rtol=0, atol=1e-9)

@@ -6,7 +6,7 @@ import pytest
 
 from flowins.navigation import NavigationConfig
 from flowins.training.module import FilterLearner, heldout_table, selection_table
-from flowins.training.parameters import NAMES, FilterParameters
+from flowins.training.parameters import NAMES, SIGNED, FilterParameters
 
 
 def _entry(label, score, raw):
@@ -14,7 +14,7 @@ def _entry(label, score, raw):
 
 
 def test_select_best_loads_the_lowest_validation_and_prefers_the_earliest_on_a_tie():
-    params = FilterParameters({n: 0.3 if n == "dropout_p" else 0.5 + i for i, n in enumerate(NAMES)})
+    params = FilterParameters({n: 0.3 if n == "dropout_p" else 0.01 * i if n in SIGNED else 0.5 + i for i, n in enumerate(NAMES)})
     learner = FilterLearner(params, NavigationConfig(), methods=["ins_gnss"])
     with pytest.raises(ValueError, match="no validation"):
         learner.select_best()
@@ -38,7 +38,7 @@ def _long(entry, rmse):
 
 
 def test_select_best_chooses_on_the_select_sequences_not_on_the_val_score():
-    params = FilterParameters({n: 0.3 if n == "dropout_p" else 0.5 + i for i, n in enumerate(NAMES)})
+    params = FilterParameters({n: 0.3 if n == "dropout_p" else 0.01 * i if n in SIGNED else 0.5 + i for i, n in enumerate(NAMES)})
     learner = FilterLearner(params, NavigationConfig(), methods=["ins_gnss"])
     start = {n: float(params.raw[n].detach()) for n in NAMES}
     moved = {n: v + 0.5 for n, v in start.items()}

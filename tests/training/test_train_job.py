@@ -144,6 +144,16 @@ def test_a_training_recording_with_an_impossible_reading_is_refused(tmp_path):
         run(cfg)  # the recordings are read, then checked against the preset the job resolves
 
 
+
+def test_a_mounting_fit_is_refused_by_training_naming_what_it_takes_instead(tmp_path):
+    """``mounting=fit`` runs a first pass per run in ``evaluate.py``; training's windows have none,
+    so the job stops before it reads anything rather than train with the mounting as configured."""
+    cfg = _cfg(tmp_path, *TINY, "methods=[ins_gnss]", "filter.measurements.vehicle.mode=on",
+               "filter.measurements.vehicle.mounting=fit")
+    with pytest.raises(ValueError, match=r"mounting=fit: .*\(model\.learn: vehicle_mount_\*_rad"):
+        run(cfg)
+
+
 #: INS + GNSS with every fix applied as it comes: no flow to compute, a run in seconds
 GNSS = ["methods=[ins_gnss]", "filter.gnss_heading.enabled=false", "data.train=[{seed: 1, duration_s: 20.0}]",
         "data.val=[{seed: 3, duration_s: 20.0}]", "window_s=10.0", "curriculum_window_s=[]", "trainer.max_epochs=1"]

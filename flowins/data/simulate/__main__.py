@@ -4,6 +4,7 @@ a car drive that moves from the first sample with a GNSS outage in the middle.""
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from dataclasses import replace
@@ -37,11 +38,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--motion-blur", action="store_true")
     parser.add_argument("--exposure-changes", action="store_true")
     parser.add_argument("--overwrite", action="store_true", help="replace a folder holding something else")
+    parser.add_argument("--mount-deg", type=float, nargs=2, default=(0.0, 0.0), metavar=("PITCH", "YAW"),
+                        help="drive: the IMU turned from the car's axes (degrees; its forward axis down, left)")
+    parser.add_argument("--lever", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("FORWARD", "LEFT", "UP"),
+                        help="drive: the car's non-slipping point (rear axle's middle) from the IMU, car axes (m)")
     args = parser.parse_args(argv)
     try:
         start = time.perf_counter()
         if args.scenario == "drive":
-            config = DriveConfig(duration_s=args.duration, seed=args.seed, outage_s=args.outage)
+            pitch, yaw = (math.radians(a) for a in args.mount_deg)
+            config = DriveConfig(duration_s=args.duration, seed=args.seed, outage_s=args.outage,
+                                 imu_mount_pitch_rad=pitch, imu_mount_yaw_rad=yaw, imu_lever_m=tuple(args.lever))
             sequence = simulate_drive(args.out, config, overwrite=args.overwrite)
         else:
             config = _config(args)
