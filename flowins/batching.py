@@ -39,7 +39,7 @@ log = logging.getLogger(__name__)
 
 def carries_gradient(*objects) -> bool:
     """Whether grad mode is on and any tensor in ``objects`` (searched through dataclasses,
-    named tuples, lists, tuples and mappings) requires a gradient."""
+    named tuples, lists, tuples, mappings and modules' parameters) requires a gradient."""
     if not torch.is_grad_enabled():
         return False
     seen: set[int] = set()
@@ -51,6 +51,9 @@ def carries_gradient(*objects) -> bool:
                 return True
         elif isinstance(obj, (str, bytes, int, float, bool, type(None), torch.dtype, torch.device)) or id(obj) in seen:
             continue
+        elif isinstance(obj, torch.nn.Module):  # a learned network (adaptive noise)
+            seen.add(id(obj))
+            stack.extend(obj.parameters())
         elif dataclasses.is_dataclass(obj):
             seen.add(id(obj))
             stack.extend(getattr(obj, f.name) for f in dataclasses.fields(obj))

@@ -385,6 +385,9 @@ def filter_setup(cfg: Mapping[str, Any], recordings: Sequence[SensorRecording], 
     params = FilterParameters.from_checkpoint(checkpoint)
     learned = params.values()
     log.info(f"learned parameters from {checkpoint}: " + ", ".join(f"{k}={v:.4g}" for k, v in learned.items()))
+    for kind, network in params.adaptive.items():
+        log.info(f"adaptive noise from {checkpoint}: the {kind} σs set at each update by a learned network over the "
+                 f"IMU's last second ({sum(p.numel() for p in network.parameters())} weights)")
     return FilterSetup(imu, params.apply(navigation, training=False),
                        flow_config(cfg, moments=moments, dropout_p=learned["dropout_p"]), learned)
 

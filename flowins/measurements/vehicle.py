@@ -35,7 +35,7 @@ from __future__ import annotations
 from collections.abc import Hashable, Sequence
 import dataclasses
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import torch
 from torch import Tensor
@@ -45,6 +45,7 @@ from flowins.constants import cached_constant, scalar_like
 from flowins.filter.chain import BatchChain, RowBatchEvent
 from flowins.filter.updater import update_rows
 from flowins.geometry import quaternion as quat
+from flowins.measurements.adaptive_noise import imu_windows
 from flowins.measurements.registry import MeasurementKind, NavigationContext, register
 from flowins.state import STATE
 
@@ -80,6 +81,10 @@ class VehicleSettings:
     #: the track (its residual falls to ``fit_max_residual`` of its start or less), the above otherwise
     mounting: Literal["given", "fit"] = "given"
     fit_max_residual: float = bounded(0.25, above=0.0, maximum=1.0)
+    #: not a config key: the learned network that scales both σs at each update from the IMU's
+    #: recent readings (:class:`~flowins.measurements.adaptive_noise.AdaptiveNoise`, two outputs),
+    #: set from a checkpoint or while training (``model.adaptive=[vehicle]``); None: constant σs
+    noise_model: Any = None
 
     def __post_init__(self) -> None:
         check_fields(self)
@@ -165,6 +170,8 @@ class VehicleUpdate(RowBatchEvent):
     settings: VehicleSettings
     gyro_rps: Tensor
     name: str = "vehicle constraint"
+    #: ``(2,)`` factors on the σs from the settings' ``noise_model``; None: the σs as they are
+    sigma_scale: Tensor | None = None
 
     def batch_key(self) -> Hashable:
         """Updates with the same settings (one run's, or one config's for a batch) act together."""
@@ -177,7 +184,11 @@ class VehicleUpdate(RowBatchEvent):
         if all(u.gyro_rps.dtype == like.dtype and u.gyro_rps.device == like.device for u in updates):
             return list(updates)
         gyro = torch.stack([u.gyro_rps for u in updates]).to(like)
-        return [dataclasses.replace(u, gyro_rps=gyro[i]) for i, u in enumerate(updates)]
+        scaled = [i for i, u in enumerate(updates) if u.sigma_scale is not None]
+        scale = torch.stack([updates[i].sigma_scale for i in scaled]).to(like) if scaled else None
+        where = {i: j for j, i in enumerate(scaled)}
+        return [dataclasses.replace(u, gyro_rps=gyro[i], sigma_scale=None if i not in where else scale[where[i]])
+                for i, u in enumerate(updates)]
 
     @classmethod
     def apply_batch(cls, chain: BatchChain, rows: Sequence[int], events: Sequence[VehicleUpdate]) -> None:
@@ -188,8 +199,11 @@ class VehicleUpdate(RowBatchEvent):
         gyro = torch.stack([e.gyro_rps for e in events]).to(mean)
         h, H = constraint_terms(mean, gyro, settings.vehicle_from_imu(mean), settings.lever_arm(mean))
         sigma = torch.stack([scalar_like(s, mean) for s in (settings.lateral_sigma_mps, settings.vertical_sigma_mps)])
+        sigma = sigma.expand(r, 2)
+        if events[0].sigma_scale is not None:  # one settings: all of them scaled, or none
+            sigma = sigma * torch.stack([e.sigma_scale for e in events]).to(mean)
         update_rows(chain, rows, H=H.unsqueeze(1), residual=-h.unsqueeze(1),
-                    noise_cov=torch.diag_embed(sigma**2).expand(r, 1, 2, 2), likelihood=False,
+                    noise_cov=torch.diag_embed(sigma**2).unsqueeze(1), likelihood=False,
                     infos=[{"kind": "vehicle", "name": e.name} for e in events])
 
 
@@ -303,7 +317,11 @@ def vehicle_events(stream: VehicleConstraint, settings: VehicleSettings, context
     step = 1.0 / settings.rate_hz
     times = torch.arange(context.t_start_s + step, context.t_end_s + 1e-9, step, dtype=torch.float64)
     gyro = gyro_at(context.imu.t_s, context.imu.gyro_rps, times)
-    return [VehicleUpdate(t, settings, gyro[i]) for i, t in enumerate(times.tolist())]
+    scale = [None] * len(times)
+    if settings.noise_model is not None and len(times):
+        imu = context.imu
+        scale = settings.noise_model(imu_windows(imu.t_s, imu.acc_mps2, imu.gyro_rps, times))
+    return [VehicleUpdate(t, settings, gyro[i], sigma_scale=scale[i]) for i, t in enumerate(times.tolist())]
 
 
 register(MeasurementKind("vehicle", VehicleSettings, vehicle_events, default_stream=VehicleConstraint))

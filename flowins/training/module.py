@@ -112,6 +112,8 @@ class FilterLearner(pl.LightningModule):
         #: "raw" {name: the optimiser's coordinate}, "values" {name: value}},
         #: with ``data.select`` also "select_rmse_m" {method: [RMSE of each select sequence]} and "select_score"
         self.history: list[dict] = []
+        #: each validation's adaptive noise weights by its label (restored with its ``raw``)
+        self._adaptive_states: dict[str, dict] = {}
         self._val: dict[str, list[float]] = {}
         self._first_validation: float | None = None  # time.monotonic() of the first, for the log lines
         self._heldout: dict[str, dict[str, list[float]]] = {}
@@ -141,6 +143,7 @@ class FilterLearner(pl.LightningModule):
         window = window_length(self.current_epoch, window_s=self.window_s, curriculum=self.curriculum)
         bounds = [window_bounds(seq.imu.t_s, window) for seq in seqs]
         named = [(n, q) for n, q in self.params.raw.items() if q.requires_grad]
+        named += [(f"adaptive.{n}", q) for n, q in self.params.adaptive.named_parameters() if q.requires_grad]
         learned = [q for _, q in named]
         from_likelihood = [n in self.innovation_learns for n, _ in named]
         level = [n in self.level_names for n, _ in named] if self.level_names else None
@@ -348,6 +351,8 @@ class FilterLearner(pl.LightningModule):
             entry["select_score"] = _mean_score(select)
             self.log("select/rmse_mean_m", entry["select_score"], batch_size=1, sync_dist=True)
         self.history.append(entry)
+        if len(self.params.adaptive):
+            self._adaptive_states[entry["label"]] = self.params.adaptive_state()
         now = time.monotonic()
         self._first_validation = self._first_validation or now
         if self.trainer.is_global_zero:  # one line per validation, also where no progress bar is shown
@@ -368,6 +373,8 @@ class FilterLearner(pl.LightningModule):
         with torch.no_grad():
             for name, value in best["raw"].items():
                 self.params.raw[name].fill_(value)
+        for kind, weights in self._adaptive_states.get(best["label"], {}).items():
+            self.params.adaptive[kind].load_state_dict(weights)
         return best
 
     def _candidates(self) -> dict[str, FilterParameters]:

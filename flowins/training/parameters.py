@@ -75,6 +75,7 @@ from torch import Tensor, nn
 from flowins.config import bounded
 from flowins.filter.ekf import Gate
 from flowins.ins.initialization import InitialUncertainty
+from flowins.measurements.adaptive_noise import AdaptiveNoise
 from flowins.measurements.vehicle import VehicleSettings
 from flowins.navigation import NavigationConfig
 from flowins.serialization import load_tensors
@@ -119,6 +120,8 @@ ADDED_NAMES: frozenset[str] = frozenset({"vehicle_lateral_sigma_mps", "vehicle_v
                                          "tracks_gate_scale", "tracks_gate_softness", "vehicle_mount_pitch_rad",
                                          "vehicle_mount_yaw_rad", "vehicle_lever_forward_m", "vehicle_lever_left_m",
                                          "vehicle_lever_up_m"})
+#: the measurement kinds whose σs a learned network may set (``model.adaptive``): kind -> its σs
+ADAPTIVE_KINDS: dict[str, int] = {"vehicle": 2}
 #: signed parameters: name -> (step u per unit of the coordinate, largest magnitude W), in the
 #: parameter's units (the module docstring); W stays inside VehicleSettings' own limits
 SIGNED: dict[str, tuple[float, float]] = {
@@ -180,6 +183,9 @@ class ModelSettings:
         bounds: ``bound_decades`` replaced for these names (a number > 0, or None); for those
             of :data:`SIGNED` their largest magnitude in their units (None or left out:
             :data:`SIGNED`'s).
+        adaptive: measurement kinds whose σs a learned network sets at each update
+            (:data:`ADAPTIVE_KINDS`; :class:`~flowins.measurements.adaptive_noise.AdaptiveNoise`).
+        adaptive_decades: each of its factors within ``10^±adaptive_decades`` of the σ.
         checkpoint: a ``train.py`` checkpoint whose learned values the filter uses.
     """
 
@@ -201,9 +207,13 @@ class ModelSettings:
     freeze: tuple[str, ...] = ()
     bound_decades: float | None = bounded(DEFAULT_BOUND_DECADES, minimum=1e-12)
     bounds: dict[str, float | None] = bounded({})
+    adaptive: tuple[str, ...] = ()
+    adaptive_decades: float = bounded(1.0, above=0.0)
     checkpoint: str | None = None
 
     def __post_init__(self) -> None:
+        if unknown := sorted(set(self.adaptive) - set(ADAPTIVE_KINDS)):
+            raise ValueError(f"model.adaptive: {unknown}; expected kinds from {list(ADAPTIVE_KINDS)}")
         for name, value in self.start.items():
             if name not in NAMES:
                 raise ValueError(f"model.start.{name}: unknown parameter; expected names from {', '.join(NAMES)}")
@@ -357,17 +367,27 @@ class FilterParameters(nn.Module):
             :meth:`ModelSettings.parameter_bounds`); names left out take
             :data:`DEFAULT_BOUND_DECADES`.
         ceilings: absolute ceilings by name (default :data:`CEILINGS`; ``{}``: none).
+        adaptive: the measurement kinds whose σs a learned network sets at each update
+            (:data:`ADAPTIVE_KINDS`; :class:`~flowins.measurements.adaptive_noise.AdaptiveNoise`),
+            within ``adaptive_decades`` of the σs above; learned unless ``learn_adaptive`` is False.
 
     Attributes:
         raw: the coordinates ``a``, one 0-dim float64 ``nn.Parameter`` each (0 at the start).
         center, bound, ceiling: the starts, the bounds (decades, ``inf`` for none) and the
             ceilings (``inf`` for none), as buffers.
+        adaptive: the networks by kind (an ``nn.ModuleDict``, empty without them).
     """
 
     def __init__(self, start: Mapping[str, float], learn: Iterable[str] | None = None, *,
                  bounds: Mapping[str, float | None] | None = None,
-                 ceilings: Mapping[str, float] | None = None) -> None:
+                 ceilings: Mapping[str, float] | None = None, adaptive: Iterable[str] = (),
+                 adaptive_decades: float = 1.0, learn_adaptive: bool = True) -> None:
         super().__init__()
+        if unknown := sorted(set(adaptive) - set(ADAPTIVE_KINDS)):
+            raise ValueError(f"FilterParameters: adaptive noise for {unknown}; expected kinds from {list(ADAPTIVE_KINDS)}")
+        self.adaptive = nn.ModuleDict({kind: AdaptiveNoise(ADAPTIVE_KINDS[kind], decades=adaptive_decades)
+                                       for kind in sorted(set(adaptive))})
+        self.adaptive.requires_grad_(learn_adaptive)
         bounds = dict(bounds or {})
         missing = [n for n in NAMES if n not in start]
         unknown = [n for n in start if n not in _FIELDS]
@@ -441,7 +461,8 @@ class FilterParameters(nn.Module):
 
         flow = replace(config.flow_update, sigma_scale=v["flow_sigma_scale"], sigma_floor_px=v["flow_sigma_floor_px"],
                        sigma_p0=v["sigma_p0"], sigma_q0=v["sigma_q0"], gate=gate("flow", config.flow_update.gate))
-        vehicle = replace(_vehicle(config), **{f: v[n] for n, (w, f) in _FIELDS.items() if w == "vehicle"})
+        vehicle = replace(_vehicle(config), **{f: v[n] for n, (w, f) in _FIELDS.items() if w == "vehicle"},
+                          noise_model=self.adaptive["vehicle"] if "vehicle" in self.adaptive else None)
         return replace(config, noise=noise, initial=initial, gnss_noise_scale=v["gnss_noise_scale"],
                        device=config.device if device is None else device,
                        gnss_gate=gate("gnss", config.gnss_gate), flow_update=flow,
@@ -460,6 +481,12 @@ class FilterParameters(nn.Module):
         if not isinstance(state, dict):
             raise ValueError(f"model.checkpoint: {path} is not a train.py checkpoint (no state_dict); expected {expected}")
         found: dict[str, dict[str, object]] = {"raw": {}, "center": {}, "bound": {}, "ceiling": {}}
+        networks: dict[str, dict[str, Tensor]] = {}  # "params.adaptive.vehicle.head.bias": kind "vehicle"
+        for key, tensor in state.items():
+            parts = str(key).split(".")
+            if "adaptive" in parts[:-2] and isinstance(tensor, Tensor):
+                at = parts.index("adaptive")
+                networks.setdefault(parts[at + 1], {})[".".join(parts[at + 2:])] = tensor
         for key, tensor in state.items():  # "params.raw.acc_noise": kind "raw", name "acc_noise"
             *_, kind, name = ("." + str(key)).split(".")
             if kind in found and name in _FIELDS:
@@ -492,6 +519,9 @@ class FilterParameters(nn.Module):
                              "(stored in log space; -inf stands for 0)")
         if not layouts:
             return cls.from_raw({n: raw[n].reshape(()) for n in NAMES})
+        if unknown := sorted(set(networks) - set(ADAPTIVE_KINDS)):
+            raise ValueError(f"model.checkpoint: {path}: adaptive noise for {unknown}; expected kinds from "
+                             f"{list(ADAPTIVE_KINDS)}")
         center, bound = found["center"], found["bound"]
         bad = [f"center.{n}" for n in NAMES if not plausible(center[n], low=-math.inf if n in SIGNED else 0.0)
                or not math.isfinite(float(center[n]))]
@@ -504,10 +534,17 @@ class FilterParameters(nn.Module):
         ceiling = {n: float(found["ceiling"][n]) for n in NAMES if _plain_number(found["ceiling"].get(n))}
         module = cls({n: float(center[n]) for n in NAMES}, learn=(),
                      bounds={n: None if math.isinf(float(bound[n])) else float(bound[n]) for n in NAMES},
-                     ceilings=ceiling)
+                     ceilings=ceiling, adaptive=networks, learn_adaptive=False)
         with torch.no_grad():
             for n in NAMES:
                 module.raw[n].copy_(raw[n].reshape(()))
+        for kind, weights in networks.items():
+            try:
+                module.adaptive[kind].load_state_dict(weights)
+            except RuntimeError as error:  # a layout this code does not build
+                first = str(error).strip().splitlines()[0]
+                raise ValueError(f"model.checkpoint: {path}: the adaptive noise network for {kind} does not load: "
+                                 f"{first}") from None
         return module
 
     @classmethod
@@ -520,6 +557,10 @@ class FilterParameters(nn.Module):
             x = torch.as_tensor(raw[n], dtype=torch.float64)
             values[n] = float(x if n in SIGNED else torch.sigmoid(x) if n == "dropout_p" else torch.exp(x))
         return cls(values, learn=(), bounds={n: SIGNED[n][1] if n in SIGNED else None for n in NAMES}, ceilings={})
+
+    def adaptive_state(self) -> dict[str, dict[str, Tensor]]:
+        """A copy of each network's weights by kind (what a validation records to restore)."""
+        return {k: {n: t.detach().clone() for n, t in m.state_dict().items()} for k, m in self.adaptive.items()}
 
     def extra_repr(self) -> str:
         return ", ".join(f"{n}={v:.4g}" for n, v in self.values().items())

@@ -273,6 +273,19 @@ def test_from_next_to_nothing_the_constraint_sigmas_learn_down_on_a_car():
     assert float(at_one) < float(at_start.detach()), (float(at_one), float(at_start.detach()))
 
 
+@lru_cache(maxsize=1)
+def mounted_drive():
+    """300 s of a car whose IMU is turned 2° (pitch) and 3° (yaw), 1 m ahead of the non-slipping point."""
+    return drive_sequence(DriveConfig(duration_s=300.0, outage_s=0.0, imu_mount_pitch_rad=math.radians(2.0),
+                                      imu_mount_yaw_rad=math.radians(3.0), imu_lever_m=(-1.0, 0.0, 0.0)))[0]
+
+
+def automotive_noise() -> ProcessNoise:
+    e = AUTOMOTIVE_IMU
+    return ProcessNoise(acc_noise=e.acc_noise, gyro_noise=e.gyro_noise, acc_bias_walk=e.acc_bias_walk,
+                        gyro_bias_walk=e.gyro_bias_walk)
+
+
 def test_the_mounting_fit_finds_an_imu_mounted_off_the_cars_axes_from_the_smoothed_track():
     """A 300 s drive whose IMU is turned 2° (pitch) and 3° (yaw) from the car's axes, 1 m ahead of
     its non-slipping point: fitted on the smoothed track of a run without the constraint, the
@@ -280,12 +293,7 @@ def test_the_mounting_fit_finds_an_imu_mounted_off_the_cars_axes_from_the_smooth
     the constraint's residual falls to a fifth."""
     from flowins.measurements.vehicle import fit_mounting
 
-    config = DriveConfig(duration_s=300.0, outage_s=0.0, imu_mount_pitch_rad=math.radians(2.0),
-                         imu_mount_yaw_rad=math.radians(3.0), imu_lever_m=(-1.0, 0.0, 0.0))
-    seq = drive_sequence(config)[0]
-    e = AUTOMOTIVE_IMU
-    noise = ProcessNoise(acc_noise=e.acc_noise, gyro_noise=e.gyro_noise, acc_bias_walk=e.acc_bias_walk,
-                         gyro_bias_walk=e.gyro_bias_walk)
+    seq, noise = mounted_drive(), automotive_noise()
     smoothed = navigate(NavigationRun(seq.imu, seq.gnss), config=NavigationConfig(noise=noise)).smoother
     gyro = gyro_at(seq.imu.t_s, seq.imu.gyro_rps, torch.as_tensor(smoothed.t_s, dtype=F64))
     fit = fit_mounting(smoothed.node_mean, gyro)
@@ -302,12 +310,7 @@ def test_mounting_fit_runs_a_first_pass_and_uses_the_fit_where_it_explains_the_t
     """``mounting=fit``: the run's mounting comes from a first pass without the constraint, and
     the run equals one given those values; where the fit must explain more than it can
     (``fit_max_residual``) the configured mounting stays, and the record says why."""
-    config = DriveConfig(duration_s=300.0, outage_s=0.0, imu_mount_pitch_rad=math.radians(2.0),
-                         imu_mount_yaw_rad=math.radians(3.0), imu_lever_m=(-1.0, 0.0, 0.0))
-    seq = drive_sequence(config)[0]
-    e = AUTOMOTIVE_IMU
-    noise = ProcessNoise(acc_noise=e.acc_noise, gyro_noise=e.gyro_noise, acc_bias_walk=e.acc_bias_walk,
-                         gyro_bias_walk=e.gyro_bias_walk)
+    seq, noise = mounted_drive(), automotive_noise()
     run = NavigationRun(seq.imu, seq.gnss)
     fitted = navigate(run, config=NavigationConfig(noise=noise, measurements={
         "vehicle": VehicleSettings(mode="on", mounting="fit")}))

@@ -274,3 +274,15 @@ def test_a_gpu_run_with_few_rows_per_step_is_told_and_others_are_not():
     assert few_rows_note("cuda", GPU_ROWS // 2, 2) is None  # batch_size times methods
     assert few_rows_note("cpu", 1, 1) is None  # a CPU run is not told
     assert "1 filter row per step" in few_rows_note("cuda", 1, 1)
+
+
+@pytest.mark.slow
+def test_training_moves_the_adaptive_noise_network_and_its_checkpoint_keeps_it(workdir):
+    """``model.adaptive=[vehicle]``: the optimiser steps the network's weights with the other
+    parameters (its head starts at zero: the constant σs), and the checkpoint holds them."""
+    cfg = _cfg(workdir / "adaptive", *GNSS, "filter.measurements.vehicle.mode=on", "model.adaptive=[vehicle]",
+               "model.learn=[acc_noise, vehicle_lateral_sigma_mps]")
+    run(cfg)
+    params = FilterParameters.from_checkpoint(Path(cfg["output_dir"]) / "checkpoints" / "last.ckpt")
+    head = params.adaptive["vehicle"].head
+    assert head.bias.abs().max() > 1e-3 and head.weight.abs().max() > 1e-3

@@ -1,0 +1,107 @@
+"""Adaptive noise: the IMU windows, the bounded factors, the gradient through the filter and a checkpoint."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from flowins.data.simulate.drive import AUTOMOTIVE_IMU, DriveConfig, drive_sequence
+from flowins.ins.mechanization import ProcessNoise
+from flowins.measurements.adaptive_noise import AdaptiveNoise, imu_windows
+from flowins.measurements.vehicle import VehicleSettings
+from flowins.navigation import NavigationConfig, NavigationRun, navigate
+from flowins.state import STATE
+
+F64 = torch.float64
+
+
+def test_a_window_holds_the_samples_up_to_the_one_that_covers_its_time():
+    t = torch.arange(10, dtype=F64) * 0.1
+    gyro = torch.arange(30, dtype=F64).reshape(10, 3)
+    acc = -gyro
+    w = imu_windows(t, acc, gyro, torch.tensor([0.25, 0.05], dtype=F64), samples=4)
+    assert w.shape == (2, 6, 4)
+    assert w[0, 0].tolist() == [0.0, 3.0, 6.0, 9.0]  # samples 0..3; sample 3 covers (0.2, 0.3]
+    assert w[1, 0].tolist() == [0.0, 0.0, 0.0, 3.0]  # before the first sample it repeats
+    assert torch.allclose(w[0, 3:], -w[0, :3] / 9.80665)
+
+
+def test_the_factors_start_at_one_and_stay_within_their_decades():
+    net = AdaptiveNoise(decades=0.5)
+    windows = torch.randn(7, 6, 100, dtype=F64, generator=torch.Generator().manual_seed(0))
+    assert torch.equal(net(windows), torch.ones(7, 2, dtype=F64))
+    with torch.no_grad():
+        for p in net.parameters():
+            p.normal_(0.0, 30.0, generator=torch.Generator().manual_seed(1))
+    s = net(windows)
+    assert s.min() >= 10 ** -0.5 * (1 - 1e-12) and s.max() <= 10 ** 0.5 * (1 + 1e-12) and s.std() > 0.1
+
+
+@pytest.fixture(scope="module")
+def short_drive():
+    return drive_sequence(DriveConfig(duration_s=20.0, outage_s=0.0))[0]
+
+
+def _loss(seq, net: AdaptiveNoise) -> torch.Tensor:
+    e = AUTOMOTIVE_IMU
+    noise = ProcessNoise(acc_noise=e.acc_noise, gyro_noise=e.gyro_noise)
+    settings = VehicleSettings(mode="on", rate_hz=5.0, lateral_sigma_mps=0.3, noise_model=net)
+    result = navigate(NavigationRun(seq.imu, seq.gnss), config=NavigationConfig(noise=noise,
+                                                                                 measurements={"vehicle": settings}))
+    return result.filter.node_mean[-1, STATE.v].pow(2).sum()
+
+
+def test_an_untrained_network_is_the_constant_sigmas_and_its_gradient_is_the_finite_difference(short_drive):
+    """Through the filter: with the head at zero the run equals the constant σs'; d(loss)/d(head
+    bias) by autograd equals a central difference, for a loss on the last velocity."""
+    net = AdaptiveNoise()
+    e = AUTOMOTIVE_IMU
+    constant = navigate(NavigationRun(short_drive.imu, short_drive.gnss), config=NavigationConfig(
+        noise=ProcessNoise(acc_noise=e.acc_noise, gyro_noise=e.gyro_noise),
+        measurements={"vehicle": VehicleSettings(mode="on", rate_hz=5.0, lateral_sigma_mps=0.3)}))
+    with torch.no_grad():
+        assert float(_loss(short_drive, net)) == pytest.approx(float(constant.filter.node_mean[-1, STATE.v].pow(2).sum()),
+                                                               rel=1e-12)
+    with torch.no_grad():  # away from the start, where the ReLUs and tanh are all in play
+        net.head.weight.normal_(0.0, 0.5, generator=torch.Generator().manual_seed(2))
+        net.head.bias.copy_(torch.tensor([0.3, -0.2], dtype=F64))
+    loss = _loss(short_drive, net)
+    (grad,) = torch.autograd.grad(loss, net.head.bias)
+    h = 1e-5
+    for i in range(2):
+        with torch.no_grad():
+            net.head.bias[i] += h
+            up = float(_loss(short_drive, net))
+            net.head.bias[i] -= 2 * h
+            down = float(_loss(short_drive, net))
+            net.head.bias[i] += h
+        assert float(grad[i]) == pytest.approx((up - down) / (2 * h), rel=1e-4, abs=1e-12), i
+    assert grad.abs().max() > 0
+
+
+def test_a_checkpoint_keeps_the_network_and_evaluate_uses_it(tmp_path, short_drive):
+    from flowins.training.module import FilterLearner
+    from flowins.training.parameters import FilterParameters, starting_values
+
+    params = FilterParameters(starting_values(NavigationConfig()), learn=["acc_noise"], adaptive=["vehicle"])
+    assert all(p.requires_grad for p in params.adaptive.parameters())
+    with torch.no_grad():
+        for p in params.adaptive.parameters():
+            p.normal_(0.0, 0.3, generator=torch.Generator().manual_seed(3))
+    path = tmp_path / "adaptive.ckpt"
+    torch.save({"state_dict": FilterLearner(params, NavigationConfig(), methods=["ins"]).state_dict()}, path)
+    loaded = FilterParameters.from_checkpoint(path)
+    windows = torch.randn(5, 6, 100, dtype=F64, generator=torch.Generator().manual_seed(4))
+    assert torch.equal(loaded.adaptive["vehicle"](windows), params.adaptive["vehicle"](windows).detach())
+    assert not any(p.requires_grad for p in loaded.adaptive.parameters())
+    config = loaded.apply(NavigationConfig(measurements={"vehicle": VehicleSettings(mode="on")}), training=False)
+    assert config.measurements["vehicle"].noise_model is loaded.adaptive["vehicle"]
+    # a checkpoint without it has none
+    plain = FilterParameters(starting_values(NavigationConfig()), learn=["acc_noise"])
+    torch.save({"state_dict": FilterLearner(plain, NavigationConfig(), methods=["ins"]).state_dict()}, path)
+    assert len(FilterParameters.from_checkpoint(path).adaptive) == 0
+    with pytest.raises(ValueError, match="model.adaptive: \\['zupt'\\]; expected kinds from \\['vehicle'\\]"):
+        from flowins.training.parameters import ModelSettings
+        ModelSettings(adaptive=("zupt",))
+    assert math.isfinite(float(_loss(short_drive, loaded.adaptive["vehicle"]).detach()))
