@@ -18,8 +18,9 @@ F64 = torch.float64
 
 
 def test_the_position_is_the_integral_of_the_velocity():
-    """Central differences of the quadrature position against the closed-form velocity."""
-    drive = Drive()
+    """Central differences of the quadrature position against the closed-form velocity (on a
+    road without bumps, whose heights are in closed form: tests/measurements/test_vehicle.py)."""
+    drive = Drive(DriveConfig(bump_height_m=0.0))
     t = torch.linspace(0.3, 299.7, 2001, dtype=F64)
     h = 1e-3
     fd = (drive.position(t + h) - drive.position(t - h)) / (2 * h)
@@ -34,7 +35,11 @@ def test_the_car_drives_from_the_first_sample_at_8_to_15_mps_along_its_x_axis():
     assert 8.0 <= float(speed.min()) and float(speed.max()) <= 15.0 and float(speed[0]) > 8.0
     x_world = drive.rotation(t)[..., :, 0]
     cosine = (x_world * drive.velocity(t)).sum(-1) / speed
-    assert float(cosine.min()) > 1 - 1e-12  # body x along the velocity
+    # within 2.5° of the velocity: the car slips, pitches and rides over bumps (their climb turns the velocity most)
+    assert 1 - 1e-12 > float(cosine.min()) > math.cos(math.radians(2.5))
+    smooth = Drive(DriveConfig(slip_per_lateral_rad=0.0, pitch_per_acceleration_rad=0.0, bump_height_m=0.0))
+    cosine = (smooth.rotation(t)[..., :, 0] * smooth.velocity(t)).sum(-1) / smooth.velocity(t).norm(dim=-1)
+    assert float(cosine.min()) > 1 - 1e-12  # without them body x is along the velocity
 
 
 def test_its_exact_imu_integrates_back_to_the_drive():

@@ -77,7 +77,8 @@ def test_the_constraint_holds_exactly_on_a_simulated_car_with_its_imu_mounted_of
     """The simulator's IMU sits 3° off in yaw, 2° in pitch and away from the non-slipping point;
     with its true mounting and lever arm the constraint's h vanishes on the true state and the
     true rates, without them it is the car's speed times the turn."""
-    config = DriveConfig(duration_s=60.0, outage_s=0.0, imu_mount_pitch_rad=MOUNTED["mount_pitch_rad"],
+    config = DriveConfig(duration_s=60.0, outage_s=0.0, slip_per_lateral_rad=0.0, pitch_per_acceleration_rad=0.0,
+                         bump_height_m=0.0, imu_mount_pitch_rad=MOUNTED["mount_pitch_rad"],
                          imu_mount_yaw_rad=MOUNTED["mount_yaw_rad"],
                          imu_lever_m=(MOUNTED["lever_forward_m"], MOUNTED["lever_left_m"], MOUNTED["lever_up_m"]))
     car = Drive(config)
@@ -98,6 +99,39 @@ def test_the_constraint_holds_exactly_on_a_simulated_car_with_its_imu_mounted_of
     r_c = torch.tensor(config.imu_lever_m, dtype=F64)
     assert torch.allclose(car.position(zero)[0], -quat.to_matrix(car.car_quaternion(zero))[0] @ r_c, atol=1e-12)
 
+
+def test_a_simulated_car_slips_in_turns_pitches_as_it_speeds_up_and_rides_over_bumps():
+    """What the constraint's σ must allow for, in closed form: with only the slip, the body's
+    sideways velocity is ``-v cos(grade) sin(k a_lat)``; with only the pitch, its vertical one is
+    ``-v sin(k a_long)`` (nose up when speeding up, down when braking); the bumps move the car up
+    and down by their height, and the position is the velocity's integral throughout."""
+    from flowins.data.simulate.drive import _GRADE, _SPEED, _YAW_RATE, _wave_rate, _waves
+
+    t = torch.linspace(1.0, 290.0, 3000, dtype=F64)
+    off = {"slip_per_lateral_rad": 0.0, "pitch_per_acceleration_rad": 0.0, "bump_height_m": 0.0,
+           "roll_per_lateral_rad": 0.0}
+    speed = Drive(DriveConfig()).speed(t)
+    lateral = speed * _waves(t, _YAW_RATE)
+
+    def body_velocity(**changes):
+        car = Drive(DriveConfig(**{**off, **changes}))
+        return quat.rotate(quat.conjugate(car.car_quaternion(t)), car.car_velocity(t))
+
+    slip = body_velocity(slip_per_lateral_rad=0.02)
+    assert torch.allclose(slip[:, 1], -speed * torch.cos(_waves(t, _GRADE)) * torch.sin(0.02 * lateral), atol=1e-12)
+    assert slip[:, 1].abs().max() > 0.2 and slip[:, 2].abs().max() < 1e-3  # the grade's share only
+    pitch = body_velocity(pitch_per_acceleration_rad=0.02)
+    assert torch.allclose(pitch[:, 2], -speed * torch.sin(0.02 * _wave_rate(t, _SPEED)), atol=1e-12)
+    assert pitch[:, 2].abs().max() > 0.01 and pitch[:, 1].abs().max() < 1e-12
+    car = Drive(DriveConfig(**{**off, "bump_height_m": 0.05, "bump_every_s": 10.0}))
+    smooth = Drive(DriveConfig(**off))
+    dz = car.car_position(t)[:, 2] - smooth.car_position(t)[:, 2]
+    assert float(dz.max()) == pytest.approx(0.05, rel=1e-3) and float(dz.min()) > -1e-9
+    h = 1e-4
+    fd = (car.position(t + h) - car.position(t - h)) / (2 * h)
+    assert torch.allclose(fd, car.velocity(t), atol=1e-5)
+    with pytest.raises(ValueError, match="bump_every_s=0.0"):
+        DriveConfig(bump_every_s=0.0)
 
 def test_the_gyroscope_reading_of_an_update_is_the_sample_that_covers_its_time():
     t = torch.tensor([0.0, 0.1, 0.2, 0.3], dtype=F64)
@@ -275,8 +309,11 @@ def test_from_next_to_nothing_the_constraint_sigmas_learn_down_on_a_car():
 
 @lru_cache(maxsize=1)
 def mounted_drive():
-    """300 s of a car whose IMU is turned 2° (pitch) and 3° (yaw), 1 m ahead of the non-slipping point."""
-    return drive_sequence(DriveConfig(duration_s=300.0, outage_s=0.0, imu_mount_pitch_rad=math.radians(2.0),
+    """300 s of a car whose IMU is turned 2° (pitch) and 3° (yaw), 1 m ahead of the non-slipping point;
+    it does not slip (a slip in proportion to the lateral acceleration is, at a steady speed, what a
+    lever arm along the car is: ``-k v² ω`` against ``ω r``)."""
+    return drive_sequence(DriveConfig(duration_s=300.0, outage_s=0.0, slip_per_lateral_rad=0.0,
+                                      imu_mount_pitch_rad=math.radians(2.0),
                                       imu_mount_yaw_rad=math.radians(3.0), imu_lever_m=(-1.0, 0.0, 0.0)))[0]
 
 

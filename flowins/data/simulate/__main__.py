@@ -42,13 +42,22 @@ def main(argv: list[str] | None = None) -> int:
                         help="drive: the IMU turned from the car's axes (degrees; its forward axis down, left)")
     parser.add_argument("--lever", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("FORWARD", "LEFT", "UP"),
                         help="drive: the car's non-slipping point (rear axle's middle) from the IMU, car axes (m)")
+    drive = DriveConfig()
+    parser.add_argument("--slip", type=float, default=drive.slip_per_lateral_rad, metavar="RAD_PER_MPS2",
+                        help="drive: the car's nose into a turn per m/s² of lateral acceleration (0: no slip)")
+    parser.add_argument("--pitch", type=float, default=drive.pitch_per_acceleration_rad, metavar="RAD_PER_MPS2",
+                        help="drive: the car's nose up per m/s² of forward acceleration (0: none)")
+    parser.add_argument("--bumps", type=float, default=drive.bump_height_m, metavar="M",
+                        help=f"drive: bumps this high every {drive.bump_every_s:g} s (0: a smooth road)")
     args = parser.parse_args(argv)
     try:
         start = time.perf_counter()
         if args.scenario == "drive":
             pitch, yaw = (math.radians(a) for a in args.mount_deg)
             config = DriveConfig(duration_s=args.duration, seed=args.seed, outage_s=args.outage,
-                                 imu_mount_pitch_rad=pitch, imu_mount_yaw_rad=yaw, imu_lever_m=tuple(args.lever))
+                                 imu_mount_pitch_rad=pitch, imu_mount_yaw_rad=yaw, imu_lever_m=tuple(args.lever),
+                                 slip_per_lateral_rad=args.slip, pitch_per_acceleration_rad=args.pitch,
+                                 bump_height_m=args.bumps)
             sequence = simulate_drive(args.out, config, overwrite=args.overwrite)
         else:
             config = _config(args)

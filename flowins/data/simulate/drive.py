@@ -11,7 +11,12 @@ grade ``θ(t)`` are sums of sinusoids, so the velocity
 rear axle) and its derivatives are exact; the position is its integral by 8-point
 Gauss–Legendre quadrature over 0.25 s pieces (exact to rounding for these smooth inputs).
 The car's axes: x along the velocity, z up from the road, rolled by
-``roll_per_lateral_rad`` per m/s² of lateral acceleration.
+``roll_per_lateral_rad`` per m/s² of lateral acceleration. What makes a constant σ of the
+vehicle constraint wrong: the nose turns into a turn by ``slip_per_lateral_rad`` per m/s² of
+lateral acceleration (the rear axle slips sideways), pitches by ``pitch_per_acceleration_rad``
+per m/s² of forward acceleration (nose down when braking), and the road has bumps
+(``bump_height_m`` every ``bump_every_s``; each a Gaussian of ``bump_width_s`` in time), where
+the car moves up and down. Each 0 switches it off.
 
 The IMU is mounted on the car: its axes are the car's turned by ``imu_mount_yaw_rad`` about
 the car's up axis, then ``imu_mount_pitch_rad`` about the turned lateral axis (the
@@ -65,6 +70,14 @@ class DriveConfig:
     mean_speed_mps: float = 11.5
     heading_rad: float = 0.5
     roll_per_lateral_rad: float = 0.01
+    #: the car's nose turned into a turn by this per m/s² of lateral acceleration (its rear axle slips out)
+    slip_per_lateral_rad: float = 0.005
+    #: the car's nose up by this per m/s² of forward acceleration (down when braking)
+    pitch_per_acceleration_rad: float = 0.01
+    #: bumps in the road: this high, one every ``bump_every_s``, each ``exp(-(Δt / bump_width_s)²)`` in time
+    bump_height_m: float = 0.03
+    bump_every_s: float = 15.0
+    bump_width_s: float = 0.1
     imu_rate_hz: float = 100.0
     imu_jitter: float = 0.05
     imu_errors: ImuErrors = AUTOMOTIVE_IMU
@@ -89,6 +102,9 @@ class DriveConfig:
             raise ValueError(f"DriveConfig.imperfections={self.imperfections!r}; expected an Imperfections")
         if self.duration_s < 20.0:
             raise ValueError(f"DriveConfig.duration_s={self.duration_s}; expected >= 20 s")
+        if not (self.bump_every_s > 0.0 and self.bump_width_s > 0.0 and self.bump_height_m >= 0.0):
+            raise ValueError(f"DriveConfig: bump_height_m={self.bump_height_m}, bump_every_s={self.bump_every_s}, "
+                             f"bump_width_s={self.bump_width_s}; expected a height >= 0 and times > 0")
         if not 0.0 <= self.outage_s < self.duration_s - 10.0:
             raise ValueError(f"DriveConfig.outage_s={self.outage_s}; expected in [0, duration_s - 10)")
 
@@ -110,6 +126,11 @@ def _waves(t: Tensor, terms: tuple[tuple[float, float, float], ...]) -> Tensor:
     return sum(a * torch.sin(2 * math.pi * t / T + p) for a, T, p in terms)
 
 
+def _wave_rate(t: Tensor, terms: tuple[tuple[float, float, float], ...]) -> Tensor:
+    """``d/dt`` of :func:`_waves`."""
+    return sum(a * 2 * math.pi / T * torch.cos(2 * math.pi * t / T + p) for a, T, p in terms)
+
+
 def _wave_integral(t: Tensor, terms: tuple[tuple[float, float, float], ...]) -> Tensor:
     """``∫₀ᵗ`` of :func:`_waves`."""
     return sum(a * T / (2 * math.pi) * (math.cos(p) - torch.cos(2 * math.pi * t / T + p)) for a, T, p in terms)
@@ -129,12 +150,29 @@ class Drive:
     def speed(self, t: Tensor) -> Tensor:
         return self.config.mean_speed_mps + _waves(t, _SPEED)
 
+    def _track(self, t: Tensor) -> tuple[Tensor, Tensor]:
+        """``(grade, heading)`` rad of the velocity."""
+        return _waves(t, _GRADE), self.config.heading_rad + _wave_integral(t, _YAW_RATE)
+
     def _angles(self, t: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        yaw = self.config.heading_rad + _wave_integral(t, _YAW_RATE)
-        grade = _waves(t, _GRADE)
-        lateral = self.speed(t) * _waves(t, _YAW_RATE)  # centripetal acceleration, m/s²
-        roll = self.config.roll_per_lateral_rad * lateral
-        return roll, -grade, yaw  # body pitch is minus the grade (nose up climbing)
+        """The car's roll, pitch and yaw: the track's, rolled and slipped by the lateral
+        acceleration and pitched by the longitudinal one."""
+        c = self.config
+        grade, heading = self._track(t)
+        lateral = self.speed(t) * _waves(t, _YAW_RATE)  # centripetal acceleration, m/s² (to the left)
+        along = _wave_rate(t, _SPEED)  # m/s²
+        roll = c.roll_per_lateral_rad * lateral
+        pitch = -grade - c.pitch_per_acceleration_rad * along  # nose up climbing and accelerating (pitch < 0)
+        return roll, pitch, heading + c.slip_per_lateral_rad * lateral  # the nose into the turn
+
+    def _bumps(self, t: Tensor) -> tuple[Tensor, Tensor]:
+        """``(height m, its rate m/s)`` of the road's bumps at ``t``: ``h exp(-((t - t_k) / w)²)``
+        at ``t_k = (k + 1/2) · bump_every_s``."""
+        c = self.config
+        k = torch.arange(int(c.duration_s // c.bump_every_s) + 1, dtype=t.dtype)
+        u = (t.unsqueeze(-1) - (k + 0.5) * c.bump_every_s) / c.bump_width_s
+        bell = c.bump_height_m * torch.exp(-u * u)
+        return bell.sum(-1), (-2.0 * u / c.bump_width_s * bell).sum(-1)
 
     def car_quaternion(self, t: Tensor) -> Tensor:
         """``(..., 4)`` car->world orientation."""
@@ -171,16 +209,23 @@ class Drive:
         p = self.car_position(t)
         return p - self._lever_world(t) if self._lever else p
 
-    def car_velocity(self, t: Tensor) -> Tensor:
-        """``(..., 3)`` ENU velocity of the car's non-slipping point, m/s."""
-        _, minus_grade, yaw = self._angles(t)
-        grade = -minus_grade
+    def _track_velocity(self, t: Tensor) -> Tensor:
+        """``(..., 3)`` ENU velocity along the track (no bumps), m/s."""
+        grade, yaw = self._track(t)
         direction = torch.stack((torch.cos(grade) * torch.cos(yaw), torch.cos(grade) * torch.sin(yaw), torch.sin(grade)), -1)
         return self.speed(t).unsqueeze(-1) * direction
 
+    def car_velocity(self, t: Tensor) -> Tensor:
+        """``(..., 3)`` ENU velocity of the car's non-slipping point, m/s: the track's and the bumps'."""
+        v = self._track_velocity(t)
+        if self.config.bump_height_m == 0.0:
+            return v
+        _, rate = self._bumps(t)
+        return v + torch.stack((torch.zeros_like(rate), torch.zeros_like(rate), rate), -1)
+
     def car_position(self, t: Tensor) -> Tensor:
         """``(..., 3)`` ENU position of the car's non-slipping point (origin at ``t = 0``): the
-        velocity's integral."""
+        track velocity's integral, and the bumps' heights."""
         nodes, weights = np.polynomial.legendre.leggauss(8)
         nodes, weights = torch.tensor(nodes, dtype=t.dtype), torch.tensor(weights, dtype=t.dtype)
         flat = t.reshape(-1)
@@ -188,10 +233,14 @@ class Drive:
         breaks = torch.unique(torch.cat((torch.arange(0.0, top, 0.25, dtype=t.dtype), flat, flat.new_zeros(1))))
         a, b = breaks[:-1], breaks[1:]
         mid, half = 0.5 * (a + b), 0.5 * (b - a)
-        samples = self.car_velocity(mid[:, None] + half[:, None] * nodes)  # (pieces, 8, 3)
+        samples = self._track_velocity(mid[:, None] + half[:, None] * nodes)  # (pieces, 8, 3)
         pieces = half[:, None] * (weights[None, :, None] * samples).sum(1)
         at_breaks = torch.cat((breaks.new_zeros(1, 3), torch.cumsum(pieces, 0)))
-        return at_breaks[torch.searchsorted(breaks, flat)].reshape(*t.shape, 3)
+        p = at_breaks[torch.searchsorted(breaks, flat)].reshape(*t.shape, 3)
+        if self.config.bump_height_m == 0.0:
+            return p
+        height = self._bumps(t)[0] - self._bumps(torch.zeros((), dtype=t.dtype))[0]
+        return p + torch.stack((torch.zeros_like(height), torch.zeros_like(height), height), -1)
 
     def imu(self, t: Tensor, gravity_mps2: float = STANDARD_GRAVITY_MPS2) -> tuple[Tensor, Tensor]:
         """Exact specific force ``(N, 3)`` and body rate ``(N, 3)``."""
