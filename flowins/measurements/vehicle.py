@@ -88,6 +88,9 @@ class VehicleSettings:
 
     def __post_init__(self) -> None:
         check_fields(self)
+        if self.noise_model is not None and not callable(self.noise_model):
+            raise ValueError(f"VehicleSettings.noise_model={self.noise_model!r}: expected None or a network (it comes "
+                             "from a train.py checkpoint, model.checkpoint, not from a config)")
         if AXES[self.forward_axis][0] == AXES[self.up_axis][0]:
             raise ValueError(f"VehicleSettings.forward_axis={self.forward_axis!r} and up_axis={self.up_axis!r} "
                              "are the same axis")

@@ -149,6 +149,8 @@ def test_settings_refuse_what_they_cannot_mean():
         VehicleSettings(lateral_sigma_mps=0.0)
     with pytest.raises(ValueError, match=r"mount_yaw_rad=0.7: expected a number < 0.5"):
         VehicleSettings(mount_yaw_rad=0.7)
+    with pytest.raises(ValueError, match=r"noise_model='net': expected None or a network"):
+        VehicleSettings(noise_model="net")
     E = VehicleSettings(forward_axis="y", up_axis="-z").rows()
     assert E.tolist() == [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]  # lateral x, up -z
 
