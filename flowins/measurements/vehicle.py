@@ -182,8 +182,8 @@ class VehicleUpdate(RowBatchEvent):
 
     @classmethod
     def place(cls, updates: list[VehicleUpdate], like: Tensor) -> list[VehicleUpdate]:
-        """The updates with their gyroscope readings in ``like``'s dtype and device: one copy,
-        each update's a view of it."""
+        """The updates with their gyroscope readings (and σ factors, where they have them) in
+        ``like``'s dtype and device: one copy each, each update's a view of it."""
         if all(u.gyro_rps.dtype == like.dtype and u.gyro_rps.device == like.device for u in updates):
             return list(updates)
         gyro = torch.stack([u.gyro_rps for u in updates]).to(like)
