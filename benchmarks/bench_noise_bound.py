@@ -137,6 +137,11 @@ def main() -> None:
     if unknown:
         raise SystemExit(f"error: --params names {unknown}; expected some of {list(PARAMS)}")
     base = list(args.overrides)
+    presets = [o.split("=", 1)[1] for o in base if o.startswith("imu=")]
+    if not presets or presets[-1] == "auto":
+        raise SystemExit("error: name the IMU preset among the overrides (imu=phone, imu=simulated_drive, "
+                         "imu=oxts_rt3003, ...): the search writes the densities as the filter uses them, with the "
+                         "preset's imu.inflation=1, which imu=auto does not have")
     if args.start_s is not None:
         base.append(f"sequence.start_s={args.start_s}")
     if args.end_s is not None:
