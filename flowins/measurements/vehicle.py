@@ -284,6 +284,8 @@ def fit_mounting(mean: Tensor, gyro_rps: Tensor, *, forward_axis: str = "x", up_
     (``-θ v_forward``), the lever arm's forward part in the sideways velocity of turns (``ω_z r``).
     A track whose heading is off by ``δ`` gives a yaw off by ``δ``: the fit is as good as the
     smoothed track's heading."""
+    if not bool(torch.isfinite(mean).all() and torch.isfinite(gyro_rps).all()):
+        raise ValueError("fit_mounting: the track or the gyroscope's readings are not finite")
     moving = mean[..., STATE.v].norm(dim=-1) >= min_speed_mps
     n = int(moving.sum())
     if n < 10:
@@ -303,6 +305,8 @@ def fit_mounting(mean: Tensor, gyro_rps: Tensor, *, forward_axis: str = "x", up_
         step = torch.linalg.lstsq(J, -residual(p).unsqueeze(-1)).solution.squeeze(-1)
         p = p + step
         p[:2] = p[:2].clamp(-0.9 * MAX_MOUNT_RAD, 0.9 * MAX_MOUNT_RAD)
+    if not bool(torch.isfinite(p).all()):
+        raise ValueError("fit_mounting: the fit did not converge (its estimate is not finite)")
     after = residual(p)[:-3]
     rms = lambda r: float(r.pow(2).mean().sqrt())  # noqa: E731
     return MountingFit(float(p[0]), float(p[1]), tuple(float(a) for a in p[2:]), rms(before), rms(after), n)

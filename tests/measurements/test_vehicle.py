@@ -342,6 +342,10 @@ def test_the_mounting_fit_finds_an_imu_mounted_off_the_cars_axes_from_the_smooth
     assert "filter.measurements.vehicle.mount_yaw_rad=0.05" in " ".join(fit.overrides())
     with pytest.raises(ValueError, match="0 samples at 100.0 m/s or faster"):
         fit_mounting(smoothed.node_mean, gyro, min_speed_mps=100.0)
+    broken = smoothed.node_mean.clone()
+    broken[10, STATE.v] = float("nan")
+    with pytest.raises(ValueError, match="not finite"):
+        fit_mounting(broken, gyro)
 
 
 @pytest.mark.slow
