@@ -29,13 +29,19 @@ from flowins.constants import STANDARD_GRAVITY_MPS2
 WINDOW_SAMPLES = 100
 
 
+def covering_sample(t_imu_s: Tensor, times_s: Tensor) -> Tensor:
+    """``(E,)``: for each of ``times_s (E,)`` the IMU sample ``k`` with ``t_{k-1} < t <= t_k`` (an
+    integrating IMU's sample ``k`` is the rate over that interval), the last one after the end."""
+    k = torch.searchsorted(t_imu_s.contiguous(), times_s.to(t_imu_s.dtype).contiguous(), side="left")
+    return k.clamp(max=len(t_imu_s) - 1)
+
+
 def imu_windows(t_imu_s: Tensor, acc_mps2: Tensor, gyro_rps: Tensor, times_s: Tensor,
                 samples: int = WINDOW_SAMPLES) -> Tensor:
     """``(E, 6, samples)``: for each of ``times_s (E,)`` the IMU samples up to the one that covers
     it (an integrating IMU's sample ``k`` covers ``(t_{k-1}, t_k]``), the gyroscope (rad/s) then
     the accelerometer (g); before the first sample the first is repeated."""
-    k = torch.searchsorted(t_imu_s.contiguous(), times_s.to(t_imu_s.dtype).contiguous(), side="left")
-    k = k.clamp(max=len(t_imu_s) - 1)
+    k = covering_sample(t_imu_s, times_s)
     idx = (k.unsqueeze(-1) - samples + 1 + torch.arange(samples, device=k.device)).clamp(min=0)
     readings = torch.cat((gyro_rps, acc_mps2 / STANDARD_GRAVITY_MPS2), -1)  # (N, 6)
     return readings[idx].transpose(-1, -2)

@@ -45,7 +45,7 @@ from flowins.constants import cached_constant, scalar_like
 from flowins.filter.chain import BatchChain, RowBatchEvent
 from flowins.filter.updater import update_rows
 from flowins.geometry import quaternion as quat
-from flowins.measurements.adaptive_noise import imu_windows
+from flowins.measurements.adaptive_noise import covering_sample, imu_windows
 from flowins.measurements.registry import MeasurementKind, NavigationContext, register
 from flowins.state import STATE
 
@@ -230,8 +230,7 @@ def gyro_at(t_imu_s: Tensor, gyro_rps: Tensor, times_s: Tensor) -> Tensor:
     """``(N, 3)``: the gyroscope's reading that covers each of ``times_s (N,)``: the sample ``k``
     with ``t_{k-1} < t <= t_k`` (an integrating IMU's sample ``k`` is the rate over that
     interval; the first sample at or before the first time)."""
-    k = torch.searchsorted(t_imu_s.contiguous(), times_s.to(t_imu_s.dtype).contiguous(), side="left")
-    return gyro_rps[k.clamp(max=len(t_imu_s) - 1)]
+    return gyro_rps[covering_sample(t_imu_s, times_s)]
 
 
 @dataclass(frozen=True)
