@@ -289,7 +289,8 @@ def fit_mounting(mean: Tensor, gyro_rps: Tensor, *, forward_axis: str = "x", up_
     n = int(moving.sum())
     if n < 10:
         raise ValueError(f"fit_mounting: {n} samples at {min_speed_mps} m/s or faster; expected at least 10")
-    x, w = mean[moving].detach().to(torch.float64), gyro_rps[moving].detach().to(torch.float64)
+    with torch.inference_mode(False):  # plain tensors: forward-mode AD drops inference tensors' tangents
+        x, w = mean[moving].detach().to(torch.float64).clone(), gyro_rps[moving].detach().to(torch.float64).clone()
 
     def residual(p: Tensor) -> Tensor:
         settings = VehicleSettings(forward_axis=forward_axis, up_axis=up_axis, mount_pitch_rad=p[0],
@@ -297,13 +298,14 @@ def fit_mounting(mean: Tensor, gyro_rps: Tensor, *, forward_axis: str = "x", up_
         h, _ = constraint_terms(x, w, settings.vehicle_from_imu(x), settings.lever_arm(x))
         return torch.cat((h.reshape(-1), p[2:] / lever_prior_m))
 
-    p = torch.zeros(5, dtype=torch.float64)
-    before = residual(p)[:-3]
-    for _ in range(iterations):
-        J = torch.func.jacfwd(residual)(p)
-        step = torch.linalg.lstsq(J, -residual(p).unsqueeze(-1)).solution.squeeze(-1)
-        p = p + step
-        p[:2] = p[:2].clamp(-0.9 * MAX_MOUNT_RAD, 0.9 * MAX_MOUNT_RAD)
+    with torch.inference_mode(False):  # a caller's inference mode would leave the Jacobian empty
+        p = torch.zeros(5, dtype=torch.float64)
+        before = residual(p)[:-3]
+        for _ in range(iterations):
+            J = torch.func.jacfwd(residual)(p)
+            step = torch.linalg.lstsq(J, -residual(p).unsqueeze(-1)).solution.squeeze(-1)
+            p = p + step
+            p[:2] = p[:2].clamp(-0.9 * MAX_MOUNT_RAD, 0.9 * MAX_MOUNT_RAD)
     if not bool(torch.isfinite(p).all()):
         raise ValueError("fit_mounting: the fit did not converge (its estimate is not finite)")
     after = residual(p)[:-3]

@@ -340,6 +340,10 @@ def test_the_mounting_fit_finds_an_imu_mounted_off_the_cars_axes_from_the_smooth
     assert abs(fit.lever_m[0] + 1.0) < 0.3, fit
     assert fit.rms_after_mps < 0.2 * fit.rms_before_mps and fit.samples > 1000
     assert "filter.measurements.vehicle.mount_yaw_rad=0.05" in " ".join(fit.overrides())
+    with torch.inference_mode():  # as the jobs call it; forward-mode AD must still see the parameters
+        again = fit_mounting(smoothed.node_mean, gyro)
+    assert (again.mount_pitch_rad, again.mount_yaw_rad, *again.lever_m) == pytest.approx(
+        (fit.mount_pitch_rad, fit.mount_yaw_rad, *fit.lever_m), abs=1e-9)
     with pytest.raises(ValueError, match="0 samples at 100.0 m/s or faster"):
         fit_mounting(smoothed.node_mean, gyro, min_speed_mps=100.0)
     broken = smoothed.node_mean.clone()
