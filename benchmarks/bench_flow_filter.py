@@ -19,7 +19,10 @@ Reads the default simulated walk and its dense flow pairs (both cached by
 flow that ``evaluate.py flow.device=cuda`` cached (or computes it there). Timings there synchronise the GPU before reading the clock.
 
 ``filter.workers=N`` (an override) splits the batch over ``N`` worker processes
-(:mod:`flowins.parallel`; the single run stays one process).
+(:mod:`flowins.parallel`; the single run stays one process). ``filter.compile=true`` runs the
+flow frames' update through ``torch.compile`` (:mod:`flowins.filter.compiling`): the warm-up
+compiles the single run's shapes and prints what that took; the batch prints its own compiling
+and its rate without it.
 
 The last line is ``RESULT single=<x>x batched=<x>x batch=<B> device=<device> workers=<N>``.
 
@@ -289,6 +292,8 @@ def timed(rec, pairs, config, duration: float, args) -> tuple[float, float | Non
     used = sum(e["valid"] for e in log) / max(1, len(log))
     print(f"flowins:       {fast:7.2f} s for {duration:.0f} s  -> {duration / fast:6.1f}x real time "
           f"(median of {args.repeats}; {used:.0f} valid points per frame)")
+    if result.filter_steps:
+        print(f"  {result.filter_steps}")
 
     batched = None
     if args.batch > 0:
@@ -300,6 +305,10 @@ def timed(rec, pairs, config, duration: float, args) -> tuple[float, float | Non
         batched = seconds / wall
         print(f"batch of {args.batch}: {wall:7.2f} s for {seconds:.0f} s of data -> {batched:6.1f}x real time "
               f"({batched / (duration / fast):.2f}x the single run's rate)")
+        compiling = max(r.filter_compile_s for r in results)  # one pass (per worker): its shapes' compiling
+        if results[0].filter_steps:
+            print(f"  {results[0].filter_steps}" + (f"; without it {seconds / (wall - compiling):.1f}x real time"
+                                                    if compiling > 0 else ""))
         if args.stages and config.workers > 1:
             print(f"  (in {min(config.workers, args.batch)} worker processes: their stages are not timed here)")
         elif args.stages:
@@ -350,7 +359,9 @@ def main() -> None:
     print(f"{rec.name}: {duration:.0f} s, {len(pairs)} flow frames, up to {args.points} points each, "
           f"{len(rec.gnss)} GNSS fixes, float64, filter {where}")
 
-    run(*crop(rec, pairs, 10.0)[:3], FlowCamera.from_sequence(rec.sequence), config)  # warm-up
+    _, warm = run(*crop(rec, pairs, 10.0)[:3], FlowCamera.from_sequence(rec.sequence), config)  # warm-up
+    if warm.filter_steps:  # filter.compile: the warm-up pays for the single run's shapes
+        print(f"warm-up, 10 s: {warm.filter_steps}")
     fast = batched = None
     if args.repeats > 0:
         fast, batched = timed(rec, pairs, config, duration, args)

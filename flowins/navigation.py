@@ -19,6 +19,7 @@ from flowins.data.streams import GnssStream, ImuStream, PoseStream
 from flowins.filter.augmentation import with_window
 from flowins.filter.ekf import Gate
 from flowins.filter.chain import FilterTrack
+from flowins.filter.compiling import compiler_for
 from flowins.filter.runner import FilterInput, memory_warning, run_filters
 from flowins.filter.smoother import SmoothedTrack, rts_smooth_batch
 from flowins.flow.pairs import FlowPairs
@@ -69,6 +70,9 @@ class NavigationConfig:
     #: worker processes a batch of several recordings is split over on the CPU (:func:`navigate_batch`,
     #: :mod:`flowins.parallel`); 1: the batch in this process
     workers: int = bounded(1, minimum=1)
+    #: ``"false"`` | ``"true"`` | ``"auto"``: the flow frames' update through ``torch.compile``
+    #: (:mod:`flowins.filter.compiling`: inductor, with a C++ compiler on a CPU, CUDA graphs on a GPU)
+    compile: Literal["false", "true", "auto"] = "false"
     flow_update: FlowUpdate = field(default_factory=FlowUpdate)
     #: the multi-view update of sparse tracks over a window of cloned poses (``filter.tracks``;
     #: :mod:`flowins.measurements.tracks`); its window 0 (the default) leaves it off
@@ -107,6 +111,11 @@ class NavigationResult:
     #: what the smoother ran on where a second pass was tried (``filter.gnss_heading.second_pass``,
     #: :func:`~flowins.second_pass.smoother_tracks`): ``{"pass": "second" | "first", "reason": ...}``; None: the one pass
     smoother_pass: dict[str, Any] | None = None
+    #: how the filter's steps ran where ``filter.compile`` asked for compiling, and what it cost
+    #: (:meth:`~flowins.filter.compiling.Compiler.describe`); None with ``filter.compile=false``
+    filter_steps: str | None = None
+    #: seconds of the filter pass spent compiling its steps (new shapes; 0 when eager or all met before)
+    filter_compile_s: float = 0.0
     #: the vehicle constraint's fitted mounting (``filter.measurements.vehicle.mounting=fit``,
     #: :func:`~flowins.mounting_pass.fit_mountings`): what it found and whether it is used; None: not asked
     vehicle_mounting: dict[str, Any] | None = None
@@ -294,12 +303,15 @@ def _navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig,
     warning = memory_warning(inputs, output_every=config.output_every)
     if warning:
         log.warning("warning: %s", warning)
-    tracks = run_filters(inputs, progress=progress, **config.filter_settings())
+    compiler = compiler_for(config.compile, config.device)
+    tracks = run_filters(inputs, progress=progress, compiler=compiler, **config.filter_settings())
     again, passes = smoother_tracks(inputs, tracks, config, progress=progress)
     smoothed = rts_smooth_batch(again, marginal=STATE_DIM)
     return [NavigationResult(filter=track, smoother=smoother, smoother_pass=which, frame=setup.frame,
                              gnss_t_s=None if run.gnss is None else run.gnss.t_s, gnss_enu_m=setup.gnss_enu_m,
                              gnss_h_acc_m=None if run.gnss is None else run.gnss.h_acc_m,
                              flow_pairs_outside=setup.flow_pairs_outside, start=setup.start,
-                             gnss_before_start=setup.gnss_before_start, vehicle_mounting=mounting)
+                             gnss_before_start=setup.gnss_before_start, vehicle_mounting=mounting,
+                             filter_steps=None if config.compile == "false" else compiler.describe(),
+                             filter_compile_s=compiler.compile_s)
             for run, setup, track, smoother, which, mounting in zip(runs, setups, tracks, smoothed, passes, mountings)]

@@ -306,6 +306,8 @@ def navigation_config(cfg: Mapping[str, Any], imu: ImuModel | None = None) -> Na
             if value != "auto":
                 raise ValueError(f"filter.workers={value!r}: expected an integer >= 1 or auto")
             values["workers"] = available_cores()
+        elif field.name == "compile" and isinstance(value, bool):  # YAML's false / true
+            values["compile"] = str(value).lower()
         else:
             values[field.name] = value
     ready.setdefault("measurements", measurement_settings({}))  # every registered kind at its defaults

@@ -18,7 +18,8 @@ from flowins.settings import FILTER_KEYS, NOISE_KEYS, SequenceSettings, filter_k
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 #: keys whose YAML value is resolved when the job starts, not a default to mirror
 RESOLVED = {"filter.workers": "auto: one worker per core", "filter.device": "a string the job parses",
-            "filter.dtype": "a string the job parses"}
+            "filter.dtype": "a string the job parses",
+            "filter.compile": "YAML's false / true, which the job reads as 'false' / 'true' (tests/filter/test_compiling.py)"}
 
 
 def _default(field: dataclasses.Field):

@@ -20,6 +20,7 @@ from typing import Any, Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
+from flowins.filter.compiling import Compiler
 from flowins.filter.ekf import UpdateResult, linear_predict, waits_cost
 from flowins.state import normalize_quaternions, symmetrize
 
@@ -168,8 +169,11 @@ class BatchChain:
     hands views of them over: no copy of the whole chain into fresh memory at the end.
     """
 
-    def __init__(self, rows: int, *, likelihood: bool = False, capacity: Sequence[int] | None = None) -> None:
+    def __init__(self, rows: int, *, likelihood: bool = False, capacity: Sequence[int] | None = None,
+                 compiler: Compiler | None = None) -> None:
         self.rows = rows
+        #: how events run their pure steps (:class:`~flowins.filter.compiling.Compiler`: eager by default)
+        self.compiler = Compiler(None, reason="filter.compile=false") if compiler is None else compiler
         #: whether updates add their innovation negative log-likelihood (:meth:`add_likelihood`)
         self.likelihood = likelihood
         self._nll: list[list[Tensor]] = [[] for _ in range(rows)]

@@ -18,6 +18,7 @@ from torch import Tensor
 from flowins.memory import available_memory_bytes, describe_bytes
 from flowins.progress import progress as track_progress
 from flowins.filter.chain import BatchChain, BatchEvent, Event, FilterTrack, place_events
+from flowins.filter.compiling import Compiler
 from flowins.filter.propagation import NodePlan, plan_nodes, propagate_batched, propagate_reference
 from flowins.ins.mechanization import STANDARD_GRAVITY_MPS2, ProcessNoise
 from flowins.state import NOISE_DIM, STATE_DIM, symmetrize, window_size
@@ -119,6 +120,7 @@ def run_filters(
     progress: bool = False,
     likelihood: bool = False,
     description: str = "filter",
+    compiler: Compiler | None = None,
 ) -> list[FilterTrack]:
     """Run ``B`` filters in one batched pass: each run as :func:`run_filter` runs it alone.
 
@@ -138,6 +140,7 @@ def run_filters(
         output_every, gravity_mps2, jacobians, scheme, likelihood: as for :func:`run_filter`, for
             all runs.
         progress, description: report the pass's progress under this name.
+        compiler: how events run their pure steps (:mod:`flowins.filter.compiling`; None: eagerly).
     """
     if jacobians not in ("analytic", "autodiff"):
         raise ValueError(f"jacobians must be 'analytic' or 'autodiff', got {jacobians!r}")
@@ -161,7 +164,8 @@ def run_filters(
     noises = [run.noise or noise for run in runs]
     plans = [_prepare(run, output_every, dtype, device, n) for run, n in zip(runs, noises)]
     B = len(runs)
-    chain = BatchChain(B, likelihood=likelihood, capacity=[expected_nodes(run, output_every) for run in runs])
+    chain = BatchChain(B, likelihood=likelihood, capacity=[expected_nodes(run, output_every) for run in runs],
+                       compiler=compiler)
     eye = torch.eye(dim, dtype=dtype, device=device)
     chain.add_nodes([[plan.t0] for plan in plans], eye.expand(B, 1, dim, dim),
                     torch.stack([run.mean0 for run in runs]).unsqueeze(1),

@@ -152,6 +152,8 @@ def _combinations(cfg: Mapping[str, Any], recs: list[Recording], nav_cfg: Naviga
         wall = time.perf_counter() - t1
         for name in names:
             results[name], seconds[name] = [next(done) for _ in planned[name]], wall / len(runs)
+        for line in dict.fromkeys(r.filter_steps for name in names for r in results[name] if r.filter_steps):
+            log.info(f"  {', '.join(names)}: {line}")
         if len(names) > 1:
             workers = batch_workers(runs, nav_cfg)
             where = "one batched filter pass" if workers == 1 else f"batched filter passes in {workers} worker processes"

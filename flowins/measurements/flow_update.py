@@ -15,6 +15,7 @@ from flowins.config import bounded, check_fields
 from flowins.constants import cached_constant, scalar_like
 from flowins.filter.augmentation import augment_pose_rows
 from flowins.filter.chain import BatchChain, RowBatchEvent
+from flowins.filter.compiling import bucket
 from flowins.filter.ekf import Gate, UpdateResult
 from flowins.filter.updater import gated_update, likelihood_sums
 from flowins.flow.points import FlowPoints
@@ -191,15 +192,17 @@ def _flow_update(chain: BatchChain, rows: list[int], frames: list[FlowFrame]) ->
     u = first.update
     mean, cov = chain.newest(rows)
     lengths = [frame.count_t for frame in frames]
+    candidates = [len(frame.points) for frame in frames]
+    compiled = chain.compiler.enabled  # a few fixed shapes: the points padded to a bucket, with a mask
     points, mask = stack_points([frame.points for frame in frames], like=mean,
-                                lengths=None if any(n is None for n in lengths) else lengths)
+                                lengths=None if any(n is None for n in lengths) else lengths,
+                                pad_to=bucket(max(candidates)) if compiled else None)
     points = FlowPoints(points.uv1_px, points.flow_px, first.noise_sigma(points.sigma_px))
     camera = stack_cameras([frame.camera for frame in frames]).to(mean)  # a copy kept by the camera
-    candidates = [len(frame.points) for frame in frames]
-    step = flow_frame_step(mean, cov, points, camera, mask, update=u,
-                           select=u.n_points is not None and max(candidates) > u.n_points,
-                           gated=chain.row_state("flow_gated", rows) if u.recovery.after_frames else None,
-                           jacobians=first.jacobians, likelihood=chain.likelihood)
+    step = chain.compiler(flow_frame_step, mean, cov, points, camera, mask, update=u,
+                          select=u.n_points is not None and max(candidates) > u.n_points,
+                          gated=chain.row_state("flow_gated", rows) if u.recovery.after_frames else None,
+                          jacobians=first.jacobians, likelihood=chain.likelihood)
     chain.check_failed(step.failed, "flow update", rows)
     if chain.likelihood:
         chain.add_likelihood(rows, step.nll, step.nll_count)
@@ -327,15 +330,16 @@ def flow_iteration(x_i: Tensor, mean: Tensor, cov: Tensor, points: FlowPoints, c
     return FlowIteration(m, result)
 
 
-def stack_points(points: list[FlowPoints], *, like: Tensor, lengths: list[Tensor] | None = None
-                 ) -> tuple[FlowPoints, Tensor | None]:
+def stack_points(points: list[FlowPoints], *, like: Tensor, lengths: list[Tensor] | None = None,
+                 pad_to: int | None = None) -> tuple[FlowPoints, Tensor | None]:
     """The points of ``r`` frames as one batch ``(r, M, 2)`` (dtype and device of ``like``) and
     the mask of real points ``(r, M)`` (None when every frame has ``M`` points), made from
     ``lengths``, the frames' counts of points as 0-dim tensors on ``like``'s device when given (no
-    copy from the host)."""
+    copy from the host). ``pad_to``: ``M`` at least this, and a mask whatever the counts (one
+    shape for a compiled step)."""
     counts = [len(p) for p in points]
-    M = max(counts)
-    if len(points) == 1:
+    M = max(counts) if pad_to is None else max(max(counts), pad_to)
+    if len(points) == 1 and counts[0] == M:
         stacked = [points[0][k].unsqueeze(0) for k in range(3)]
     elif all(c == M for c in counts):
         stacked = [torch.stack([p[k] for p in points]) for k in range(3)]
@@ -343,7 +347,7 @@ def stack_points(points: list[FlowPoints], *, like: Tensor, lengths: list[Tensor
         pads = [(0, 0, 0, M - c) for c in counts]
         stacked = [torch.stack([torch.nn.functional.pad(p[k], pad) for p, pad in zip(points, pads)]) for k in range(3)]
     stacked = FlowPoints(*(x if x.dtype == like.dtype and x.device == like.device else x.to(like) for x in stacked))
-    if all(c == M for c in counts):
+    if all(c == M for c in counts) and pad_to is None:
         return stacked, None
     rows = torch.tensor(counts, device=like.device) if lengths is None else torch.stack(lengths)
     mask = torch.arange(M, device=like.device) < rows.unsqueeze(-1)

@@ -1,0 +1,127 @@
+"""The filter's steps through ``torch.compile`` (``filter.compile``).
+
+A step that is a pure function of tensors with no read-back (the flow frame's whole update,
+:func:`~flowins.measurements.flow_update.flow_frame_step`) is captured as one graph
+(``fullgraph=True``: a graph break is an error, not a silent fallback) and compiled:
+
+* on a CPU by inductor, which writes C++ and needs a C++ compiler (``$CXX``, else ``g++`` or
+  ``clang++`` on the path);
+* on a CUDA device by inductor with ``mode="reduce-overhead"``: its kernels replayed as CUDA
+  graphs, the launches of a frame in one.
+
+``filter.compile``: ``false`` (the default: eager), ``true`` (compile, and stop with an error
+where it cannot) or ``auto`` (compile where it can, eager elsewhere, saying which).
+Compiling costs minutes per shape on a 2-core CPU (docs/performance.md), so a step's inputs
+are padded to a few fixed shapes (:func:`bucket`) and each compiled function is kept for the
+process: the cost is paid once per shape, and inductor's cache on disk
+(``TORCHINDUCTOR_CACHE_DIR``) shortens it in a later process. Passes that carry a gradient
+(training) run eagerly.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+SETTINGS = ("false", "true", "auto")
+
+
+@dataclass
+class Compiler:
+    """How the steps run (:func:`compiler_for`) and what compiling them cost: ``backend`` None
+    runs them eagerly; ``reason`` says why, for the job's log."""
+
+    backend: str | None
+    mode: str | None = None
+    reason: str = ""
+    #: seconds spent in calls that compiled (a new shape), and their count
+    compile_s: float = 0.0
+    compiles: int = 0
+
+    @property
+    def enabled(self) -> bool:
+        return self.backend is not None
+
+    def __call__(self, fn: Callable, *args: Any, **kwargs: Any) -> Any:
+        """``fn(*args, **kwargs)``, compiled where this compiler is on and nothing needs a gradient."""
+        if not self.enabled or (torch.is_grad_enabled() and _needs_grad(args, kwargs)):
+            return fn(*args, **kwargs)
+        how = (fn, self.backend, self.mode)
+        compiled = _COMPILED.get(how)
+        if compiled is None:
+            compiled = _COMPILED[how] = torch.compile(fn, fullgraph=True, dynamic=False, backend=self.backend,
+                                                      mode=self.mode)
+        graphs = _graphs()
+        start = time.perf_counter()
+        out = compiled(*args, **kwargs)
+        compiled_now = _graphs() - graphs
+        if compiled_now:  # a shape (or setting) not met yet in this process: this call compiled
+            self.compile_s += time.perf_counter() - start
+            self.compiles += compiled_now
+        return out
+
+    def describe(self) -> str:
+        """One line for the job's log: how the steps ran and, compiled, what that cost."""
+        if not self.enabled:
+            return f"filter steps: eager ({self.reason})"
+        return (f"filter steps: compiled with {self.backend}{'' if self.mode is None else ', ' + self.mode} "
+                f"({self.reason}); {self.compiles} shape(s) compiled in {self.compile_s:.1f} s")
+
+
+#: each step's compiled function by (function, backend, mode), for the process: a later run
+#: with the shapes met before compiles nothing
+_COMPILED: dict[tuple, Callable] = {}
+
+
+def _graphs() -> int:
+    """Graphs dynamo has compiled in this process (its own count)."""
+    return torch._dynamo.utils.counters["stats"]["unique_graphs"]
+
+
+def _needs_grad(args: tuple, kwargs: dict) -> bool:
+    return any(isinstance(t, torch.Tensor) and t.requires_grad for t in (*args, *kwargs.values()))
+
+
+def cpp_compiler() -> str | None:
+    """The C++ compiler inductor would call on a CPU (``$CXX``, ``g++``, ``clang++``), None if none is found."""
+    names = [os.environ["CXX"]] if os.environ.get("CXX") else ["g++", "clang++"]
+    for name in names:
+        path = shutil.which(name)
+        if path:
+            return path
+    return None
+
+
+def compiler_for(setting: str, device: torch.device) -> Compiler:
+    """The :class:`Compiler` of ``filter.compile`` (``false`` | ``true`` | ``auto``) on ``device``."""
+    if setting not in SETTINGS:
+        raise ValueError(f"filter.compile={setting!r}: expected one of {', '.join(SETTINGS)}")
+    if setting == "false":
+        return Compiler(None, reason="filter.compile=false")
+    if device.type == "cuda":
+        return Compiler("inductor", "reduce-overhead", f"filter.compile={setting}, {device}: CUDA graphs")
+    if device.type != "cpu":
+        if setting == "true":
+            raise ValueError(f"filter.compile=true: compiling on {device} is not supported; use cpu or cuda")
+        return Compiler(None, reason=f"filter.compile=auto: nothing to compile with on {device}")
+    cxx = cpp_compiler()
+    if cxx is None:
+        if setting == "true":
+            raise ValueError("filter.compile=true: no C++ compiler found (set CXX, or install g++ or clang++), "
+                             "which inductor needs on a CPU; filter.compile=auto runs eagerly without one")
+        return Compiler(None, reason="filter.compile=auto: no C++ compiler found (CXX, g++, clang++)")
+    return Compiler("inductor", None, f"filter.compile={setting}, C++ compiler {cxx}")
+
+
+def bucket(n: int, *, smallest: int = 64) -> int:
+    """The padded size of ``n`` items: the next power of two at or above ``n``, at least
+    ``smallest``, so that a pass meets a handful of shapes, not one per count."""
+    size = smallest
+    while size < n:
+        size *= 2
+    return size

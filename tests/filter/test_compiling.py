@@ -1,0 +1,93 @@
+"""``filter.compile`` (:mod:`flowins.filter.compiling`): which compiler a setting gives, and a
+filter pass whose flow frames run through ``torch.compile`` against the eager pass."""
+import dataclasses
+import importlib.util
+from pathlib import Path
+
+import pytest
+import torch
+
+from flowins.filter import compiling
+from flowins.filter.compiling import Compiler, bucket, compiler_for
+from flowins.filter.runner import run_filters
+from flowins.flow.points import FlowPoints
+from flowins.ins.mechanization import ProcessNoise
+
+
+def _flow_frames_tests():
+    path = Path(__file__).resolve().parents[1] / "measurements" / "test_flow_frames.py"
+    spec = importlib.util.spec_from_file_location("flow_frames_tests", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_bucket_is_the_next_power_of_two_from_the_smallest():
+    assert [bucket(n) for n in (0, 1, 64, 65, 128, 129, 300)] == [64, 64, 64, 128, 128, 256, 512]
+    assert bucket(5, smallest=8) == 8 and bucket(9, smallest=8) == 16
+
+
+def test_the_setting_gives_eager_inductor_or_an_error_that_names_it(monkeypatch):
+    cpu = torch.device("cpu")
+    assert not compiler_for("false", cpu).enabled
+    monkeypatch.setenv("CXX", "no-such-compiler-flowins")
+    assert compiling.cpp_compiler() is None
+    auto = compiler_for("auto", cpu)
+    assert not auto.enabled and "no C++ compiler" in auto.reason and "eager" in auto.describe()
+    with pytest.raises(ValueError, match=r"filter.compile=true: no C\+\+ compiler found"):
+        compiler_for("true", cpu)
+    with pytest.raises(ValueError, match="filter.compile='sometimes': expected one of false, true, auto"):
+        compiler_for("sometimes", cpu)
+    monkeypatch.setenv("CXX", "sh")  # any program on the path stands for one here
+    found = compiler_for("auto", cpu)
+    assert found.backend == "inductor" and found.mode is None and "sh" in found.reason
+    cuda = compiler_for("true", torch.device("cuda"))  # a setting, not a device: nothing runs on it here
+    assert cuda.backend == "inductor" and cuda.mode == "reduce-overhead"
+
+
+def test_the_filter_config_reads_yaml_booleans_and_names_a_bad_value():
+    from flowins.settings import navigation_config
+
+    base = {"acc_noise": 0.01, "gyro_noise": 0.001, "acc_bias_walk": 0.0, "gyro_bias_walk": 0.0}
+    assert navigation_config({**base, "compile": False}).compile == "false"
+    assert navigation_config({**base, "compile": True}).compile == "true"
+    assert navigation_config({**base, "compile": "auto"}).compile == "auto"
+    with pytest.raises(ValueError, match="compile"):
+        navigation_config({**base, "compile": "sometimes"})
+
+
+def _thinned(run, counts):
+    """``run`` with its flow frames' points cut to ``counts`` in turn (frames without points kept)."""
+    events, k = [], 0
+    for event in run.events:
+        if len(getattr(event, "points", ())) > 0:
+            n = counts[k % len(counts)]
+            k += 1
+            event = dataclasses.replace(event, points=FlowPoints(*(p[:n] for p in event.points[:3])))
+        events.append(event)
+    return dataclasses.replace(run, events=events)
+
+
+def test_a_pass_with_its_flow_frames_compiled_equals_the_eager_pass_and_meets_one_shape_per_bucket():
+    """Two runs of flow frames with 20 to 60 points (each frame's count its own, padded to one
+    bucket of 64 with a mask) through ``torch.compile(fullgraph=True)`` with a backend that needs
+    no compiler: the same nodes and logs as eager to 1e-9, and one compiled shape per number of
+    rows that meet at a frame (1 or 2) instead of one per count of points."""
+    frames = _flow_frames_tests()
+    runs = [_thinned(frames._flow_run(5.0, 6.5, 60, 1, own_camera=False)[0], [60, 20, 47, 33]),
+            _thinned(frames._flow_run(5.03, 6.2, 60, 2, own_camera=False)[0], [25, 58])]
+    torch._dynamo.reset()
+    compiling._COMPILED.clear()
+    compiler = Compiler("eager", reason="test")
+    with torch.inference_mode():
+        eager = run_filters(runs, noise=ProcessNoise())
+        compiled = run_filters(runs, noise=ProcessNoise(), compiler=compiler)
+    for a, b in zip(compiled, eager, strict=True):
+        assert torch.equal(a.t_s, b.t_s)
+        assert [e.get("valid") for e in a.log] == [e.get("valid") for e in b.log]
+        for name in ("node_mean", "node_cov"):
+            x, y = getattr(a, name), getattr(b, name)
+            torch.testing.assert_close(x, y, rtol=0, atol=1e-9 * max(1.0, float(y.abs().max())))
+    assert sum(e.get("kind") == "flow" for e in eager[0].log) >= 10
+    assert 1 <= compiler.compiles <= 2, compiler
+    assert "compiled with eager" in compiler.describe()
