@@ -107,7 +107,7 @@ def main() -> None:
     parser.add_argument("--score", type=Path, nargs="+", required=True, help="recordings the results are scored on")
     parser.add_argument("--steps", default="1,0.5,0.25", help="log10 step sizes, largest first")
     parser.add_argument("--rounds", type=int, default=2)
-    parser.add_argument("--max-evals", type=int, default=40, help="per search")
+    parser.add_argument("--max-evals", type=int, default=70, help="per search")
     parser.add_argument("--start-sigma", type=float, default=1.0, help="both σs' start (m/s)")
     parser.add_argument("--start-scale", type=float, default=1.0, help="the three scales' start (g)")
     parser.add_argument("--metric", choices=("drift", "rmse"), default="drift",

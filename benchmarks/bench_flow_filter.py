@@ -21,8 +21,9 @@ flow that ``evaluate.py flow.device=cuda`` cached (or computes it there). Timing
 ``filter.workers=N`` (an override) splits the batch over ``N`` worker processes
 (:mod:`flowins.parallel`; the single run stays one process). ``filter.compile=true`` runs the
 flow frames' update through ``torch.compile`` (:mod:`flowins.filter.compiling`): the warm-up
-compiles the single run's shapes and prints what that took; the batch prints its own compiling
-and its rate without it.
+compiles the single run's shapes and prints what that took, each timed run follows an eager one
+(the ratio of each pair printed: this machine's speed drifts between runs); the batch prints its
+own compiling and its rate without it.
 
 The last line is ``RESULT single=<x>x batched=<x>x batch=<B> device=<device> workers=<N>``.
 
@@ -283,11 +284,21 @@ def stage_times(spent: dict[str, float], enabled: bool):
 def timed(rec, pairs, config, duration: float, args) -> tuple[float, float | None]:
     """The single run's median time over ``--repeats`` runs and the batch's real-time factor
     (None without ``--batch``), both printed."""
-    times = []
+    times, eager_times = [], []
+    against = config.compile != "false"  # compiled: each timed run follows an eager one, alternating
     for _ in range(args.repeats):
+        if against:
+            eager_s, _ = run(rec.imu, rec.gnss, pairs, FlowCamera.from_sequence(rec.sequence),
+                             dataclasses.replace(config, compile="false"))
+            eager_times.append(eager_s)
         seconds, result = run(rec.imu, rec.gnss, pairs, FlowCamera.from_sequence(rec.sequence), config)
         times.append(seconds)
     fast = statistics.median(times)
+    if against:
+        eager = statistics.median(eager_times)
+        print(f"eager:         {eager:7.2f} s for {duration:.0f} s  -> {duration / eager:6.1f}x real time "
+              f"(median of {args.repeats}, each run before a compiled one; compiled / eager time "
+              f"{fast / eager:.2f}, each pair: {', '.join(f'{c / e:.2f}' for c, e in zip(times, eager_times))})")
     log = result.flow_log
     used = sum(e["valid"] for e in log) / max(1, len(log))
     print(f"flowins:       {fast:7.2f} s for {duration:.0f} s  -> {duration / fast:6.1f}x real time "

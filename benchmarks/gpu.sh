@@ -10,7 +10,7 @@
 # A check of the script itself on a CPU: GPU_SH_DEVICE=cpu GPU_SH_QUICK=1 bash benchmarks/gpu.sh
 # (every section on the CPU, the 60 s walk, a batch of 4, one training epoch; the device
 # tests are skipped there). Its figures mean nothing.
-# GPU_SH_SECTIONS="2 5 3 4 6 1" runs only those sections, in that order (default: all eight, in
+# GPU_SH_SECTIONS="2 5 3 4 6 1" runs only those sections, in that order (default: all nine, in
 # order; 3 and 4 need 2's cache, 6 needs 5's). The sections run one at a time: sections 2 and 5
 # side by side on an H200 machine's 16 cores finished neither simulation in 590 s, where
 # section 2's alone takes 97 s.
@@ -24,7 +24,10 @@
 # times one training step of a 20 s window on the GPU with GPU_SH_TRAIN_ROWS rows (default 2,8,32; the
 # default training's step has 2: one sequence, two methods), what a larger data.batch_size would cost
 # per step. Section 8 times the triangulation's eigh against Jacobi (what the GPU runs) and the
-# adjugate solve of bench_triangulation.py on the GPU (256 and 2048 points a call). A section that fails is
+# adjugate solve of bench_triangulation.py on the GPU (256 and 2048 points a call). Section 9 times one
+# recording of the 60 s walk (cached by section 2 or 4) eager and with filter.compile=true (its flow
+# frames as CUDA graphs: inductor, mode="reduce-overhead"), each line with its compile time; capped
+# by GPU_SH_COMPILE_S (default 400 s) per run. A section that fails is
 # reported and the others still run; the script then exits with 1, naming the failed sections.
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -49,9 +52,9 @@ fi
 reference=${1:-benchmarks/table1_cpu.json}
 out=$(mktemp -d)
 started=$SECONDS
-sections=${GPU_SH_SECTIONS:-1 2 3 4 5 6 7 8}
+sections=${GPU_SH_SECTIONS:-1 2 3 4 5 6 7 8 9}
 for n in $sections; do
-  [[ " 1 2 3 4 5 6 7 8 " == *" $n "* ]] || { echo "error: GPU_SH_SECTIONS: no section $n (1 to 8)"; exit 1; }
+  [[ " 1 2 3 4 5 6 7 8 9 " == *" $n "* ]] || { echo "error: GPU_SH_SECTIONS: no section $n (1 to 9)"; exit 1; }
 done
 failed=()
 section() { echo; echo "== [$((SECONDS - started)) s] $*"; }
@@ -138,6 +141,17 @@ s8() {
   local points
   for points in 256 2048; do
     python benchmarks/bench_triangulation.py --device "$device" --points "$points" --frames 100 || return
+  done
+}
+
+s9() {
+  section "9. filter.compile=true: one recording's flow frames as CUDA graphs (bench_flow_filter.py --quick --batch 0)"
+  local setting
+  for setting in false true; do
+    echo "filter.compile=$setting"
+    capped "${GPU_SH_COMPILE_S:-400}" python benchmarks/bench_flow_filter.py --quick --device "$device" --batch 0 \
+      --repeats 3 --reference-s 0 --breakdown-s 0 --count-ops-s 0 filter.compile="$setting" 2>&1 \
+      | { grep --line-buffered -E "compiled|flowins:|RESULT|error" || true; } || return
   done
 }
 

@@ -54,9 +54,9 @@ def test_a_capped_training_stops_at_its_limit_and_is_no_failure(tmp_path):
 
 
 def test_an_unknown_section_is_refused_before_any_work(tmp_path):
-    done, calls = _run(tmp_path, "2 9")
+    done, calls = _run(tmp_path, "2 10")
     assert done.returncode == 1
-    assert "error: GPU_SH_SECTIONS: no section 9 (1 to 8)" in done.stdout
+    assert "error: GPU_SH_SECTIONS: no section 10 (1 to 9)" in done.stdout
     assert calls == []  # not even the machine's check
 
 
@@ -91,3 +91,11 @@ def test_section_8_times_the_triangulation_at_both_sizes_on_the_device(tmp_path)
     runs = [c for c in calls if "bench_triangulation.py" in c]
     assert len(runs) == 2 and all("--device cpu" in c for c in runs), calls
     assert ["--points 256" in runs[0], "--points 2048" in runs[1]] == [True, True], runs
+
+
+def test_the_compile_section_runs_the_single_recording_eager_then_compiled(tmp_path):
+    done, calls = _run(tmp_path, "9")
+    assert done.returncode == 0, done.stdout
+    runs = [c for c in calls if "bench_flow_filter.py" in c]
+    assert [r.rsplit("filter.compile=", 1)[1] for r in runs] == ["false", "true"], runs
+    assert all("--quick" in r and "--batch 0" in r for r in runs), runs
