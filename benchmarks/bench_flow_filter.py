@@ -22,8 +22,9 @@ flow that ``evaluate.py flow.device=cuda`` cached (or computes it there). Timing
 (:mod:`flowins.parallel`; the single run stays one process). ``filter.compile=true`` runs the
 flow frames' update through ``torch.compile`` (:mod:`flowins.filter.compiling`): the warm-up
 compiles the single run's shapes and prints what that took, each timed run follows an eager one
-(the ratio of each pair printed: this machine's speed drifts between runs); the batch prints its
-own compiling and its rate without it.
+(the ratio of each pair printed: this machine's speed drifts between runs); the batch compiles
+its shapes on its first 10 s, then runs eagerly and compiled, and prints any compiling left and
+its rate without it.
 
 The last line is ``RESULT single=<x>x batched=<x>x batch=<B> device=<device> workers=<N>``.
 
@@ -311,6 +312,13 @@ def timed(rec, pairs, config, duration: float, args) -> tuple[float, float | Non
         runs = batch_runs(rec, pairs, FlowCamera.from_sequence(rec.sequence), args.batch, step_s=args.step_s)
         seconds = sum(float(r.imu.t_s[-1] - r.imu.t_s[0]) for r in runs)
         spent: dict[str, float] = {}
+        if against:  # the batch's shapes compiled on its first 10 s, then eager and compiled timed in turn
+            short = batch_runs(rec, pairs, FlowCamera.from_sequence(rec.sequence), args.batch, end_s=10.0, step_s=0.0)
+            _, warm = run_batch(short, config)
+            print(f"batch warm-up, 10 s: {warm[0].filter_steps}")
+            eager_wall, _ = run_batch(runs, dataclasses.replace(config, compile="false"))
+            print(f"batch of {args.batch}, eager: {eager_wall:7.2f} s for {seconds:.0f} s of data -> "
+                  f"{seconds / eager_wall:6.1f}x real time")
         with stage_times(spent, args.stages):
             wall, results = run_batch(runs, config)
         batched = seconds / wall

@@ -190,19 +190,32 @@ def _flow_update(chain: BatchChain, rows: list[int], frames: list[FlowFrame]) ->
     """The flow update of frames with points on the rows ``rows``, their logs and recovery."""
     first = frames[0]
     u = first.update
-    mean, cov = chain.newest(rows)
-    lengths = [frame.count_t for frame in frames]
     candidates = [len(frame.points) for frame in frames]
-    compiled = chain.compiler.enabled  # a few fixed shapes: the points padded to a bucket, with a mask
-    points, mask = stack_points([frame.points for frame in frames], like=mean,
+    # compiled: a few fixed shapes. Every row of the chain takes part (a row without a frame here
+    # as a copy of the first row's Gaussian with no valid point, its result dropped) and the
+    # points are padded to a bucket, with a mask
+    compiled = chain.compiler.enabled
+    r = len(rows)
+    pad = chain.rows - r if compiled else 0
+    step_rows = list(rows) + [rows[0]] * pad
+    mean, cov = chain.newest(step_rows)
+    empty = FlowPoints(*(first.points.uv1_px[:0] for _ in range(3)))
+    lengths = [frame.count_t for frame in frames]
+    if pad and all(n is not None for n in lengths):
+        lengths += [lengths[0].new_zeros(())] * pad
+    points, mask = stack_points([frame.points for frame in frames] + [empty] * pad, like=mean,
                                 lengths=None if any(n is None for n in lengths) else lengths,
                                 pad_to=bucket(max(candidates)) if compiled else None)
     points = FlowPoints(points.uv1_px, points.flow_px, first.noise_sigma(points.sigma_px))
-    camera = stack_cameras([frame.camera for frame in frames]).to(mean)  # a copy kept by the camera
+    camera = stack_cameras([frame.camera for frame in frames] + [first.camera] * pad).to(mean)  # a copy kept by the camera
     step = chain.compiler(flow_frame_step, mean, cov, points, camera, mask, update=u,
                           select=u.n_points is not None and max(candidates) > u.n_points,
-                          gated=chain.row_state("flow_gated", rows) if u.recovery.after_frames else None,
+                          gated=chain.row_state("flow_gated", step_rows) if u.recovery.after_frames else None,
                           jacobians=first.jacobians, likelihood=chain.likelihood)
+    if pad:
+        step = FlowFrameStep(*(None if t is None else t[:r] for t in (step.mean, step.cov)),
+                             {k: v[:r] for k, v in step.values.items()},
+                             *(None if t is None else t[:r] for t in (step.gated, step.failed, step.nll, step.nll_count)))
     chain.check_failed(step.failed, "flow update", rows)
     if chain.likelihood:
         chain.add_likelihood(rows, step.nll, step.nll_count)
