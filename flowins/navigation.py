@@ -305,7 +305,7 @@ def _navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig,
         log.warning("warning: %s", warning)
     compiler = compiler_for(config.compile, config.device)
     tracks = run_filters(inputs, progress=progress, compiler=compiler, **config.filter_settings())
-    again, passes = smoother_tracks(inputs, tracks, config, progress=progress)
+    again, passes = smoother_tracks(inputs, tracks, config, progress=progress, compiler=compiler)
     smoothed = rts_smooth_batch(again, marginal=STATE_DIM)
     return [NavigationResult(filter=track, smoother=smoother, smoother_pass=which, frame=setup.frame,
                              gnss_t_s=None if run.gnss is None else run.gnss.t_s, gnss_enu_m=setup.gnss_enu_m,

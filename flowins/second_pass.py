@@ -12,6 +12,7 @@ from typing import Any, Protocol
 
 from flowins.filter.augmentation import with_window
 from flowins.filter.chain import FilterTrack
+from flowins.filter.compiling import Compiler
 from flowins.filter.runner import FilterInput, run_filters
 from flowins.filter.smoother import rts_smooth_batch
 from flowins.measurements.gnss_heading import aligned_prior_covariance, fit_from_record
@@ -36,7 +37,8 @@ def heading_fit_record(track: FilterTrack) -> dict[str, Any] | None:
 
 
 def smoother_tracks(inputs: Sequence[FilterInput], tracks: Sequence[FilterTrack], config: PassConfig, *,
-                    progress: bool = False) -> tuple[list[FilterTrack], list[dict[str, Any] | None]]:
+                    progress: bool = False, compiler: Compiler | None = None
+                    ) -> tuple[list[FilterTrack], list[dict[str, Any] | None]]:
     """The filter tracks the RTS smoother runs on, one per run of ``inputs`` (filtered into
     ``tracks``), and for each run what was chosen (None: nothing to choose). A run's track is its
     own, or, for a run whose GNSS fixes set its heading (``filter.gnss_heading.second_pass``),
@@ -52,7 +54,8 @@ def smoother_tracks(inputs: Sequence[FilterInput], tracks: Sequence[FilterTrack]
     every measurement twice). A second pass that had to reset to the fixes more
     often than the first (``filter.gnss_recovery``: it drifted off them) is not used: the
     smoother runs on the first. All such runs go as one batch; the start carries no gradient
-    through the first pass. ``progress``: report the second pass's progress.
+    through the first pass. ``progress``: report the second pass's progress; ``compiler``: how
+    its events run their pure steps, as the first pass's (``filter.compile``).
     """
     out, which = list(tracks), [None] * len(tracks)
     if not config.gnss_heading.second_pass:
@@ -70,7 +73,8 @@ def smoother_tracks(inputs: Sequence[FilterInput], tracks: Sequence[FilterTrack]
         cov0 = aligned_prior_covariance(run.mean0, run.cov0, mean0, fit,
                                         condition_sigma_rad=config.gnss_heading.condition_sigma_rad)
         rows.append(dataclasses.replace(run, mean0=mean0, cov0=cov0))
-    passes = run_filters(rows, **config.filter_settings(), progress=progress, description="smoother's second pass")
+    passes = run_filters(rows, **config.filter_settings(), progress=progress, description="smoother's second pass",
+                         compiler=compiler)
     for (i, _), track in zip(again, passes):
         resets_first, resets_second = _resets(tracks[i]), _resets(track)
         if resets_second > resets_first:
