@@ -97,12 +97,39 @@ def _to_next_key(transition: Tensor, kinds: tuple[Tensor, Tensor | None], cov: T
 
     The transitions are applied one after another, ``Φ_{j→k} C = Φ_k ⋯ Φ_{j+1} C``: one batched
     application per distance from the node (:func:`_apply`), and no product of two
-    transitions (which would cost ``D / w`` times as much).
+    transitions (which would cost ``D / w`` times as much). That is ``Σ_j distance_j``
+    applications: where the keys lie far apart (a run without updates: every node's distance to
+    the one key at its end) it grows with the square of the nodes, and the nodes' whole
+    transitions to their key are formed instead, each from its successor's
+    (:func:`_to_key_products`), one product per node.
     """
+    n, D, w = cov.shape
+    if nodes is None and n and float(distance.sum()) * w > _PRODUCTS_ABOVE * n * (D + w):
+        return _to_key_products(transition, distance) @ cov
     out = _apply(transition, kinds, slice(1, cov.shape[0] + 1) if nodes is None else nodes + 1, cov)
     for d in range(2, int(distance.max()) + 1 if distance.numel() else 0):
         j = torch.nonzero(distance >= d).squeeze(-1)
         out.index_copy_(0, j, _apply(transition, kinds, (j if nodes is None else nodes[j]) + d, out[j]))
+    return out
+
+
+#: :func:`_to_next_key` forms the transitions' products where the applications would cost more
+#: than this times as much (``benchmarks/bench_smoother_gaps.py`` sets it to inf for the reference)
+_PRODUCTS_ABOVE = 1.0
+
+
+def _to_key_products(transition: Tensor, distance: Tensor) -> Tensor:
+    """``Φ_{j→k(j)}`` ``(n, D, D)`` for the nodes ``j = 0 .. n-1`` at ``distance`` ``(n,)`` from their
+    next key, ``transition[j]`` being ``Φ_j``: ``Φ_{j+1}`` at distance 1, and
+    ``Φ_{j→k} = Φ_{j+1→k} Φ_{j+1}`` further, the nodes of one distance in one batched product
+    after those one closer (node ``j + 1`` is one closer than ``j`` to the same key)."""
+    n = distance.shape[0]
+    out = transition[1 : n + 1].clone()
+    order = torch.argsort(distance, stable=True)
+    counts = torch.bincount(distance, minlength=2).tolist()
+    groups = order.split(counts)
+    for j in groups[2:]:
+        out[j] = out[j + 1] @ transition[j + 1]
     return out
 
 
