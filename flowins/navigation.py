@@ -111,8 +111,9 @@ class NavigationResult:
     #: what the smoother ran on where a second pass was tried (``filter.gnss_heading.second_pass``,
     #: :func:`~flowins.second_pass.smoother_tracks`): ``{"pass": "second" | "first", "reason": ...}``; None: the one pass
     smoother_pass: dict[str, Any] | None = None
-    #: how the filter's steps ran where ``filter.compile`` asked for compiling, and what it cost
-    #: (:meth:`~flowins.filter.compiling.Compiler.describe`); None with ``filter.compile=false``
+    #: how the filter's steps ran where ``filter.compile`` compiled some, and what it cost
+    #: (:meth:`~flowins.filter.compiling.Compiler.describe`), or why it ran eagerly where it asked
+    #: (``auto`` without a compiler); None where nothing was asked or no step ran compiled
     filter_steps: str | None = None
     #: seconds of the filter pass spent compiling its steps (new shapes; 0 when eager or all met before)
     filter_compile_s: float = 0.0
@@ -312,6 +313,7 @@ def _navigate_batch(runs: Sequence[NavigationRun], *, config: NavigationConfig,
                              gnss_h_acc_m=None if run.gnss is None else run.gnss.h_acc_m,
                              flow_pairs_outside=setup.flow_pairs_outside, start=setup.start,
                              gnss_before_start=setup.gnss_before_start, vehicle_mounting=mounting,
-                             filter_steps=None if config.compile == "false" else compiler.describe(),
+                             filter_steps=compiler.describe() if compiler.calls or (
+                                 config.compile != "false" and not compiler.enabled) else None,
                              filter_compile_s=compiler.compile_s)
             for run, setup, track, smoother, which, mounting in zip(runs, setups, tracks, smoothed, passes, mountings)]

@@ -42,6 +42,8 @@ class Compiler:
     #: seconds spent in calls that compiled (a new shape), and their count
     compile_s: float = 0.0
     compiles: int = 0
+    #: calls that ran compiled (0: the pass had no step to compile, e.g. no flow frames)
+    calls: int = 0
 
     @property
     def enabled(self) -> bool:
@@ -56,6 +58,7 @@ class Compiler:
         if compiled is None:
             compiled = _COMPILED[how] = torch.compile(fn, fullgraph=True, dynamic=False, backend=self.backend,
                                                       mode=self.mode)
+        self.calls += 1
         graphs = _graphs()
         start = time.perf_counter()
         out = compiled(*args, **kwargs)

@@ -91,5 +91,21 @@ def test_a_pass_with_its_flow_frames_compiled_equals_the_eager_pass_and_compiles
             x, y = getattr(a, name), getattr(b, name)
             torch.testing.assert_close(x, y, rtol=0, atol=1e-9 * max(1.0, float(y.abs().max())))
     assert sum(e.get("kind") == "flow" for e in eager[0].log) >= 10
-    assert compiler.compiles == 1, compiler
+    assert compiler.compiles == 1 and compiler.calls >= 10, compiler
     assert "compiled with eager" in compiler.describe()
+
+
+def test_a_run_reports_its_steps_where_compiling_was_asked(monkeypatch):
+    """``NavigationResult.filter_steps``: None with ``filter.compile=false`` and where nothing ran
+    compiled (no flow frames); with ``auto`` and no compiler, why the steps ran eagerly."""
+    from flowins.data.synthetic import synthetic_walk_recording
+    from flowins.navigation import NavigationConfig, NavigationRun, navigate
+
+    rec = synthetic_walk_recording(duration_s=8.0, seed=5)
+    run = NavigationRun(rec.imu, rec.gnss)
+    assert navigate(run, config=NavigationConfig()).filter_steps is None
+    monkeypatch.setenv("CXX", "sh")  # a compiler found (nothing compiles: the run has no flow frames)
+    assert navigate(run, config=NavigationConfig(compile="true")).filter_steps is None
+    monkeypatch.setenv("CXX", "no-such-compiler-flowins")
+    steps = navigate(run, config=NavigationConfig(compile="auto")).filter_steps
+    assert steps.startswith("filter steps: eager") and "no C++ compiler" in steps
