@@ -61,7 +61,11 @@ class Compiler:
         self.calls += 1
         graphs = _graphs()
         start = time.perf_counter()
-        out = compiled(*args, **kwargs)
+        if self.mode == "reduce-overhead":  # CUDA graphs: a new step; its outputs live in the graph's
+            torch.compiler.cudagraph_mark_step_begin()  # memory, which the next replay overwrites
+            out = copied(compiled(*args, **kwargs))
+        else:
+            out = compiled(*args, **kwargs)
         compiled_now = _graphs() - graphs
         if compiled_now:  # a shape (or setting) not met yet in this process: this call compiled
             self.compile_s += time.perf_counter() - start
@@ -84,6 +88,21 @@ _COMPILED: dict[tuple, Callable] = {}
 def _graphs() -> int:
     """Graphs dynamo has compiled in this process (its own count)."""
     return torch._dynamo.utils.counters["stats"]["unique_graphs"]
+
+
+def copied(value: Any) -> Any:
+    """``value`` with every tensor in it cloned, through tuples (named ones too), lists and dicts:
+    what a caller keeps of a CUDA graph's outputs after its next replay."""
+    if isinstance(value, torch.Tensor):
+        return value.clone()
+    if isinstance(value, tuple):
+        items = [copied(v) for v in value]
+        return type(value)(*items) if hasattr(value, "_fields") else tuple(items)
+    if isinstance(value, list):
+        return [copied(v) for v in value]
+    if isinstance(value, dict):
+        return {k: copied(v) for k, v in value.items()}
+    return value
 
 
 def _needs_grad(args: tuple, kwargs: dict) -> bool:

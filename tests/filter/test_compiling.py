@@ -109,3 +109,19 @@ def test_a_run_reports_its_steps_where_compiling_was_asked(monkeypatch):
     monkeypatch.setenv("CXX", "no-such-compiler-flowins")
     steps = navigate(run, config=NavigationConfig(compile="auto")).filter_steps
     assert steps.startswith("filter steps: eager") and "no C++ compiler" in steps
+
+
+def test_copied_clones_every_tensor_through_named_tuples_dicts_and_lists():
+    """What is kept of a CUDA graph's outputs (``mode="reduce-overhead"``) is a copy: every tensor
+    in the step's named tuple, its dict of values and any list, in new memory, equal; the rest as is."""
+    from flowins.measurements.flow_update import FlowFrameStep
+
+    t = torch.arange(6.0).reshape(2, 3)
+    out = FlowFrameStep(t, t[0], {"valid": t[1]}, None, [t, "x"], None, 3)
+    got = compiling.copied(out)
+    assert type(got) is FlowFrameStep and got.gated is None and got.nll is None and got.nll_count == 3
+    tensors = [(got.mean, out.mean), (got.cov, out.cov), (got.values["valid"], out.values["valid"]),
+               (got.failed[0], out.failed[0])]
+    for new, old in tensors:
+        assert torch.equal(new, old) and new.data_ptr() != old.data_ptr()
+    assert got.failed[1] == "x"
