@@ -199,11 +199,13 @@ def _flow_update(chain: BatchChain, rows: list[int], frames: list[FlowFrame]) ->
     pad = chain.rows - r if compiled else 0
     step_rows = list(rows) + [rows[0]] * pad
     mean, cov = chain.newest(step_rows)
-    empty = FlowPoints(*(first.points.uv1_px[:0] for _ in range(3)))
     lengths = [frame.count_t for frame in frames]
-    if pad and all(n is not None for n in lengths):
-        lengths += [lengths[0].new_zeros(())] * pad
-    points, mask = stack_points([frame.points for frame in frames] + [empty] * pad, like=mean,
+    frame_points = [frame.points for frame in frames]
+    if pad:
+        frame_points += [FlowPoints(*(first.points.uv1_px[:0] for _ in range(3)))] * pad
+        if all(n is not None for n in lengths):
+            lengths += [lengths[0].new_zeros(())] * pad
+    points, mask = stack_points(frame_points, like=mean,
                                 lengths=None if any(n is None for n in lengths) else lengths,
                                 pad_to=bucket(max(candidates)) if compiled else None)
     points = FlowPoints(points.uv1_px, points.flow_px, first.noise_sigma(points.sigma_px))

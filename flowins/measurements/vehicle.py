@@ -289,8 +289,6 @@ def fit_mounting(mean: Tensor, gyro_rps: Tensor, *, forward_axis: str = "x", up_
     n = int(moving.sum())
     if n < 10:
         raise ValueError(f"fit_mounting: {n} samples at {min_speed_mps} m/s or faster; expected at least 10")
-    with torch.inference_mode(False):  # plain tensors: forward-mode AD drops inference tensors' tangents
-        x, w = mean[moving].detach().to(torch.float64).clone(), gyro_rps[moving].detach().to(torch.float64).clone()
 
     def residual(p: Tensor) -> Tensor:
         settings = VehicleSettings(forward_axis=forward_axis, up_axis=up_axis, mount_pitch_rad=p[0],
@@ -298,7 +296,10 @@ def fit_mounting(mean: Tensor, gyro_rps: Tensor, *, forward_axis: str = "x", up_
         h, _ = constraint_terms(x, w, settings.vehicle_from_imu(x), settings.lever_arm(x))
         return torch.cat((h.reshape(-1), p[2:] / lever_prior_m))
 
-    with torch.inference_mode(False):  # a caller's inference mode would leave the Jacobian empty
+    # outside a caller's inference mode, on plain copies: forward-mode AD drops inference tensors'
+    # tangents (torch 2.11: the Jacobian comes back empty)
+    with torch.inference_mode(False):
+        x, w = mean[moving].detach().to(torch.float64).clone(), gyro_rps[moving].detach().to(torch.float64).clone()
         p = torch.zeros(5, dtype=torch.float64)
         before = residual(p)[:-3]
         for _ in range(iterations):
