@@ -1,7 +1,8 @@
 """The filter's steps through ``torch.compile`` (``filter.compile``).
 
 A step that is a pure function of tensors with no read-back (the flow frame's whole update,
-:func:`~flowins.measurements.flow_update.flow_frame_step`) is captured as one graph
+:func:`~flowins.measurements.flow_update.flow_frame_step`; on CUDA also the IMU propagation
+between events, :func:`~flowins.filter.propagation.propagate_batched`) is captured as one graph
 (``fullgraph=True``: a graph break is an error, not a silent fallback) and compiled:
 
 * on a CPU by inductor, which writes C++ and needs a C++ compiler (``$CXX``, else ``g++`` or
@@ -22,6 +23,7 @@ from __future__ import annotations
 import os
 import shutil
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -39,6 +41,10 @@ class Compiler:
     backend: str | None
     mode: str | None = None
     reason: str = ""
+    #: whether the IMU propagation between events (``propagate_batched``) runs compiled too: on
+    #: CUDA, where a segment's hundred-odd kernel launches become one graph; not on a CPU, where
+    #: inductor's code for it runs no faster than eager (docs/performance.md) and costs a compile
+    propagation: bool = False
     #: seconds spent in calls that compiled (a new shape), and their count
     compile_s: float = 0.0
     compiles: int = 0
@@ -61,11 +67,13 @@ class Compiler:
         self.calls += 1
         graphs = _graphs()
         start = time.perf_counter()
-        if self.mode == "reduce-overhead":  # CUDA graphs: a new step; its outputs live in the graph's
-            torch.compiler.cudagraph_mark_step_begin()  # memory, which the next replay overwrites
-            out = copied(compiled(*args, **kwargs))
-        else:
-            out = compiled(*args, **kwargs)
+        with warnings.catch_warnings():
+            _quiet_tracing()
+            if self.mode == "reduce-overhead":  # CUDA graphs: a new step; its outputs live in the graph's
+                torch.compiler.cudagraph_mark_step_begin()  # memory, which the next replay overwrites
+                out = copied(compiled(*args, **kwargs))
+            else:
+                out = compiled(*args, **kwargs)
         compiled_now = _graphs() - graphs
         if compiled_now:  # a shape (or setting) not met yet in this process: this call compiled
             self.compile_s += time.perf_counter() - start
@@ -83,6 +91,16 @@ class Compiler:
 #: each step's compiled function by (function, backend, mode), for the process: a later run
 #: with the shapes met before compiles nothing
 _COMPILED: dict[tuple, Callable] = {}
+
+
+def _quiet_tracing() -> None:
+    """Silence what tracing a step says about torch itself, not about the step, once per cached
+    function and per internal call it meets (dozens of lines on a job's output): that dynamo traces
+    through a ``functools`` cache (flowins caches only constants that are pure functions of their
+    hashable arguments, :func:`~flowins.constants.cached_constant`, so tracing the function is
+    exact) and inductor's own deprecation warnings."""
+    warnings.filterwarnings("ignore", message="Dynamo detected a call to a `functools.lru_cache`", category=UserWarning)
+    warnings.filterwarnings("ignore", category=FutureWarning, module=r"torch\._inductor")
 
 
 def _graphs() -> int:
@@ -126,7 +144,8 @@ def compiler_for(setting: str, device: torch.device) -> Compiler:
     if setting == "false":
         return Compiler(None, reason="filter.compile=false")
     if device.type == "cuda":
-        return Compiler("inductor", "reduce-overhead", f"filter.compile={setting}, {device}: CUDA graphs")
+        return Compiler("inductor", "reduce-overhead", f"filter.compile={setting}, {device}: CUDA graphs",
+                        propagation=True)
     if device.type != "cpu":
         if setting == "true":
             raise ValueError(f"filter.compile=true: compiling on {device} is not supported; use cpu or cuda")

@@ -215,6 +215,18 @@ def plan_nodes(node_steps: Sequence[Sequence[int]], num_steps: int, *, device=No
     return NodePlan(both[..., :L], both[..., L], real)
 
 
+def pad_plan(plan: NodePlan, *, nodes: int, slots: int, sentinel: int) -> NodePlan:
+    """``plan`` grown to ``nodes`` nodes per row (padding nodes first: the start state, an
+    identity transition) and ``slots`` slots per interval (identity steps, index ``sentinel``:
+    the ``B K`` of :func:`plan_nodes`), for a step of fixed shape."""
+    _, m, L = plan.group.shape
+    if nodes < m or slots < L:
+        raise ValueError(f"pad_plan: the plan has {m} nodes of {L} slots, more than {nodes} of {slots}")
+    group = torch.nn.functional.pad(plan.group, (0, slots - L, nodes - m, 0), value=sentinel)
+    node_step = torch.nn.functional.pad(plan.node_step, (nodes - m, 0), value=-1)
+    return NodePlan(group, node_step, [[False] * (nodes - m) + list(flags) for flags in plan.real])
+
+
 def _plan_arrays(rows: list[list[int]], num_steps: int, device) -> NodePlan:
     """:func:`plan_nodes` of checked ``rows`` in NumPy array arithmetic (the same plan)."""
     B = len(rows)

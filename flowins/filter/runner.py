@@ -8,6 +8,7 @@ paper's ``ã_k`` drives the whole interval ``(t_{k-1}, t_k]``).
 """
 from __future__ import annotations
 
+import functools
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -19,7 +20,8 @@ from flowins.memory import available_memory_bytes, describe_bytes
 from flowins.progress import progress as track_progress
 from flowins.filter.chain import BatchChain, BatchEvent, Event, FilterTrack, place_events
 from flowins.filter.compiling import Compiler
-from flowins.filter.propagation import NodePlan, plan_nodes, propagate_batched, propagate_reference
+from flowins.filter.propagation import (NodePlan, Propagated, pad_plan, plan_nodes, propagate_batched,
+                                       propagate_reference)
 from flowins.ins.mechanization import STANDARD_GRAVITY_MPS2, ProcessNoise
 from flowins.state import NOISE_DIM, STATE_DIM, symmetrize, window_size
 
@@ -173,23 +175,32 @@ def run_filters(
     apply_events(chain, [plan.early for plan in plans])
     # every run's steps in one flat array, and a padding step (Δt = 0) at its end
     offsets = torch.tensor([0] + [plan.dt.shape[0] for plan in plans]).cumsum(0).tolist()
-    flat = None if B == 1 else [torch.cat([getattr(plan, name) for plan in plans] + [zero])
-                                 for name, zero in (("acc", like.new_zeros(1, 3)), ("gyro", like.new_zeros(1, 3)),
-                                                    ("dt", like.new_zeros(1)), ("variances", like.new_zeros(1, NOISE_DIM)))]
+    # compiled: every segment's steps, nodes and intervals padded to a few fixed sizes (:func:`_segment_steps`)
+    compiled = chain.compiler.enabled and chain.compiler.propagation and jacobians == "analytic"
+    flat = None if B == 1 and not compiled else [
+        torch.cat([getattr(plan, name) for plan in plans] + [zero])
+        for name, zero in (("acc", like.new_zeros(1, 3)), ("gyro", like.new_zeros(1, 3)),
+                           ("dt", like.new_zeros(1)), ("variances", like.new_zeros(1, NOISE_DIM)))]
     count = max(len(plan.segments) for plan in plans)
-    steps = _place_steps([_segment_steps(plans, offsets, k) for k in range(count)], device)
+    steps = _place_steps([_segment_steps(plans, offsets, k, compiled=compiled) for k in range(count)], device)
     for k in track_progress(range(count), total=count, description=description, unit="update", enabled=progress):
         segments = [plan.segments[k] if k < len(plan.segments) else None for plan in plans]
-        nodes, index, node_steps = steps[k]
-        if B == 1:
+        nodes, index, node_steps, extra, compile_this = steps[k]
+        if index is None:
             first, last = segments[0].first, segments[0].last
             acc, gyro, dt, variances = (getattr(plans[0], name)[first:last + 1].unsqueeze(0)
                                         for name in ("acc", "gyro", "dt", "variances"))
         else:
             acc, gyro, dt, variances = (part[index] for part in flat)
         if jacobians == "analytic":
-            out = propagate_batched(chain.mean, chain.cov, acc, gyro, dt, nodes, variances=variances,
-                                    gravity_mps2=gravity_mps2, scheme=scheme)
+            mean, cov, propagate = chain.mean, chain.cov, propagate_batched
+            if compile_this:  # the newest node is a view whose strides vary: a compiled shape wants fixed ones
+                mean, cov = (t.clone(memory_format=torch.contiguous_format) for t in (mean, cov))
+                propagate = functools.partial(chain.compiler, propagate_batched)
+            out = propagate(mean, cov, acc, gyro, dt, nodes._replace(real=[]), variances=variances,
+                            gravity_mps2=gravity_mps2, scheme=scheme)
+            if extra:  # the padding nodes added for the compiled shape (the first ones), dropped
+                out = Propagated(*(t[:, extra:] for t in out))
         else:
             out = propagate_reference(chain.mean[0], chain.cov[0], acc[0], gyro[0], dt[0],
                                       torch.tensor(node_steps[0]), noise=noises[0], gravity_mps2=gravity_mps2,
@@ -201,16 +212,37 @@ def run_filters(
     return chain.finish()
 
 
-def _segment_steps(plans: Sequence[_Run], offsets: list[int], k: int) -> tuple[NodePlan, list[list[int]] | None,
-                                                                             list[list[int]]]:
-    """Segment ``k`` of every run, padded to one length ``L``: its node plan (on the host), the
-    index of each row's steps into the runs' flat steps (None for one run: a slice serves), and
-    each row's node steps."""
+#: the largest segment a compiled pass propagates compiled: the flow frames' rhythm (10 IMU steps
+#: between frames, a node on the output grid and one at the frame). Longer segments (an IMU and
+#: GNSS stretch: 100 steps, 10 nodes) are few and each size would cost a compile: they run eagerly
+COMPILED_STEPS, COMPILED_NODES = 16, 2
+
+
+class _SegmentSteps(NamedTuple):
+    """Segment ``k`` of every run, ready to propagate (:func:`_segment_steps`)."""
+
+    plan: NodePlan  # the nodes (padding nodes first), on the host until placed
+    index: Tensor | list[list[int]] | None  # each row's steps in the runs' flat steps (None: one run's slice)
+    node_steps: list[list[int]]  # each row's node steps
+    extra: int  # padding nodes added before the plan's own for a compiled shape (dropped after)
+    compiled: bool  # the segment runs through the pass's compiler
+
+
+def _segment_steps(plans: Sequence[_Run], offsets: list[int], k: int, *, compiled: bool = False) -> _SegmentSteps:
+    """Segment ``k`` of every run, padded to one length ``L`` (padding steps first).
+
+    ``compiled`` (a compiled pass): a segment of up to :data:`COMPILED_STEPS` steps and
+    :data:`COMPILED_NODES` nodes per row is padded to exactly that many, every interval to ``L``
+    slots, so that the pass's propagation meets one shape; a larger one runs eagerly."""
     segments = [plan.segments[k] if k < len(plan.segments) else None for plan in plans]
     L = max(last - first + 1 for first, last, *_ in filter(None, segments))
-    if len(plans) == 1:
+    nodes = max(len(segment.node_steps) for segment in filter(None, segments))
+    compiled = compiled and L <= COMPILED_STEPS and nodes <= COMPILED_NODES
+    if compiled:
+        L = COMPILED_STEPS
+    elif len(plans) == 1:
         node_steps = [[step - segments[0].first for step in segments[0].node_steps]]
-        return plan_nodes(node_steps, L), None, node_steps
+        return _SegmentSteps(plan_nodes(node_steps, L), None, node_steps, 0, False)
     pad = offsets[-1]
     index, node_steps = [], []
     for offset, segment in zip(offsets, segments):
@@ -222,24 +254,31 @@ def _segment_steps(plans: Sequence[_Run], offsets: list[int], k: int) -> tuple[N
         shift = L - (last - first + 1)  # padding steps first: the last step is the segment's
         index.append([pad] * shift + list(range(offset + first, offset + last + 1)))
         node_steps.append([step - first + shift for step in steps])
-    return plan_nodes(node_steps, L), index, node_steps
+    plan = plan_nodes(node_steps, L)
+    if not compiled:
+        return _SegmentSteps(plan, index, node_steps, 0, False)
+    extra = COMPILED_NODES - plan.node_step.shape[1]
+    plan = pad_plan(plan, nodes=COMPILED_NODES, slots=L, sentinel=len(plans) * L)
+    return _SegmentSteps(plan, index, node_steps, extra, True)
 
 
-def _place_steps(steps: list[tuple[NodePlan, list[list[int]] | None, list[list[int]]]], device: torch.device
-                 ) -> list[tuple[NodePlan, Tensor | None, list[list[int]]]]:
+def _place_steps(steps: list[_SegmentSteps], device: torch.device) -> list[_SegmentSteps]:
     """The segments' node plans and step indices moved to ``device`` in one copy: a pass copies
-    nothing from the host per segment (on a GPU a copy from pageable memory waits for the queue)."""
+    nothing from the host per segment (on a GPU a copy from pageable memory waits for the queue).
+    The plans keep which nodes are the rows' own, less the padding added for a compiled shape."""
     parts = []
-    for plan, index, _ in steps:
-        parts += [plan.group, plan.node_step] + ([] if index is None else [torch.tensor(index)])
+    for step in steps:
+        parts += [step.plan.group, step.plan.node_step] + ([] if step.index is None else [torch.tensor(step.index)])
     if not parts:
         return []
     moved = iter(torch.cat([p.reshape(-1) for p in parts]).to(device).split([p.numel() for p in parts]))
     out = []
-    for plan, index, node_steps in steps:
+    for step in steps:
+        plan = step.plan
         group, node_step = next(moved).view(plan.group.shape), next(moved).view(plan.node_step.shape)
-        out.append((NodePlan(group, node_step, plan.real), None if index is None else next(moved).view(len(index), -1),
-                    node_steps))
+        index = None if step.index is None else next(moved).view(len(step.index), -1)
+        real = [flags[step.extra:] for flags in plan.real]
+        out.append(step._replace(plan=NodePlan(group, node_step, real), index=index))
     return out
 
 

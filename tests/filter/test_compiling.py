@@ -42,7 +42,8 @@ def test_the_setting_gives_eager_inductor_or_an_error_that_names_it(monkeypatch)
     found = compiler_for("auto", cpu)
     assert found.backend == "inductor" and found.mode is None and "sh" in found.reason
     cuda = compiler_for("true", torch.device("cuda"))  # a setting, not a device: nothing runs on it here
-    assert cuda.backend == "inductor" and cuda.mode == "reduce-overhead"
+    assert cuda.backend == "inductor" and cuda.mode == "reduce-overhead" and cuda.propagation
+    assert not found.propagation  # on a CPU the propagation stays eager
 
 
 def test_the_filter_config_reads_yaml_booleans_and_names_a_bad_value():
@@ -68,19 +69,20 @@ def _thinned(run, counts):
     return dataclasses.replace(run, events=events)
 
 
-def test_a_pass_with_its_flow_frames_compiled_equals_the_eager_pass_and_compiles_one_shape():
+def test_a_pass_with_its_steps_compiled_equals_the_eager_pass_and_compiles_one_shape_per_kind():
     """Three runs of flow frames with 20 to 60 points (each frame's count its own), at times of
     their own (one, two or three rows meet at a frame), through ``torch.compile(fullgraph=True)``
-    with a backend that needs no compiler: the same nodes and logs as eager to 1e-9, and one
-    compiled shape for the whole pass (every row at every frame, the points padded to one
-    bucket of 64 with a mask), not one per count of points and rows."""
+    with a backend that needs no compiler: the same nodes, transitions and logs as eager to 1e-9,
+    and one compiled shape of each step for the whole pass (every row at every frame, the points
+    padded to one bucket of 64 with a mask; every segment's IMU steps, nodes and intervals padded
+    to one size), not one per count of points, steps and rows; alone, the same."""
     frames = _flow_frames_tests()
     runs = [_thinned(frames._flow_run(5.0, 6.5, 60, 1, own_camera=False)[0], [60, 20, 47, 33]),
             _thinned(frames._flow_run(5.03, 6.2, 60, 2, own_camera=False)[0], [25, 58]),
             _thinned(frames._flow_run(5.0, 6.0, 60, 3, own_camera=True)[0], [40, 21, 59])]
     torch._dynamo.reset()
     compiling._COMPILED.clear()
-    compiler = Compiler("eager", reason="test")
+    compiler = Compiler("eager", reason="test", propagation=True)
     with torch.inference_mode():
         eager = run_filters(runs, noise=ProcessNoise())
         compiled = run_filters(runs, noise=ProcessNoise(), compiler=compiler)
@@ -90,22 +92,40 @@ def test_a_pass_with_its_flow_frames_compiled_equals_the_eager_pass_and_compiles
         for name in ("node_mean", "node_cov"):
             x, y = getattr(a, name), getattr(b, name)
             torch.testing.assert_close(x, y, rtol=0, atol=1e-9 * max(1.0, float(y.abs().max())))
+        torch.testing.assert_close(a.transition, b.transition, rtol=0, atol=1e-9)
     assert sum(e.get("kind") == "flow" for e in eager[0].log) >= 10
-    assert compiler.compiles == 1 and compiler.calls >= 10, compiler
+    # one shape per kind of step: the flow frame and the propagation between events
+    assert compiler.compiles == 2 and compiler.calls >= 20, compiler
     assert "compiled with eager" in compiler.describe()
+    with torch.inference_mode():  # one run (its steps padded, not sliced); and the flow frames alone, as on a CPU
+        alone, frames_only = Compiler("eager", reason="test", propagation=True), Compiler("eager", reason="test")
+        a, b = run_filters(runs[:1], noise=ProcessNoise(), compiler=alone)[0], eager[0]
+        c = run_filters(runs[:1], noise=ProcessNoise(), compiler=frames_only)[0]
+    for name in ("node_mean", "node_cov", "transition"):
+        torch.testing.assert_close(getattr(a, name), getattr(b, name), rtol=0, atol=1e-9)
+        torch.testing.assert_close(getattr(c, name), getattr(b, name), rtol=0, atol=1e-9)
+    assert alone.compiles == 2 and alone.calls >= 20, alone
+    assert frames_only.calls == sum(e.get("kind") == "flow" for e in eager[0].log), frames_only
 
 
 def test_a_run_reports_its_steps_where_compiling_was_asked(monkeypatch):
-    """``NavigationResult.filter_steps``: None with ``filter.compile=false`` and where nothing ran
-    compiled (no flow frames); with ``auto`` and no compiler, why the steps ran eagerly."""
+    """``NavigationResult.filter_steps``: None with ``filter.compile=false``; compiled, the steps
+    that compiled (a run without flow frames: its propagation); with ``auto`` and no compiler,
+    why the steps ran eagerly."""
     from flowins.data.synthetic import synthetic_walk_recording
     from flowins.navigation import NavigationConfig, NavigationRun, navigate
 
     rec = synthetic_walk_recording(duration_s=8.0, seed=5)
     run = NavigationRun(rec.imu, rec.gnss)
     assert navigate(run, config=NavigationConfig()).filter_steps is None
-    monkeypatch.setenv("CXX", "sh")  # a compiler found (nothing compiles: the run has no flow frames)
-    assert navigate(run, config=NavigationConfig(compile="true")).filter_steps is None
+    import flowins.navigation as navigation
+    torch._dynamo.reset()  # the shape compiles here, not in an earlier test
+    compiling._COMPILED.clear()
+    with monkeypatch.context() as patch:  # compiled (a backend that needs no compiler): the propagation
+        patch.setattr(navigation, "compiler_for",
+                      lambda setting, device: Compiler("eager", reason="test", propagation=True))
+        steps = navigate(run, config=NavigationConfig(compile="true")).filter_steps
+    assert steps.startswith("filter steps: compiled with eager (test); 1 shape(s)"), steps
     monkeypatch.setenv("CXX", "no-such-compiler-flowins")
     steps = navigate(run, config=NavigationConfig(compile="auto")).filter_steps
     assert steps.startswith("filter steps: eager") and "no C++ compiler" in steps
@@ -125,3 +145,26 @@ def test_copied_clones_every_tensor_through_named_tuples_dicts_and_lists():
     for new, old in tensors:
         assert torch.equal(new, old) and new.data_ptr() != old.data_ptr()
     assert got.failed[1] == "x"
+
+
+def test_compiling_does_not_print_what_tracing_says_about_cached_constants():
+    """Tracing a step through a cached constant (:func:`~flowins.constants.cached_constant`) makes
+    dynamo warn once per function, dozens of lines on a job's output: the compiler keeps them out,
+    and the step is still exact."""
+    import warnings
+
+    from flowins.constants import cached_constant
+
+    @cached_constant
+    def _twos(dtype, device):  # a function of its own: dynamo warns once per function
+        return torch.full((3,), 2.0, dtype=dtype, device=device)
+
+    def step(x):
+        return x * _twos(x.dtype, x.device)
+
+    x = torch.arange(3.0)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        got = Compiler("eager", reason="test")(step, x)
+    assert torch.equal(got, 2 * x)
+    assert not [w for w in seen if "lru_cache" in str(w.message)], [str(w.message) for w in seen]

@@ -69,3 +69,30 @@ def test_node_plans_of_few_and_many_rows_follow_the_definition(rows):
     group, node_step, real = _naive_plan(node_steps, K)
     plan = plan_nodes(node_steps, K)
     assert torch.equal(plan.group, group) and torch.equal(plan.node_step, node_step) and plan.real == real
+
+
+def test_a_plan_padded_to_fixed_sizes_gives_the_same_nodes():
+    """A compiled step's shapes (:func:`runner._segment_steps`): ``Δt = 0`` steps put before each
+    row's own, padding nodes first and every interval grown to the steps' count give the plan's
+    own nodes unchanged (to rounding), for rows with three, one and no nodes."""
+    from flowins.filter.propagation import pad_plan, plan_nodes
+
+    x0, P0, acc, gyro, dt = _inputs(11)
+    B, K, shift = 3, 11, 5
+    xs, Ps = x0.expand(B, -1).clone(), P0.expand(B, -1, -1).clone()
+    xs[1, 3] += 0.5  # the rows differ
+    node_steps = [[2, 7, 10], [10], []]
+    noise = ProcessNoise(acc_bias_walk=1e-4)
+    kwargs = dict(gravity_mps2=STANDARD_GRAVITY_MPS2)
+    rows = [t.expand(B, *t.shape).clone() for t in (acc, gyro, dt)]
+    own = propagate_batched(xs, Ps, *rows, plan_nodes(node_steps, K), variances=noise.variances(rows[2]), **kwargs)
+    padded = [torch.cat((t.new_zeros(B, shift, *t.shape[2:]), t), 1) for t in rows]
+    plan = pad_plan(plan_nodes([[s + shift for s in steps] for steps in node_steps], K + shift),
+                    nodes=4, slots=K + shift, sentinel=B * (K + shift))
+    assert plan.group.shape == (B, 4, K + shift) and plan.real[0] == [False, True, True, True]
+    got = propagate_batched(xs, Ps, *padded, plan, variances=noise.variances(padded[2]), **kwargs)
+    for a, b in zip(got, own):
+        assert a.shape[1] == 4 and b.shape[1] == 3
+        torch.testing.assert_close(a[:, 1:], b, rtol=0, atol=1e-12 * max(1.0, float(b.abs().max())))
+    with pytest.raises(ValueError, match="more than 2 of 16"):
+        pad_plan(plan, nodes=2, slots=16, sentinel=0)
