@@ -13,6 +13,8 @@ drift inside the pair costs in full.
   path (evo's ``--delta``, ``--delta_unit f|m``; seconds are flowins' own, for walks), each
   pair starting where the last ended, or at every sample with ``all_pairs`` (evo's
   ``--all_pairs``); it reports the RMSE, mean and median over the pairs.
+* :func:`scale_error_pct`: the estimate's size against the truth's, from a Sim(3) alignment
+  (a track too large by 2 % has ``+2``), what a camera's scale bias leaves.
 * :func:`kitti_drift` is the KITTI odometry benchmark's metric: from every ``step``-th
   sample, for each length ``L`` (100, 200, …, 800 m) the pair ending at the first sample whose
   path length from the start exceeds ``L``; each pair's translation error divided by ``L``
@@ -180,6 +182,19 @@ def drift_metrics(t_est_s: Tensor, pos_est: Tensor, q_est: Tensor, t_ref_s: Tens
     kitti = kitti_drift(R_r, p_r, R_e, p_e)
     out.update(kitti_segments=0 if kitti is None else kitti.segments,
                kitti_translation_pct=None if kitti is None else kitti.translation_pct,
-               kitti_rotation_deg_per_100m=None if kitti is None else 100.0 * kitti.rotation_deg_per_m)
+               kitti_rotation_deg_per_100m=None if kitti is None else 100.0 * kitti.rotation_deg_per_m,
+               scale_pct=scale_error_pct(p_e, p_r))
     return out
+
+
+def scale_error_pct(p_est: Tensor, p_ref: Tensor) -> float | None:
+    """How much larger the estimate's positions ``(K, 3)`` are than the truth's, in %: ``100 (1 / c - 1)``
+    with ``c`` the scale of their Sim(3) alignment ``p_ref ≈ c R p_est + t`` (Umeyama's; evo's
+    ``--correct_scale``). None where the truth has no extent (a still recording)."""
+    from flowins.evaluation.alignment import umeyama
+
+    try:
+        return 100.0 * (1.0 / float(umeyama(p_est, p_ref, with_scale=True).scale) - 1.0)
+    except ValueError:
+        return None
 

@@ -337,16 +337,18 @@ def _report_drift(per_run: dict[str, list[dict[str, Any]]]) -> None:
         values = [m.get(f"{kind}_drift", {}).get(key) for m in ms]
         return None if not values or any(v is None for v in values) else sum(values) / len(values)
 
-    def pair(ms: list[dict[str, Any]], key: str, unit: str) -> str:
+    def pair(ms: list[dict[str, Any]], key: str, unit: str, sign: str = "") -> str:
         f, s = mean(ms, "filter", key), mean(ms, "smoother", key)
-        return "n/a" if f is None or s is None else f"{f:.2f} / {s:.2f} {unit}"
+        return "n/a" if f is None or s is None else f"{f:{sign}.2f} / {s:{sign}.2f} {unit}"
 
     lines = [f"  {name:<16} {pair(ms, 'rpe_translation_rmse_m', 'm'):>20}   {pair(ms, 'kitti_translation_pct', '%'):>18}"
+             f"   {pair(ms, 'scale_pct', '%', '+'):>18}"
              for name, ms in per_run.items() if any("filter_drift" in m for m in ms)]
     if lines:
         delta = next(m["filter_drift"]["rpe_delta_s"] for ms in per_run.values() for m in ms if "filter_drift" in m)
-        log.info("\ndrift, filter / smoother (flowins.evaluation.drift: no alignment; metrics.json *_drift):\n"
-                 f"  {'':<16} {f'RPE over {delta:g} s':>20}   {'KITTI 100-800 m':>18}\n" + "\n".join(lines))
+        log.info("\ndrift, filter / smoother (flowins.evaluation.drift: RPE and KITTI's % with no alignment, the scale "
+                 "from a Sim(3) one; metrics.json *_drift):\n"
+                 f"  {'':<16} {f'RPE over {delta:g} s':>20}   {'KITTI 100-800 m':>18}   {'scale':>18}\n" + "\n".join(lines))
 
 
 def _vehicle_hints(recs: list[Recording], labels: list[str], nav_cfg: NavigationConfig) -> list[str]:

@@ -107,8 +107,26 @@ def test_drift_metrics_match_a_track_at_its_own_rate_to_the_truth():
     assert m["rpe_pairs"] == 40 and m["rpe_translation_rmse_m"] == pytest.approx(0.1, rel=1e-6)
     assert m["rpe_rotation_rmse_deg"] == pytest.approx(0.0, abs=1e-9)
     assert abs(m["kitti_translation_pct"] - 1.0) < 1e-3 and m["kitti_segments"] > 0
+    assert m["scale_pct"] == pytest.approx(1.0, rel=1e-9)
     short = drift_metrics(t_est[:51], p_est[:51], q_est[:51], t_ref[:251], p_ref[:251], q_ref[:251])
     assert short["kitti_translation_pct"] is None and short["rpe_pairs"] == 0
+
+
+def test_the_scale_error_is_the_similarity_that_maps_the_track_onto_the_truth():
+    """A turning 3-D track that is the truth made 2.5 % larger about a point of its own, turned and
+    moved (an estimate's frame is its own): +2.5 %; 2 % smaller: -2 %; and a truth that never
+    moves has no scale (None), not an error."""
+    from flowins.evaluation.drift import scale_error_pct
+
+    t = torch.linspace(0.0, 60.0, 601, dtype=F64)
+    _, p = turning(t, 0.1)
+    p = p + torch.stack((torch.zeros_like(t), torch.zeros_like(t), 0.3 * torch.sin(0.2 * t)), -1)
+    turn = rot_z(torch.tensor(0.7, dtype=F64))
+    for factor, want in ((1.025, 2.5), (0.98, -2.0)):
+        est = (factor * (p - p[17]) + p[17]) @ turn.T + torch.tensor([4.0, -2.0, 1.0], dtype=F64)
+        assert scale_error_pct(est, p) == pytest.approx(want, rel=1e-9)
+    still = torch.ones(50, 3, dtype=F64)
+    assert scale_error_pct(still + 0.1 * torch.randn(50, 3, dtype=F64), still) is None
 
 
 def _devkit_drift(T_gt, T_est, lengths, step=10):

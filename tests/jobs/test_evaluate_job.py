@@ -267,16 +267,18 @@ def test_the_drift_block_prints_each_rows_filter_and_smoother_drift_mean_over_se
 
     from flowins.jobs.evaluate import _report_drift
 
-    def run(rpe_f, rpe_s, kitti):
-        drift = lambda rpe: {"rpe_delta_s": 10.0, "rpe_translation_rmse_m": rpe, "kitti_translation_pct": kitti}  # noqa: E731
-        return {"filter_drift": drift(rpe_f), "smoother_drift": drift(rpe_s)}
+    def run(rpe_f, rpe_s, kitti, scale=(1.0, -0.5)):
+        drift = lambda rpe, pct: {"rpe_delta_s": 10.0, "rpe_translation_rmse_m": rpe,  # noqa: E731
+                                  "kitti_translation_pct": kitti, "scale_pct": pct}
+        return {"filter_drift": drift(rpe_f, scale[0]), "smoother_drift": drift(rpe_s, scale[1])}
 
-    per_run = {"ins_dense": [run(2.0, 1.0, 1.5), run(4.0, 3.0, 2.5)], "ins_gnss": [run(5.0, 1.0, None)],
+    per_run = {"ins_dense": [run(2.0, 1.0, 1.5), run(4.0, 3.0, 2.5, (2.0, -1.5))], "ins_gnss": [run(5.0, 1.0, None)],
                "ins": [{"filter_rmse_m": 3.0}]}
     with caplog.at_level(logging.INFO, logger="flowins"):
         _report_drift(per_run)
     text = caplog.text
     assert "RPE over 10 s" in text
     assert "ins_dense" in text and "3.00 / 2.00 m" in text and "2.00 / 2.00 %" in text
+    assert "scale" in text and "+1.50 / -1.00 %" in text and "+1.00 / -0.50 %" in text
     assert "5.00 / 1.00 m" in text and "n/a" in text
     assert "  ins " not in text
