@@ -2,7 +2,8 @@
 
 A step that is a pure function of tensors with no read-back (the flow frame's whole update,
 :func:`~flowins.measurements.flow_update.flow_frame_step`; on CUDA also the IMU propagation
-between events, :func:`~flowins.filter.propagation.propagate_batched`) is captured as one graph
+between events, :func:`~flowins.filter.propagation.propagate_batched`, and every other event's
+gated update, :func:`~flowins.filter.updater.gated_update`) is captured as one graph
 (``fullgraph=True``: a graph break is an error, not a silent fallback) and compiled:
 
 * on a CPU by inductor, which writes C++ and needs a C++ compiler (``$CXX``, else ``g++`` or
@@ -41,10 +42,12 @@ class Compiler:
     backend: str | None
     mode: str | None = None
     reason: str = ""
-    #: whether the IMU propagation between events (``propagate_batched``) runs compiled too: on
-    #: CUDA, where a segment's hundred-odd kernel launches become one graph; not on a CPU, where
-    #: inductor's code for it runs no faster than eager (docs/performance.md) and costs a compile
-    propagation: bool = False
+    #: whether every step runs compiled, not only the flow frames: the IMU propagation between
+    #: events (``propagate_batched``) and every other event's gated update (``updater.step_rows``).
+    #: On CUDA, where each one's tens to hundreds of kernel launches become one graph; not on a CPU,
+    #: where inductor's code for them runs hardly faster than eager (docs/performance.md) and each
+    #: shape costs a compile
+    all_steps: bool = False
     #: seconds spent in calls that compiled (a new shape), and their count
     compile_s: float = 0.0
     compiles: int = 0
@@ -145,7 +148,7 @@ def compiler_for(setting: str, device: torch.device) -> Compiler:
         return Compiler(None, reason="filter.compile=false")
     if device.type == "cuda":
         return Compiler("inductor", "reduce-overhead", f"filter.compile={setting}, {device}: CUDA graphs",
-                        propagation=True)
+                        all_steps=True)
     if device.type != "cpu":
         if setting == "true":
             raise ValueError(f"filter.compile=true: compiling on {device} is not supported; use cpu or cuda")

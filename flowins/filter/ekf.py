@@ -168,6 +168,10 @@ class Gate:
         return torch.sigmoid((threshold - nis) / self.softness)
 
 
+#: the gate of an update given none (built once: a step traced by ``torch.compile`` builds no dataclass)
+_NO_GATE = Gate(mode="off")
+
+
 @cached_constant
 def _quantiles(probability: float, max_dof: int, device: torch.device) -> Tensor:
     """``(max_dof,)`` float64: :func:`chi2_quantile` of ``probability`` for ``1 .. max_dof`` degrees of freedom."""
@@ -455,7 +459,7 @@ def ekf_update(
             "ekf_update expects innovation (..., M, d), H (..., M, d, D), noise_cov (..., M, d, d) or None; got "
             f"{tuple(innovation.shape)}, {tuple(H.shape)}, {None if noise_cov is None else tuple(noise_cov.shape)}"
         )
-    gate = gate or Gate(mode="off")
+    gate = gate or _NO_GATE
     dof = innovation.shape[-1] if dof is None else dof
     failed = None
     if sequential:

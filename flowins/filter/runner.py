@@ -176,7 +176,7 @@ def run_filters(
     # every run's steps in one flat array, and a padding step (Δt = 0) at its end
     offsets = torch.tensor([0] + [plan.dt.shape[0] for plan in plans]).cumsum(0).tolist()
     # compiled: every segment's steps, nodes and intervals padded to a few fixed sizes (:func:`_segment_steps`)
-    compiled = chain.compiler.enabled and chain.compiler.propagation and jacobians == "analytic"
+    compiled = chain.compiler.enabled and chain.compiler.all_steps and jacobians == "analytic"
     flat = None if B == 1 and not compiled else [
         torch.cat([getattr(plan, name) for plan in plans] + [zero])
         for name, zero in (("acc", like.new_zeros(1, 3)), ("gyro", like.new_zeros(1, 3)),

@@ -32,6 +32,7 @@ import torch
 from torch import Tensor
 
 from flowins.filter.chain import BatchChain, ChainBuilder
+from flowins.filter.compiling import Compiler, bucket
 from flowins.filter.ekf import Gate, UpdateResult, ekf_update
 from flowins.state import normalize_quaternions
 
@@ -143,8 +144,12 @@ def step_rows(
                          f"got {tuple(residual.shape)}")
     mean, cov = chain.newest(rows) if prior is None else prior
     keep = likelihood and chain.likelihood
-    result = gated_update(mean, cov, H=H, residual=residual, noise_cov=noise_cov, gate=gate, sequential=sequential,
-                          valid=valid, likelihood=keep, dof=dof, noise_logdet=noise_logdet)
+    blocks = dict(H=H, residual=residual, noise_cov=noise_cov, valid=valid, dof=dof, noise_logdet=noise_logdet)
+    if chain.compiler.enabled and chain.compiler.all_steps:
+        result = _compiled_update(chain.compiler, mean, cov, rows=chain.rows, gate=gate, sequential=sequential,
+                                  likelihood=keep, **blocks)
+    else:
+        result = gated_update(mean, cov, gate=gate, sequential=sequential, likelihood=keep, **blocks)
     chain.check_failed(result.failed, "update", rows)
     if keep:
         chain.add_likelihood(rows, *likelihood_sums(result, residual.shape[-1] if dof is None else dof))
@@ -185,6 +190,44 @@ def gated_update(mean: Tensor, cov: Tensor, *, H: Tensor, residual: Tensor, nois
     result = ekf_update(mean, cov, innovation=residual, H=H, noise_cov=noise_cov, gate=gate, sequential=sequential,
                         normalize=normalize_quaternions, likelihood=likelihood, dof=dof, noise_logdet=noise_logdet)
     return result if valid is None else result._replace(weight=result.weight * valid)
+
+
+def _compiled_update(compiler: Compiler, mean: Tensor, cov: Tensor, *, rows: int, H: Tensor, residual: Tensor,
+                     noise_cov: Tensor | None, valid: Tensor | None, dof: Tensor | None, noise_logdet: Tensor | None,
+                     **options: Any) -> UpdateResult:
+    """:func:`gated_update` through ``compiler`` at a fixed shape: the ``r`` rows grown to the
+    chain's ``rows`` (copies of the first, every block invalid) and the ``M`` blocks to a power of
+    two (zero Jacobian and residual, unit noise, invalid: an exact no-op), every input in a fresh
+    contiguous layout (a compiled shape guards on strides too); the result cut back to ``(r, M)``."""
+    r, M, d = residual.shape
+    grown_rows, grown_blocks = max(rows, r) - r, bucket(M, smallest=1) - M
+    if valid is None:
+        valid = torch.ones(r, M, dtype=torch.bool, device=residual.device)
+    eye = torch.eye(d, dtype=residual.dtype, device=residual.device)
+
+    def grow(t: Tensor | None, block: Tensor | float | bool) -> Tensor | None:
+        """``t`` ``(r, M, ...)`` grown to ``(r + grown_rows, M + grown_blocks, ...)``."""
+        if t is None:
+            return None
+        if grown_blocks:
+            fill = torch.as_tensor(block, dtype=t.dtype, device=t.device).expand(r, grown_blocks, *t.shape[2:])
+            t = torch.cat((t, fill), 1)
+        if grown_rows:
+            t = torch.cat((t, t[:1].expand(grown_rows, *t.shape[1:])), 0)
+        return t.clone(memory_format=torch.contiguous_format)
+
+    def rows_of(t: Tensor) -> Tensor:
+        t = torch.cat((t, t[:1].expand(grown_rows, *t.shape[1:])), 0) if grown_rows else t
+        return t.clone(memory_format=torch.contiguous_format)
+
+    valid = grow(valid, False)
+    if grown_rows:
+        valid[r:] = False
+    out = compiler(gated_update, rows_of(mean), rows_of(cov), H=grow(H, 0.0), residual=grow(residual, 0.0),
+                   noise_cov=grow(noise_cov, eye), valid=valid, dof=grow(dof, d),
+                   noise_logdet=grow(noise_logdet, 0.0), **options)
+    return UpdateResult(out.mean[:r], out.cov[:r], out.nis[:r, :M], out.weight[:r, :M],
+                        None if out.nll is None else out.nll[:r, :M], None if out.failed is None else out.failed[:r])
 
 
 def likelihood_sums(result: UpdateResult, dim: int | Tensor) -> tuple[Tensor, Tensor]:

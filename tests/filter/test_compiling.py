@@ -42,8 +42,8 @@ def test_the_setting_gives_eager_inductor_or_an_error_that_names_it(monkeypatch)
     found = compiler_for("auto", cpu)
     assert found.backend == "inductor" and found.mode is None and "sh" in found.reason
     cuda = compiler_for("true", torch.device("cuda"))  # a setting, not a device: nothing runs on it here
-    assert cuda.backend == "inductor" and cuda.mode == "reduce-overhead" and cuda.propagation
-    assert not found.propagation  # on a CPU the propagation stays eager
+    assert cuda.backend == "inductor" and cuda.mode == "reduce-overhead" and cuda.all_steps
+    assert not found.all_steps  # on a CPU only the flow frames compile
 
 
 def test_the_filter_config_reads_yaml_booleans_and_names_a_bad_value():
@@ -82,7 +82,7 @@ def test_a_pass_with_its_steps_compiled_equals_the_eager_pass_and_compiles_one_s
             _thinned(frames._flow_run(5.0, 6.0, 60, 3, own_camera=True)[0], [40, 21, 59])]
     torch._dynamo.reset()
     compiling._COMPILED.clear()
-    compiler = Compiler("eager", reason="test", propagation=True)
+    compiler = Compiler("eager", reason="test", all_steps=True)
     with torch.inference_mode():
         eager = run_filters(runs, noise=ProcessNoise())
         compiled = run_filters(runs, noise=ProcessNoise(), compiler=compiler)
@@ -98,7 +98,7 @@ def test_a_pass_with_its_steps_compiled_equals_the_eager_pass_and_compiles_one_s
     assert compiler.compiles == 2 and compiler.calls >= 20, compiler
     assert "compiled with eager" in compiler.describe()
     with torch.inference_mode():  # one run (its steps padded, not sliced); and the flow frames alone, as on a CPU
-        alone, frames_only = Compiler("eager", reason="test", propagation=True), Compiler("eager", reason="test")
+        alone, frames_only = Compiler("eager", reason="test", all_steps=True), Compiler("eager", reason="test")
         a, b = run_filters(runs[:1], noise=ProcessNoise(), compiler=alone)[0], eager[0]
         c = run_filters(runs[:1], noise=ProcessNoise(), compiler=frames_only)[0]
     for name in ("node_mean", "node_cov", "transition"):
@@ -110,8 +110,8 @@ def test_a_pass_with_its_steps_compiled_equals_the_eager_pass_and_compiles_one_s
 
 def test_a_run_reports_its_steps_where_compiling_was_asked(monkeypatch):
     """``NavigationResult.filter_steps``: None with ``filter.compile=false``; compiled, the steps
-    that compiled (a run without flow frames: its propagation); with ``auto`` and no compiler,
-    why the steps ran eagerly."""
+    that compiled (a run without flow frames: its propagation and its fixes' update); with
+    ``auto`` and no compiler, why the steps ran eagerly."""
     from flowins.data.synthetic import synthetic_walk_recording
     from flowins.navigation import NavigationConfig, NavigationRun, navigate
 
@@ -121,11 +121,11 @@ def test_a_run_reports_its_steps_where_compiling_was_asked(monkeypatch):
     import flowins.navigation as navigation
     torch._dynamo.reset()  # the shape compiles here, not in an earlier test
     compiling._COMPILED.clear()
-    with monkeypatch.context() as patch:  # compiled (a backend that needs no compiler): the propagation
+    with monkeypatch.context() as patch:  # compiled (a backend that needs no compiler), every step
         patch.setattr(navigation, "compiler_for",
-                      lambda setting, device: Compiler("eager", reason="test", propagation=True))
+                      lambda setting, device: Compiler("eager", reason="test", all_steps=True))
         steps = navigate(run, config=NavigationConfig(compile="true")).filter_steps
-    assert steps.startswith("filter steps: compiled with eager (test); 1 shape(s)"), steps
+    assert steps.startswith("filter steps: compiled with eager (test); 2 shape(s)"), steps  # propagation, fixes
     monkeypatch.setenv("CXX", "no-such-compiler-flowins")
     steps = navigate(run, config=NavigationConfig(compile="auto")).filter_steps
     assert steps.startswith("filter steps: eager") and "no C++ compiler" in steps
@@ -168,3 +168,35 @@ def test_compiling_does_not_print_what_tracing_says_about_cached_constants():
         got = Compiler("eager", reason="test")(step, x)
     assert torch.equal(got, 2 * x)
     assert not [w for w in seen if "lru_cache" in str(w.message)], [str(w.message) for w in seen]
+
+
+def test_a_pass_of_every_event_kind_with_every_step_compiled_equals_the_eager_pass():
+    """``Compiler.all_steps`` (what CUDA runs): the flow frames, the propagation and every other
+    event's gated update (GNSS fixes with a reset, a zero-velocity and two vehicle updates) through
+    ``torch.compile(fullgraph=True)`` with a backend that needs no compiler, alone and as a batch of
+    two runs whose events differ (one row at a fix the other lacks: the update's rows and blocks
+    padded to a fixed shape): the same nodes, transitions and logs as eager to 1e-9, a shape per
+    kind of step, not one per call."""
+    frames = _flow_frames_tests()
+    runs = []
+    for end_s in (7.0, 6.0):
+        run, events = frames._every_event_kind(end_s)
+        runs.append(dataclasses.replace(run, events=events))
+    torch._dynamo.reset()
+    compiling._COMPILED.clear()
+    for batch in (runs[:1], runs):
+        compiler = Compiler("eager", reason="test", all_steps=True)
+        with torch.inference_mode():
+            eager = run_filters(batch, noise=ProcessNoise(), likelihood=True)
+            compiled = run_filters(batch, noise=ProcessNoise(), likelihood=True, compiler=compiler)
+        for a, b in zip(compiled, eager, strict=True):
+            assert torch.equal(a.t_s, b.t_s)
+            assert [(e.get("kind"), e.get("accepted")) for e in a.log] == [(e.get("kind"), e.get("accepted"))
+                                                                           for e in b.log]
+            for name in ("node_mean", "node_cov", "transition"):
+                torch.testing.assert_close(getattr(a, name), getattr(b, name), rtol=0, atol=1e-9)
+            torch.testing.assert_close(a.nll, b.nll, rtol=1e-9, atol=0)  # log-dets summed in another order
+        kinds = {e.get("kind") for e in eager[0].log}
+        assert {"flow", "gnss", "zero_velocity", "vehicle"} <= kinds, kinds
+        updates = sum(e.get("kind") in ("gnss", "zero_velocity", "vehicle") for e in eager[0].log)
+        assert compiler.calls >= updates + 20 and compiler.compiles <= 8, compiler

@@ -162,3 +162,49 @@ def test_a_failed_update_names_its_row_and_time_at_once_or_at_the_end_of_the_pas
         update_rows(batch, [0, 1], H=H, residual=z - (H @ mean[:, None, :, None]).squeeze(-1), noise_cov=R)
         assert waits, "the CPU's eager pass raises in the update"
         batch.finish()
+
+
+@pytest.mark.parametrize("whitened", [False, True])
+@pytest.mark.parametrize("sequential", [False, True])
+def test_a_compiled_update_grows_its_rows_and_blocks_without_changing_the_result(whitened, sequential):
+    """With every step compiled (``Compiler.all_steps``, what CUDA runs), two rows of a chain of
+    four update with three blocks: the rows are grown to four and the blocks to four (zero
+    Jacobian and residual, unit noise, invalid) for one fixed shape. Each row's posterior, NIS,
+    gate weight and likelihood equal the plain update's (the gate hard, one block invalid, one
+    rejected, blocks of their own degrees of freedom), through ``torch.compile`` with a backend
+    that needs no compiler."""
+    from flowins.filter.compiling import Compiler
+    from flowins.filter.updater import gated_update, step_rows
+
+    M, d = 3, 2
+    gen = torch.Generator().manual_seed(5)
+    means = torch.randn(4, STATE_DIM, generator=gen, dtype=F64)
+    covs = random_spd(gen, STATE_DIM, 4)
+    H = torch.randn(2, M, d, STATE_DIM, generator=gen, dtype=F64)
+    res = torch.randn(2, M, d, generator=gen, dtype=F64)
+    res[0, 2] *= 40.0  # rejected by the gate
+    R = None if whitened else random_spd(gen, d, 2, M)
+    logdet = 0.1 * torch.randn(2, M, generator=gen, dtype=F64) if whitened else None
+    valid = torch.tensor([[True, True, True], [True, False, True]])
+    dof = torch.tensor([[2, 1, 2], [2, 2, 1]])
+    gate = Gate(probability=0.99)
+    rows = [3, 1]
+    torch._dynamo.reset()
+    results = {}
+    for compiler in (None, Compiler("eager", reason="test", all_steps=True)):
+        chain = BatchChain(4, likelihood=True, compiler=compiler)
+        chain.add_nodes([[0.0]] * 4, torch.eye(STATE_DIM, dtype=F64).expand(4, 1, -1, -1), means.unsqueeze(1),
+                        covs.unsqueeze(1))
+        results[compiler is None] = step_rows(chain, rows, H=H, residual=res, noise_cov=R, gate=gate,
+                                              sequential=sequential, valid=valid, dof=dof, noise_logdet=logdet)
+        assert compiler is None or compiler.calls == 1
+    plain = gated_update(means[rows], covs[rows], H=H, residual=res, noise_cov=R, gate=gate, sequential=sequential,
+                         valid=valid, likelihood=True, dof=dof, noise_logdet=logdet)
+    for got in results.values():
+        for a, b in zip(got, plain):
+            assert (a is None) == (b is None)
+            if a is not None:
+                assert a.shape == b.shape
+                scale = 1.0 if b.dtype == torch.bool else max(1.0, float(b.abs().max()))
+                torch.testing.assert_close(a, b, rtol=0, atol=1e-10 * scale)
+    assert plain.weight[0, 2] == 0.0 and plain.weight[1, 1] == 0.0 and plain.weight[0, 0] == 1.0
