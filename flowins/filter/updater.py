@@ -189,7 +189,10 @@ def gated_update(mean: Tensor, cov: Tensor, *, H: Tensor, residual: Tensor, nois
                          f"residual {tuple(residual.shape)}), got {tuple(valid.shape)}")
     result = ekf_update(mean, cov, innovation=residual, H=H, noise_cov=noise_cov, gate=gate, sequential=sequential,
                         normalize=normalize_quaternions, likelihood=likelihood, dof=dof, noise_logdet=noise_logdet)
-    return result if valid is None else result._replace(weight=result.weight * valid)
+    if valid is None:
+        return result
+    # built field by field: torch 2.11's dynamo cannot trace a named tuple's _replace
+    return UpdateResult(result.mean, result.cov, result.nis, result.weight * valid, result.nll, result.failed)
 
 
 def _compiled_update(compiler: Compiler, mean: Tensor, cov: Tensor, *, rows: int, H: Tensor, residual: Tensor,
