@@ -1,0 +1,48 @@
+"""``benchmarks/bench_adaptive_factors.py``: the σs a network sets, against closed forms."""
+import importlib.util
+from pathlib import Path
+
+import torch
+
+from flowins.measurements.adaptive_noise import AdaptiveNoise
+
+F64 = torch.float64
+
+
+def _bench():
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_adaptive_factors.py"
+    spec = importlib.util.spec_from_file_location("bench_adaptive_factors", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _imu(seconds=30.0, rate=100.0):
+    gen = torch.Generator().manual_seed(1)
+    t = torch.arange(0.0, seconds, 1.0 / rate, dtype=F64)
+    acc = torch.tensor([0.0, 0.0, 9.81], dtype=F64) + torch.randn(len(t), 3, generator=gen, dtype=F64)
+    gyro = 0.1 * torch.randn(len(t), 3, generator=gen, dtype=F64)
+    return t, acc, gyro
+
+
+def test_a_network_pinned_at_its_bound_says_so_and_one_that_varies_does_not():
+    """Head bias -100 on the lateral output: every lateral factor is the bound 10^-1 (σ × 0.1 at
+    every percentile, every update pinned); zero on the vertical one with zero weights: exactly
+    σ. Random weights: factors that spread, none at a bound."""
+    bench = _bench()
+    t, acc, gyro = _imu()
+    times = torch.arange(5.0, 29.0, 1.0, dtype=F64)
+    sigmas = torch.tensor([0.5, 2.0], dtype=F64)
+    net = AdaptiveNoise()
+    with torch.no_grad():
+        net.head.bias.copy_(torch.tensor([-100.0, 0.0], dtype=F64))
+    q, pinned = bench.summary(net, sigmas, t, acc, gyro, times)
+    torch.testing.assert_close(q[:, 0], torch.full((3,), 0.05, dtype=F64), rtol=1e-12, atol=0)
+    torch.testing.assert_close(q[:, 1], torch.full((3,), 2.0, dtype=F64), rtol=1e-12, atol=0)
+    assert pinned == len(times)
+    with torch.no_grad():
+        gen = torch.Generator().manual_seed(2)
+        for p in net.parameters():
+            p.copy_(0.5 * torch.randn(p.shape, generator=gen, dtype=F64))
+    q, pinned = bench.summary(net, sigmas, t, acc, gyro, times)
+    assert pinned == 0 and bool((q[2] > q[0]).all())
