@@ -212,3 +212,22 @@ def wrong_heading_walk():
         return rec, NavigationRun(rec.imu, rec.gnss, frame=LocalTangentPlane(*origin)), config
 
     return make
+
+
+@pytest.fixture
+def repo_module():
+    """``load(relative_path)``: a file of the repository (a benchmark, another test file) loaded
+    as a module, for tests of code that is not in the package."""
+    import importlib.util
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+
+    def load(relative: str):
+        path = root / relative
+        spec = importlib.util.spec_from_file_location(path.stem, path)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+
+    return load

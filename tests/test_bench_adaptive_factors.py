@@ -1,20 +1,9 @@
 """``benchmarks/bench_adaptive_factors.py``: the σs a network sets, against closed forms."""
-import importlib.util
-from pathlib import Path
-
 import torch
 
 from flowins.measurements.adaptive_noise import AdaptiveNoise
 
 F64 = torch.float64
-
-
-def _bench():
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_adaptive_factors.py"
-    spec = importlib.util.spec_from_file_location("bench_adaptive_factors", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def _imu(seconds=30.0, rate=100.0):
@@ -25,11 +14,11 @@ def _imu(seconds=30.0, rate=100.0):
     return t, acc, gyro
 
 
-def test_a_network_pinned_at_its_bound_says_so_and_one_that_varies_does_not():
+def test_a_network_pinned_at_its_bound_says_so_and_one_that_varies_does_not(repo_module):
     """Head bias -100 on the lateral output: every lateral factor is the bound 10^-1 (σ × 0.1 at
     every percentile, every update pinned); zero on the vertical one with zero weights: exactly
     σ. Random weights: factors that spread, none at a bound."""
-    bench = _bench()
+    bench = repo_module("benchmarks/bench_adaptive_factors.py")
     t, acc, gyro = _imu()
     times = torch.arange(5.0, 29.0, 1.0, dtype=F64)
     sigmas = torch.tensor([0.5, 2.0], dtype=F64)

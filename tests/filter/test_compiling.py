@@ -1,8 +1,6 @@
 """``filter.compile`` (:mod:`flowins.filter.compiling`): which compiler a setting gives, and a
 filter pass whose flow frames run through ``torch.compile`` against the eager pass."""
 import dataclasses
-import importlib.util
-from pathlib import Path
 
 import pytest
 import torch
@@ -12,14 +10,6 @@ from flowins.filter.compiling import Compiler, bucket, compiler_for
 from flowins.filter.runner import run_filters
 from flowins.flow.points import FlowPoints
 from flowins.ins.mechanization import ProcessNoise
-
-
-def _flow_frames_tests():
-    path = Path(__file__).resolve().parents[1] / "measurements" / "test_flow_frames.py"
-    spec = importlib.util.spec_from_file_location("flow_frames_tests", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def test_bucket_is_the_next_power_of_two_from_the_smallest():
@@ -69,14 +59,14 @@ def _thinned(run, counts):
     return dataclasses.replace(run, events=events)
 
 
-def test_a_pass_with_its_steps_compiled_equals_the_eager_pass_and_compiles_one_shape_per_kind():
+def test_a_pass_with_its_steps_compiled_equals_the_eager_pass_and_compiles_one_shape_per_kind(repo_module):
     """Three runs of flow frames with 20 to 60 points (each frame's count its own), at times of
     their own (one, two or three rows meet at a frame), through ``torch.compile(fullgraph=True)``
     with a backend that needs no compiler: the same nodes, transitions and logs as eager to 1e-9,
     and one compiled shape of each step for the whole pass (every row at every frame, the points
     padded to one bucket of 64 with a mask; every segment's IMU steps, nodes and intervals padded
     to one size), not one per count of points, steps and rows; alone, the same."""
-    frames = _flow_frames_tests()
+    frames = repo_module("tests/measurements/test_flow_frames.py")
     runs = [_thinned(frames._flow_run(5.0, 6.5, 60, 1, own_camera=False)[0], [60, 20, 47, 33]),
             _thinned(frames._flow_run(5.03, 6.2, 60, 2, own_camera=False)[0], [25, 58]),
             _thinned(frames._flow_run(5.0, 6.0, 60, 3, own_camera=True)[0], [40, 21, 59])]
@@ -170,14 +160,14 @@ def test_compiling_does_not_print_what_tracing_says_about_cached_constants():
     assert not [w for w in seen if "lru_cache" in str(w.message)], [str(w.message) for w in seen]
 
 
-def test_a_pass_of_every_event_kind_with_every_step_compiled_equals_the_eager_pass():
+def test_a_pass_of_every_event_kind_with_every_step_compiled_equals_the_eager_pass(repo_module):
     """``Compiler.all_steps`` (what CUDA runs): the flow frames, the propagation and every other
     event's gated update (GNSS fixes with a reset, a zero-velocity and two vehicle updates) through
     ``torch.compile(fullgraph=True)`` with a backend that needs no compiler, alone and as a batch of
     two runs whose events differ (one row at a fix the other lacks: the update's rows and blocks
     padded to a fixed shape): the same nodes, transitions and logs as eager to 1e-9, a shape per
     kind of step, not one per call."""
-    frames = _flow_frames_tests()
+    frames = repo_module("tests/measurements/test_flow_frames.py")
     runs = []
     for end_s in (7.0, 6.0):
         run, events = frames._every_event_kind(end_s)
