@@ -186,8 +186,11 @@ def run_windows(
                                                  truth=seq.truth),  # for filter.init.mode=groundtruth
                                    config=config)
         if setup.start.index != 0:
-            raise ValueError(f"training starts the filter at the first IMU sample; filter.init.mode={setup.start.mode} "
-                             f"starts it at row {setup.start.index}: use filter.init.mode=still or moving")
+            raise ValueError(
+                f"{seq.name}: training starts the filter at the recording's first IMU sample, but its start "
+                f"(filter.init.mode={config.start.mode}: {setup.start.mode}) begins at row {setup.start.index}, "
+                f"{float(imu.t_s[setup.start.index] - imu.t_s[0]):.1f} s in ({setup.start.reason}); start from the "
+                f"reference (filter.init.mode=groundtruth), or crop the recording to begin where the start does (start_s)")
         first = start is None
         events = [e for e in setup.events if (t_a < e.time_s or (first and e.time_s == t_a)) and e.time_s <= t_b]
         mean0, cov0 = (setup.mean0, setup.cov0) if first else start

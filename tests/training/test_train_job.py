@@ -286,3 +286,31 @@ def test_training_moves_the_adaptive_noise_network_and_its_checkpoint_keeps_it(w
     params = FilterParameters.from_checkpoint(Path(cfg["output_dir"]) / "checkpoints" / "last.ckpt")
     head = params.adaptive["vehicle"].head
     assert head.bias.abs().max() > 1e-3 and head.weight.abs().max() > 1e-3
+
+
+def test_a_start_that_waits_for_fixes_is_refused_naming_why_and_what_to_set():
+    """A moving drive whose fixes come every 30 s: the moving start waits for its second fix, so
+    the filter would begin seconds in, where training starts it at the first sample. The error
+    names the recording, the row, the wait and the settings that fix it; with the reference start
+    (``filter.init.mode=groundtruth``) the same window runs."""
+    from flowins.data.simulate.drive import DriveConfig, drive_sequence
+    from flowins.data.streams import GnssStream
+    from flowins.navigation import NavigationConfig
+    from flowins.start import StartSettings
+    from flowins.training.unroll import TrainingSequence
+
+    seq = drive_sequence(DriveConfig(duration_s=95.0, outage_s=0.0))[0]
+    g = seq.gnss
+    keep = torch.arange(len(g.t_s)) % 30 == 0  # 4 fixes: the reference start ties its frame to 3 or more
+    sparse = GnssStream(g.t_s[keep], g.lat_deg[keep], g.lon_deg[keep], g.alt_m[keep], g.h_acc_m[keep], g.v_acc_m[keep],
+                        name=g.name)
+    train = TrainingSequence("sparse-fixes drive", seq.imu, sparse, seq.groundtruth)
+    window = (0, 2000)
+    with pytest.raises(ValueError) as raised:
+        run_window(train, "ins_gnss", NavigationConfig(), window)
+    message = str(raised.value)
+    assert message.startswith("sparse-fixes drive: training starts the filter at the recording's first IMU sample")
+    assert "filter.init.mode=auto: moving" in message and "waited" in message
+    assert "filter.init.mode=groundtruth" in message and "start_s" in message
+    result = run_window(train, "ins_gnss", NavigationConfig(start=StartSettings(mode="groundtruth")), window)
+    assert torch.isfinite(result.track.node_mean).all()
