@@ -10,6 +10,7 @@ uses), so each window sees the current values.
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
@@ -186,11 +187,13 @@ def run_windows(
                                                  truth=seq.truth),  # for filter.init.mode=groundtruth
                                    config=config)
         if setup.start.index != 0:
+            late_s = float(imu.t_s[setup.start.index] - imu.t_s[0])
+            reference = "" if config.start.mode == "groundtruth" else ", or start from the reference (filter.init.mode=groundtruth)"
             raise ValueError(
                 f"{seq.name}: training starts the filter at the recording's first IMU sample, but its start "
                 f"(filter.init.mode={config.start.mode}: {setup.start.mode}) begins at row {setup.start.index}, "
-                f"{float(imu.t_s[setup.start.index] - imu.t_s[0]):.1f} s in ({setup.start.reason}); start from the "
-                f"reference (filter.init.mode=groundtruth), or crop the recording to begin where the start does (start_s)")
+                f"{late_s:.2f} s in ({setup.start.reason}); crop the recording to begin there (start_s: "
+                f"{math.ceil(late_s * 100) / 100:.2f} in its data.train or data.val entry){reference}")
         first = start is None
         events = [e for e in setup.events if (t_a < e.time_s or (first and e.time_s == t_a)) and e.time_s <= t_b]
         mean0, cov0 = (setup.mean0, setup.cov0) if first else start

@@ -294,7 +294,7 @@ def test_a_start_that_waits_for_fixes_is_refused_naming_why_and_what_to_set():
     names the recording, the row, the wait and the settings that fix it; with the reference start
     (``filter.init.mode=groundtruth``) the same window runs."""
     from flowins.data.simulate.drive import DriveConfig, drive_sequence
-    from flowins.data.streams import GnssStream
+    from flowins.data.streams import GnssStream, PoseStream
     from flowins.navigation import NavigationConfig
     from flowins.start import StartSettings
     from flowins.training.unroll import TrainingSequence
@@ -311,6 +311,16 @@ def test_a_start_that_waits_for_fixes_is_refused_naming_why_and_what_to_set():
     message = str(raised.value)
     assert message.startswith("sparse-fixes drive: training starts the filter at the recording's first IMU sample")
     assert "filter.init.mode=auto: moving" in message and "waited" in message
-    assert "filter.init.mode=groundtruth" in message and "start_s" in message
+    assert "filter.init.mode=groundtruth" in message and "start_s: " in message
     result = run_window(train, "ins_gnss", NavigationConfig(start=StartSettings(mode="groundtruth")), window)
     assert torch.isfinite(result.track.node_mean).all()
+    # a reference that begins late: the crop is the only advice
+    gt = seq.groundtruth
+    after = gt.t_s >= 1.0
+    late = TrainingSequence("late reference", seq.imu, sparse,
+                            PoseStream(gt.t_s[after], gt.pos_m[after], gt.quat_wxyz[after], name=gt.name))
+    with pytest.raises(ValueError) as raised:
+        run_window(late, "ins_gnss", NavigationConfig(start=StartSettings(mode="groundtruth")), window)
+    message = str(raised.value)
+    assert "(filter.init.mode=groundtruth: groundtruth) begins at row" in message and "start_s: 1.0" in message
+    assert "or start from the reference" not in message
