@@ -192,8 +192,8 @@ def run_windows(
             raise ValueError(
                 f"{seq.name}: training starts the filter at the recording's first IMU sample, but its start "
                 f"(filter.init.mode={config.start.mode}: {setup.start.mode}) begins at row {setup.start.index}, "
-                f"{late_s:.2f} s in ({setup.start.reason}); crop the recording to begin there (start_s: "
-                f"{math.ceil(late_s * 100) / 100:.2f} in its data.train or data.val entry){reference}")
+                f"{late_s:.2f} s in ({setup.start.reason}); crop the recording to begin there (its data.train or "
+                f"data.val entry's start_s, {math.ceil(late_s * 100) / 100:.2f} s later){reference}")
         first = start is None
         events = [e for e in setup.events if (t_a < e.time_s or (first and e.time_s == t_a)) and e.time_s <= t_b]
         mean0, cov0 = (setup.mean0, setup.cov0) if first else start

@@ -311,7 +311,7 @@ def test_a_start_that_waits_for_fixes_is_refused_naming_why_and_what_to_set():
     message = str(raised.value)
     assert message.startswith("sparse-fixes drive: training starts the filter at the recording's first IMU sample")
     assert "filter.init.mode=auto: moving" in message and "waited" in message
-    assert "filter.init.mode=groundtruth" in message and "start_s: " in message
+    assert "filter.init.mode=groundtruth" in message and "start_s, " in message
     result = run_window(train, "ins_gnss", NavigationConfig(start=StartSettings(mode="groundtruth")), window)
     assert torch.isfinite(result.track.node_mean).all()
     # a reference that begins late: the crop is the only advice
@@ -322,5 +322,5 @@ def test_a_start_that_waits_for_fixes_is_refused_naming_why_and_what_to_set():
     with pytest.raises(ValueError) as raised:
         run_window(late, "ins_gnss", NavigationConfig(start=StartSettings(mode="groundtruth")), window)
     message = str(raised.value)
-    assert "(filter.init.mode=groundtruth: groundtruth) begins at row" in message and "start_s: 1.0" in message
+    assert "(filter.init.mode=groundtruth: groundtruth) begins at row" in message and "start_s, 1.0" in message
     assert "or start from the reference" not in message
