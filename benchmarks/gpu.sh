@@ -25,8 +25,8 @@
 # default training's step has 2: one sequence, two methods), what a larger data.batch_size would cost
 # per step. Section 8 times the triangulation's eigh against Jacobi (what the GPU runs) and the
 # adjugate solve of bench_triangulation.py on the GPU (256 and 2048 points a call). Section 9 times one
-# recording of the 60 s walk (cached by section 2 or 4) eager and with filter.compile=true (its flow
-# frames as CUDA graphs: inductor, mode="reduce-overhead"), each line with its compile time; capped
+# recording of the 60 s walk (cached by section 2 or 4) eager and with filter.compile=true (every
+# step as CUDA graphs: inductor, mode="reduce-overhead"), each line with its compile time; capped
 # by GPU_SH_COMPILE_S (default 400 s) per run. A section that fails is
 # reported and the others still run; the script then exits with 1, naming the failed sections.
 set -uo pipefail
@@ -145,7 +145,7 @@ s8() {
 }
 
 s9() {
-  section "9. filter.compile=true: one recording's flow frames as CUDA graphs (bench_flow_filter.py --quick --batch 0)"
+  section "9. filter.compile=true: one recording's steps as CUDA graphs (bench_flow_filter.py --quick --batch 0)"
   local setting
   for setting in false true; do
     echo "filter.compile=$setting"

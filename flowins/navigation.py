@@ -70,8 +70,8 @@ class NavigationConfig:
     #: worker processes a batch of several recordings is split over on the CPU (:func:`navigate_batch`,
     #: :mod:`flowins.parallel`); 1: the batch in this process
     workers: int = bounded(1, minimum=1)
-    #: ``"false"`` | ``"true"`` | ``"auto"``: the flow frames' update through ``torch.compile``
-    #: (:mod:`flowins.filter.compiling`: inductor, with a C++ compiler on a CPU, CUDA graphs on a GPU)
+    #: ``"false"`` | ``"true"`` | ``"auto"``: the flow frames' update (on a GPU every step) through
+    #: ``torch.compile`` (:mod:`flowins.filter.compiling`: inductor, with a C++ compiler on a CPU, CUDA graphs on a GPU)
     compile: Literal["false", "true", "auto"] = "false"
     flow_update: FlowUpdate = field(default_factory=FlowUpdate)
     #: the multi-view update of sparse tracks over a window of cloned poses (``filter.tracks``;

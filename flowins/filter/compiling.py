@@ -62,6 +62,7 @@ class Compiler:
         """``fn(*args, **kwargs)``, compiled where this compiler is on and nothing needs a gradient."""
         if not self.enabled or (torch.is_grad_enabled() and _needs_grad(args, kwargs)):
             return fn(*args, **kwargs)
+        args, kwargs = map_tensors(_fixed_layout, (args, kwargs))
         how = (fn, self.backend, self.mode)
         compiled = _COMPILED.get(how)
         if compiled is None:
@@ -111,19 +112,37 @@ def _graphs() -> int:
     return torch._dynamo.utils.counters["stats"]["unique_graphs"]
 
 
-def copied(value: Any) -> Any:
-    """``value`` with every tensor in it cloned, through tuples (named ones too), lists and dicts:
-    what a caller keeps of a CUDA graph's outputs after its next replay."""
+def map_tensors(fn: Callable[[torch.Tensor], torch.Tensor], value: Any) -> Any:
+    """``value`` with ``fn`` applied to every tensor in it, through tuples (named ones too), lists
+    and dicts; everything else as it is."""
     if isinstance(value, torch.Tensor):
-        return value.clone()
+        return fn(value)
     if isinstance(value, tuple):
-        items = [copied(v) for v in value]
+        items = [map_tensors(fn, v) for v in value]
         return type(value)(*items) if hasattr(value, "_fields") else tuple(items)
     if isinstance(value, list):
-        return [copied(v) for v in value]
+        return [map_tensors(fn, v) for v in value]
     if isinstance(value, dict):
-        return {k: copied(v) for k, v in value.items()}
+        return {k: map_tensors(fn, v) for k, v in value.items()}
     return value
+
+
+def copied(value: Any) -> Any:
+    """``value`` with every tensor in it cloned (:func:`map_tensors`): what a caller keeps of a
+    CUDA graph's outputs after its next replay."""
+    return map_tensors(torch.Tensor.clone, value)
+
+
+def _fixed_layout(t: torch.Tensor) -> torch.Tensor:
+    """``t``, or a contiguous copy where its strides are not a fresh tensor's: a compiled shape
+    guards on strides, those of size-1 dimensions too, and a view into the chain (its newest node)
+    has strides that change from call to call."""
+    stride, expected = t.stride(), []
+    step = 1
+    for size in reversed(t.shape):
+        expected.append(step)
+        step *= size
+    return t if tuple(reversed(expected)) == stride else t.clone(memory_format=torch.contiguous_format)
 
 
 def _needs_grad(args: tuple, kwargs: dict) -> bool:

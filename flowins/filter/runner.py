@@ -193,11 +193,8 @@ def run_filters(
         else:
             acc, gyro, dt, variances = (part[index] for part in flat)
         if jacobians == "analytic":
-            mean, cov, propagate = chain.mean, chain.cov, propagate_batched
-            if compile_this:  # the newest node is a view whose strides vary: a compiled shape wants fixed ones
-                mean, cov = (t.clone(memory_format=torch.contiguous_format) for t in (mean, cov))
-                propagate = functools.partial(chain.compiler, propagate_batched)
-            out = propagate(mean, cov, acc, gyro, dt, nodes._replace(real=[]), variances=variances,
+            propagate = functools.partial(chain.compiler, propagate_batched) if compile_this else propagate_batched
+            out = propagate(chain.mean, chain.cov, acc, gyro, dt, nodes._replace(real=[]), variances=variances,
                             gravity_mps2=gravity_mps2, scheme=scheme)
             if extra:  # the padding nodes added for the compiled shape (the first ones), dropped
                 out = Propagated(*(t[:, extra:] for t in out))

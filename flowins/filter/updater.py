@@ -200,8 +200,8 @@ def _compiled_update(compiler: Compiler, mean: Tensor, cov: Tensor, *, rows: int
                      **options: Any) -> UpdateResult:
     """:func:`gated_update` through ``compiler`` at a fixed shape: the ``r`` rows grown to the
     chain's ``rows`` (copies of the first, every block invalid) and the ``M`` blocks to a power of
-    two (zero Jacobian and residual, unit noise, invalid: an exact no-op), every input in a fresh
-    contiguous layout (a compiled shape guards on strides too); the result cut back to ``(r, M)``."""
+    two (zero Jacobian and residual, unit noise, invalid: an exact no-op); the result cut back to
+    ``(r, M)``."""
     r, M, d = residual.shape
     grown_rows, grown_blocks = max(rows, r) - r, bucket(M, smallest=1) - M
     if valid is None:
@@ -215,13 +215,10 @@ def _compiled_update(compiler: Compiler, mean: Tensor, cov: Tensor, *, rows: int
         if grown_blocks:
             fill = torch.as_tensor(block, dtype=t.dtype, device=t.device).expand(r, grown_blocks, *t.shape[2:])
             t = torch.cat((t, fill), 1)
-        if grown_rows:
-            t = torch.cat((t, t[:1].expand(grown_rows, *t.shape[1:])), 0)
-        return t.clone(memory_format=torch.contiguous_format)
+        return rows_of(t)
 
     def rows_of(t: Tensor) -> Tensor:
-        t = torch.cat((t, t[:1].expand(grown_rows, *t.shape[1:])), 0) if grown_rows else t
-        return t.clone(memory_format=torch.contiguous_format)
+        return torch.cat((t, t[:1].expand(grown_rows, *t.shape[1:])), 0) if grown_rows else t
 
     valid = grow(valid, False)
     if grown_rows:

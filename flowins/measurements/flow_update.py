@@ -15,7 +15,7 @@ from flowins.config import bounded, check_fields
 from flowins.constants import cached_constant, scalar_like
 from flowins.filter.augmentation import augment_pose_rows
 from flowins.filter.chain import BatchChain, RowBatchEvent
-from flowins.filter.compiling import bucket
+from flowins.filter.compiling import bucket, map_tensors
 from flowins.filter.ekf import Gate, UpdateResult
 from flowins.filter.updater import gated_update, likelihood_sums
 from flowins.flow.points import FlowPoints
@@ -214,10 +214,8 @@ def _flow_update(chain: BatchChain, rows: list[int], frames: list[FlowFrame]) ->
                           select=u.n_points is not None and max(candidates) > u.n_points,
                           gated=chain.row_state("flow_gated", step_rows) if u.recovery.after_frames else None,
                           jacobians=first.jacobians, likelihood=chain.likelihood)
-    if pad:
-        step = FlowFrameStep(*(None if t is None else t[:r] for t in (step.mean, step.cov)),
-                             {k: v[:r] for k, v in step.values.items()},
-                             *(None if t is None else t[:r] for t in (step.gated, step.failed, step.nll, step.nll_count)))
+    if pad:  # the rows' own results
+        step = map_tensors(lambda t: t[:r], step)
     chain.check_failed(step.failed, "flow update", rows)
     if chain.likelihood:
         chain.add_likelihood(rows, step.nll, step.nll_count)
