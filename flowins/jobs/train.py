@@ -70,6 +70,8 @@ def run(cfg: Mapping[str, Any]) -> dict[str, Any]:
         trainer.validate(module, datamodule=data, verbose=False)  # the start: a candidate like every epoch
         trainer.fit(module, datamodule=data)
         trainer.save_checkpoint(checkpoints / "last.ckpt", weights_only=False)
+        if module.use_average():  # the last epochs' mean iterate: one more candidate (model.average_epochs)
+            trainer.validate(module, datamodule=data, verbose=False)
         chosen = module.select_best()
         best = checkpoints / "best.ckpt"
         trainer.save_checkpoint(best, weights_only=False)

@@ -102,6 +102,11 @@ class FilterLearner(pl.LightningModule):
         self.lr_final = self.lr if model.lr_final is None else model.lr_final
         self.warmup_steps = model.warmup_steps
         self.accumulate = model.accumulate_windows
+        self.average_epochs = model.average_epochs
+        #: the running sum of the learned tensors after each step of the averaged epochs, and their count
+        self._sums: dict[str, torch.Tensor] = {}
+        self._summed = 0
+        self._next_label: str | None = None  # the label of the next validation outside fit (use_average)
         self.gradient_clip = model.gradient_clip
         self.reference = {k: dict(v) for k, v in (reference or {}).items()}
         self.output_dir = output_dir
@@ -127,7 +132,8 @@ class FilterLearner(pl.LightningModule):
                                    "noise_level": self.noise_level, "loss": self.loss,
                                    "segment_s": list(self.segment_s), "lr": self.lr,
                                    "lr_final": self.lr_final, "warmup_steps": self.warmup_steps,
-                                   "accumulate_windows": self.accumulate, "gradient_clip": self.gradient_clip,
+                                   "accumulate_windows": self.accumulate, "average_epochs": self.average_epochs,
+                                   "gradient_clip": self.gradient_clip,
                                    "reference": self.reference, "learned": params.learned})
 
     def configure_optimizers(self):
@@ -249,11 +255,51 @@ class FilterLearner(pl.LightningModule):
         opt.step()
         opt.zero_grad()
         self.optimizer_steps += 1
+        self._add_to_average()
         self.trained_windows += n
         self.log("train/lr", rate, on_step=True, batch_size=1)
         for name, value in self.params.values().items():
             if self.params.raw[name].requires_grad:
                 self.log(f"params/{name}", value, on_step=True, batch_size=1)
+
+    def _averaged_epochs(self) -> tuple[int, int] | None:
+        """The first and last epoch (from 1) whose steps ``model.average_epochs`` averages, or None."""
+        last = self.trainer.max_epochs if self._trainer is not None else None
+        if not self.average_epochs or not last or last < 1:
+            return None
+        return max(1, last - self.average_epochs + 1), last
+
+    def _learned_tensors(self) -> dict[str, torch.Tensor]:
+        """Every learned tensor by name: the parameters' optimiser coordinates and the adaptive
+        networks' weights (``adaptive.KIND.NAME``)."""
+        out = {n: q for n, q in self.params.raw.items() if q.requires_grad}
+        out.update({f"adaptive.{n}": q for n, q in self.params.adaptive.named_parameters() if q.requires_grad})
+        return out
+
+    def _add_to_average(self) -> None:
+        span = self._averaged_epochs()
+        if span is None or self.current_epoch + 1 < span[0]:
+            return
+        for name, q in self._learned_tensors().items():
+            value = q.detach().to(torch.float64)
+            self._sums[name] = self._sums[name] + value if name in self._sums else value.clone()
+        self._summed += 1
+
+    def use_average(self) -> str | None:
+        """Load the mean of the parameters after every optimiser step of the last
+        ``model.average_epochs`` epochs (the optimiser's coordinates and the adaptive networks'
+        weights) and return the label the next validation records them under (``mean 4-6``);
+        None, loading nothing, where no step was averaged. Averaging the iterates of the last
+        epochs takes out what their order put in the last steps (Polyak-Ruppert averaging)."""
+        span = self._averaged_epochs()
+        if span is None or self._summed == 0:
+            return None
+        with torch.no_grad():
+            for name, q in self._learned_tensors().items():
+                q.copy_((self._sums[name] / self._summed).to(q.dtype))
+        first, last = span
+        self._next_label = f"mean {first}-{last}" if first < last else f"mean {last}"
+        return self._next_label
 
     def _sum_over_processes(self, values: torch.Tensor, reduce: str = "sum") -> torch.Tensor:
         """``values`` summed (or their maximum) over the training processes (itself in one process)."""
@@ -337,8 +383,10 @@ class FilterLearner(pl.LightningModule):
         score = _mean_score(per_method)
         self.log("val/rmse_mean_m", score, prog_bar=True, batch_size=1, sync_dist=True)
         fitting = self.trainer.state.fn == TrainerFn.FITTING
+        label = f"epoch {self.current_epoch + 1}" if fitting else self._next_label or "start"
+        self._next_label = None
         entry = {
-            "label": f"epoch {self.current_epoch + 1}" if fitting else "start",
+            "label": label,
             "step": self.optimizer_steps, "rmse_m": means, "score": score,
             "raw": {n: float(q.detach()) for n, q in self.params.raw.items()},
             "values": self.params.values(),

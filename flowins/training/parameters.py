@@ -157,6 +157,9 @@ class ModelSettings:
         lr, lr_final, warmup_steps: Adam's learning rate (units of log(parameter) near the
             start), the end of its cosine decay, and the linear warm-up's optimiser steps.
         accumulate_windows: window groups whose gradients are summed into one step.
+        average_epochs: the parameters after every optimiser step of the last this many epochs
+            averaged (in the optimiser's coordinates) into one more candidate, validated after
+            the last epoch (:meth:`~flowins.training.module.FilterLearner.use_average`); 0: none.
         gradient_clip: the gradient-norm clip of each step.
         nll_weight: weight of the Gaussian negative log-likelihood of the position errors.
         innovation_weight: weight of the innovation negative log-likelihood per scalar
@@ -193,6 +196,7 @@ class ModelSettings:
     lr_final: float | None = bounded(None, minimum=1e-12)
     warmup_steps: int = bounded(0, minimum=0)
     accumulate_windows: int = bounded(1, minimum=1)
+    average_epochs: int = bounded(0, minimum=0)
     gradient_clip: float = bounded(1.0, minimum=1e-12)
     nll_weight: float = bounded(0.0, minimum=0.0)
     innovation_weight: float = bounded(0.0, minimum=0.0)

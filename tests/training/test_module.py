@@ -206,3 +206,58 @@ def test_noise_level_needs_two_learned_noise_parameters():
     with pytest.raises(ValueError, match="model.noise_level=likelihood: needs at least two learned noise"):
         FilterLearner(params, NavigationConfig(), methods=["ins_gnss"], model=ModelSettings(noise_level="likelihood"))
 
+
+
+def test_the_average_is_the_mean_of_every_step_of_the_last_epochs_and_its_label():
+    """``model.average_epochs=2`` of 3 epochs: ``use_average`` loads the plain mean, over the
+    steps of epochs 2 and 3 only, of every learned coordinate and of the adaptive network's
+    weights (a naive mean of the recorded iterates); frozen parameters stay; the next
+    validation outside a fit is recorded under ``mean 2-3``."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from flowins.training.parameters import ModelSettings
+
+    start = {n: 0.3 if n == "dropout_p" else 0.01 * i if n in SIGNED else 0.5 + i for i, n in enumerate(NAMES)}
+    params = FilterParameters(start, learn=["acc_noise", "gyro_noise"], adaptive=["vehicle"])
+    learner = FilterLearner(params, NavigationConfig(), methods=["ins_gnss"], model=ModelSettings(average_epochs=2))
+    assert learner.use_average() is None  # nothing averaged yet
+    frozen = float(params.raw["gnss_noise_scale"].detach())
+    learned = {n: q for n, q in params.raw.items() if q.requires_grad}
+    learned.update({f"net.{n}": q for n, q in params.adaptive.named_parameters()})
+    generator = torch.Generator().manual_seed(0)
+    kept = []
+    for epoch in range(3):
+        learner._trainer = SimpleNamespace(max_epochs=3, current_epoch=epoch)
+        for _ in range(2 + epoch):  # steps per epoch differ: every step counts once
+            with torch.no_grad():
+                for q in learned.values():
+                    q.copy_(torch.randn(q.shape, generator=generator, dtype=q.dtype))
+            learner._add_to_average()
+            if epoch >= 1:
+                kept.append({n: q.detach().clone() for n, q in learned.items()})
+    with torch.no_grad():
+        for q in learned.values():
+            q.zero_()
+    assert learner.use_average() == "mean 2-3"
+    for name, q in learned.items():
+        naive = sum(k[name] for k in kept) / len(kept)
+        assert torch.allclose(q.detach(), naive, rtol=1e-12, atol=1e-15), name
+    assert float(params.raw["gnss_noise_scale"].detach()) == frozen
+    # the next validation outside a fit takes that label, and only the next
+    learner._trainer = SimpleNamespace(max_epochs=3, current_epoch=2, sanity_checking=False,
+                                       state=SimpleNamespace(fn=None), is_global_zero=False,
+                                       datamodule=None)
+    learner.log = lambda *args, **kwargs: None
+    learner._val = {"ins_gnss": [1.0]}
+    learner.on_validation_epoch_end()
+    learner._val = {"ins_gnss": [2.0]}
+    learner.on_validation_epoch_end()
+    assert [e["label"] for e in learner.history] == ["mean 2-3", "start"]
+    assert learner.history[0]["raw"]["acc_noise"] == pytest.approx(float(sum(k["acc_noise"] for k in kept) / len(kept)))
+    # without model.average_epochs nothing is averaged
+    off = FilterLearner(params, NavigationConfig(), methods=["ins_gnss"])
+    off._trainer = SimpleNamespace(max_epochs=3, current_epoch=2)
+    off._add_to_average()
+    assert off.use_average() is None

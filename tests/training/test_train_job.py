@@ -213,6 +213,32 @@ def test_select_sequences_choose_the_checkpoint_on_their_rmse_each_computed_as_a
 
 
 @pytest.mark.slow
+def test_the_last_epochs_mean_competes_for_the_checkpoint(workdir):
+    """``model.average_epochs=2`` over three epochs of one step each: after the last epoch the
+    mean of epochs 2 and 3 (their steps' parameters, here each epoch's last) is validated as
+    one more candidate, ``best.ckpt`` is the lowest of all, and ``last.ckpt`` keeps the last
+    step's parameters."""
+    cfg = _cfg(workdir / "average", *GNSS, "window_s=20.0", "trainer.max_epochs=3", "model.average_epochs=2",
+               "model.learn=[acc_noise, gyro_noise, gnss_noise_scale]")
+    result = run(cfg)
+    history = result["history"]
+    assert [e["label"] for e in history] == ["start", "epoch 1", "epoch 2", "epoch 3", "mean 2-3"]
+    assert [e["step"] for e in history] == [0, 1, 2, 3, 3]
+    for name in ("acc_noise", "gyro_noise", "gnss_noise_scale"):
+        assert history[4]["raw"][name] == pytest.approx(0.5 * (history[2]["raw"][name] + history[3]["raw"][name]),
+                                                        rel=1e-12), name
+    assert history[4]["raw"]["acc_bias_walk"] == history[3]["raw"]["acc_bias_walk"]  # not learned: as it was
+    assert history[4]["score"] != pytest.approx(history[3]["score"], rel=1e-6)  # the mean is another filter
+    chosen = min(history, key=lambda entry: entry["score"])
+    assert result["chosen"] == chosen["label"]
+    out = Path(cfg["output_dir"]) / "checkpoints"
+    best, last = FilterParameters.from_checkpoint(out / "best.ckpt"), FilterParameters.from_checkpoint(out / "last.ckpt")
+    for name in ("acc_noise", "gyro_noise", "gnss_noise_scale"):
+        assert float(best.raw[name]) == pytest.approx(chosen["raw"][name], rel=1e-12)
+        assert float(last.raw[name]) == pytest.approx(history[3]["raw"][name], rel=1e-12)
+
+
+@pytest.mark.slow
 def test_an_empty_select_list_is_a_run_without_the_key(workdir):
     without = run(_cfg(workdir / "without", *GNSS, "~data.select"))
     empty = run(_cfg(workdir / "empty", *GNSS, "data.select=[]"))
