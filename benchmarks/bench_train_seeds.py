@@ -17,7 +17,8 @@ single walk. The last line is ``RESULT runs=N at_or_below=K spread=X worst_walk=
 
 ``--jobs 2`` runs two trainings at once, each with one thread (on 2 cores about as fast in all
 as one after the other with two; the thread count changes the rounding, and from a 10x start
-the outcome with it). ``--reuse`` keeps runs and scores already in ``OUT``. A run takes about
+the outcome with it). ``--reuse`` keeps the runs and scores already in ``OUT`` that were
+made with the same overrides, held-out walks and checkpoint. A run takes about
 20 min on a 2-core CPU; the held-out walks' flow is computed once (about 10 min a walk) and
 cached. Arguments after ``--`` go to every ``train.py`` run.
 """
@@ -33,15 +34,17 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 EXPERIMENT = "experiment=mistuned"
+ARGUMENTS = "bench_arguments.json"  # what a finished run or score was made with (--reuse keeps only its own)
 
 
 def train(seed: int, out: Path, threads: int, overrides: list[str], reuse: bool) -> Path:
     """``train.py experiment=mistuned seed=SEED`` in ``out/train/seed_SEED``; its ``best.ckpt``."""
     run = out / "train" / f"seed_{seed}"
     best = run / "checkpoints" / "best.ckpt"
-    if reuse and best.exists():
+    if reuse and best.exists() and _same_arguments(run, {"overrides": overrides}):
         return best
     run.mkdir(parents=True, exist_ok=True)
+    (run / ARGUMENTS).unlink(missing_ok=True)  # written again once the run has finished
     env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
     with open(run / "stdout.log", "w") as log:
         code = subprocess.call([sys.executable, "train.py", EXPERIMENT, f"seed={seed}", "progress=false",
@@ -49,6 +52,7 @@ def train(seed: int, out: Path, threads: int, overrides: list[str], reuse: bool)
                                stderr=subprocess.STDOUT)
     if code != 0 or not best.exists():
         raise SystemExit(f"error: train.py seed={seed} stopped with status {code}: see {run / 'stdout.log'}")
+    (run / ARGUMENTS).write_text(json.dumps({"overrides": overrides}))
     return best
 
 
@@ -56,8 +60,10 @@ def score(label: str, checkpoint: Path | None, heldout: list[int], out: Path, re
     """``{walk seed: ins_dense filter RMSE (m)}`` of ``evaluate.py`` on the held-out walks."""
     where = out / "score" / label
     metrics = where / "metrics.json"
-    if not (reuse and metrics.exists()):
+    arguments = {"heldout": heldout, "checkpoint": None if checkpoint is None else str(checkpoint)}
+    if not (reuse and metrics.exists() and _same_arguments(where, arguments)):
         where.mkdir(parents=True, exist_ok=True)
+        (where / ARGUMENTS).unlink(missing_ok=True)
         args = [sys.executable, "evaluate.py", f"sequence.seeds=[{','.join(map(str, heldout))}]",
                 "combinations=[ins_dense]", "flow.mc_mode=moments", "progress=false", f"hydra.run.dir={where}"]
         if checkpoint is not None:
@@ -66,8 +72,15 @@ def score(label: str, checkpoint: Path | None, heldout: list[int], out: Path, re
             code = subprocess.call(args, cwd=REPO, stdout=log, stderr=subprocess.STDOUT)
         if code != 0:
             raise SystemExit(f"error: evaluate.py for {label} stopped with status {code}: see {where / 'stdout.log'}")
+        (where / ARGUMENTS).write_text(json.dumps(arguments))
     per_seed = json.loads(metrics.read_text())["ins_dense"]["per_seed"]
     return {int(s): float(v["filter_rmse_m"]) for s, v in per_seed.items()}
+
+
+def _same_arguments(folder: Path, arguments: dict) -> bool:
+    """Whether ``folder``'s finished run was made with ``arguments`` (what ``--reuse`` may keep)."""
+    path = folder / ARGUMENTS
+    return path.exists() and json.loads(path.read_text()) == json.loads(json.dumps(arguments))
 
 
 def criteria(runs: dict[int, dict[int, float]], hand: dict[int, float]) -> dict:
@@ -114,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     parser.add_argument("--heldout", type=int, nargs="+", default=[8, 9, 10])
     parser.add_argument("--jobs", type=int, default=1)
-    parser.add_argument("--reuse", action="store_true", help="keep the runs and scores already in --out")
+    parser.add_argument("--reuse", action="store_true", help="keep the runs and scores in --out made with the same arguments")
     args = parser.parse_args(ours)
     if args.jobs < 1:
         parser.error(f"--jobs {args.jobs}: expected 1 or more")

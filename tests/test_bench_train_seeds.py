@@ -47,3 +47,36 @@ def test_arguments_after_the_separator_go_to_training(repo_module, tmp_path, mon
     assert "seed=3" in train and "trainer.max_epochs=2" in train and "experiment=mistuned" in train
     with pytest.raises(SystemExit):
         bench.main(["--out", str(tmp_path), "--jobs", "0"])
+
+
+def test_reuse_keeps_only_what_the_same_arguments_made(repo_module, tmp_path, monkeypatch):
+    """``--reuse``: a score of other held-out walks, or a run with other overrides, is made
+    again; one of the same arguments is read back without a call."""
+    import json
+
+    bench = repo_module("benchmarks/bench_train_seeds.py")
+    calls = []
+
+    def fake_call(args, **kwargs):
+        calls.append(args)
+        run = next(a.split("=", 1)[1] for a in args if a.startswith("hydra.run.dir="))
+        if "train.py" in args:
+            (tmp_path / run / "checkpoints").mkdir(parents=True, exist_ok=True)
+            (tmp_path / run / "checkpoints" / "best.ckpt").write_text("")
+        else:
+            seeds = next(a for a in args if a.startswith("sequence.seeds="))[len("sequence.seeds=["):-1].split(",")
+            per_seed = {s: {"filter_rmse_m": float(s)} for s in seeds}
+            (tmp_path / run / "metrics.json").write_text(json.dumps({"ins_dense": {"per_seed": per_seed}}))
+        return 0
+
+    monkeypatch.setattr(bench.subprocess, "call", fake_call)
+    assert bench.score("hand-tuned", None, [8, 9], tmp_path, True) == {8: 8.0, 9: 9.0}
+    assert bench.score("hand-tuned", None, [8, 9], tmp_path, True) == {8: 8.0, 9: 9.0}
+    assert len(calls) == 1
+    assert bench.score("hand-tuned", None, [8, 10], tmp_path, True) == {8: 8.0, 10: 10.0}
+    assert len(calls) == 2
+    bench.train(0, tmp_path, 1, ["a=1"], True)
+    bench.train(0, tmp_path, 1, ["a=1"], True)
+    assert len(calls) == 3
+    bench.train(0, tmp_path, 1, ["a=2"], True)
+    assert len(calls) == 4

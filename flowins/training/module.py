@@ -148,8 +148,7 @@ class FilterLearner(pl.LightningModule):
         seqs = batch if isinstance(batch, list) else [batch]
         window = window_length(self.current_epoch, window_s=self.window_s, curriculum=self.curriculum)
         bounds = [window_bounds(seq.imu.t_s, window) for seq in seqs]
-        named = [(n, q) for n, q in self.params.raw.items() if q.requires_grad]
-        named += [(f"adaptive.{n}", q) for n, q in self.params.adaptive.named_parameters() if q.requires_grad]
+        named = list(self._learned_tensors().items())
         learned = [q for _, q in named]
         from_likelihood = [n in self.innovation_learns for n, _ in named]
         level = [n in self.level_names for n, _ in named] if self.level_names else None
@@ -289,8 +288,8 @@ class FilterLearner(pl.LightningModule):
         """Load the mean of the parameters after every optimiser step of the last
         ``model.average_epochs`` epochs (the optimiser's coordinates and the adaptive networks'
         weights) and return the label the next validation records them under (``mean 4-6``);
-        None, loading nothing, where no step was averaged. Averaging the iterates of the last
-        epochs takes out what their order put in the last steps (Polyak-Ruppert averaging)."""
+        None, loading nothing, where no step was averaged (Polyak-Ruppert averaging: the last
+        iterate's scatter from step to step averaged out)."""
         span = self._averaged_epochs()
         if span is None or self._summed == 0:
             return None
