@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import statistics
 import subprocess
 import sys
 from concurrent.futures import ThreadPoolExecutor
@@ -87,15 +88,19 @@ def criteria(runs: dict[int, dict[int, float]], hand: dict[int, float]) -> dict:
     """Issue 62's criteria from each run's RMSE per held-out walk (``runs[seed][walk]``) and
     hand-tuning's (``hand[walk]``): each run's mean and its ratio to hand-tuning's mean, how
     many are at or below it, the spread (largest / smallest run mean), the worst single walk
-    (its RMSE / hand-tuning's on that walk, the largest over runs and walks) and whether all
-    three hold (every run at or below, spread <= 1.3, worst walk <= 1.2)."""
+    (its RMSE / hand-tuning's on that walk, the largest over runs and walks), whether all
+    three hold (every run at or below, spread <= 1.3, worst walk <= 1.2), and the runs' means'
+    mean, sample standard deviation and median (``runs_mean``, ``runs_std``, ``runs_median``)."""
     walks = sorted(hand)
     hand_mean = sum(hand[w] for w in walks) / len(walks)
     means = {s: sum(r[w] for w in walks) / len(walks) for s, r in runs.items()}
     worst = max((r[w] / hand[w], s, w) for s, r in runs.items() for w in walks)
     spread = max(means.values()) / min(means.values())
     below = sum(m <= hand_mean for m in means.values())
+    values = list(means.values())
     return {"hand_mean": hand_mean, "means": means, "ratios": {s: m / hand_mean for s, m in means.items()},
+            "runs_mean": statistics.mean(values), "runs_std": statistics.stdev(values) if len(values) > 1 else 0.0,
+            "runs_median": statistics.median(values),
             "at_or_below": below, "spread": spread, "worst_walk": {"ratio": worst[0], "run": worst[1], "walk": worst[2]},
             "met": below == len(runs) and spread <= 1.3 and worst[0] <= 1.2}
 
@@ -109,7 +114,9 @@ def table(runs: dict[int, dict[int, float]], hand: dict[int, float], result: dic
         lines.append(f"{'seed ' + str(s):<22}" + "".join(f"{r[w]:>8.2f} m" for w in walks)
                      + f"{result['means'][s]:>8.2f} m{result['ratios'][s]:>8.2f}x")
     worst = result["worst_walk"]
-    lines += ["", f"runs at or below hand-tuning on the mean: {result['at_or_below']} of {len(runs)}",
+    lines += ["", f"the runs' means: {result['runs_mean']:.2f} ± {result['runs_std']:.2f} m (mean ± std over "
+              f"{len(runs)} runs; median {result['runs_median']:.2f} m), hand-tuning {result['hand_mean']:.2f} m",
+              f"runs at or below hand-tuning on the mean: {result['at_or_below']} of {len(runs)}",
               f"spread of the runs' means (largest / smallest): {result['spread']:.2f}x (issue 62: <= 1.3x)",
               f"worst single walk: {100 * (worst['ratio'] - 1):+.1f} % against hand-tuning (seed {worst['run']}, "
               f"walk {worst['walk']}; issue 62: <= +20 %)",

@@ -25,6 +25,9 @@ def test_the_criteria_of_runs_against_hand_tuning(repo_module):
     printed = bench.table(runs, hand, result)
     assert printed.splitlines()[-1] == "RESULT runs=3 at_or_below=2 spread=1.50 worst_walk=+50.0%"
     assert "seed 2" in printed and "1.20x" in printed  # run 2's mean 6 against 5
+    # the runs' means 4, 5, 6: mean 5, sample standard deviation 1, median 5
+    assert (result["runs_mean"], result["runs_std"], result["runs_median"]) == pytest.approx((5.0, 1.0, 5.0))
+    assert "the runs' means: 5.00 ± 1.00 m (mean ± std over 3 runs; median 5.00 m)" in printed
 
 
 def test_arguments_after_the_separator_go_to_training(repo_module, tmp_path, monkeypatch):
