@@ -21,7 +21,6 @@ ladder stops at the first jitter every matrix takes (the same factors).
 """
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
@@ -127,16 +126,6 @@ class Gate:
             one learnable factor for blocks of differing degrees of freedom (the sparse
             tracks' ``2m - 3``), where one threshold would not fit them all. Not used with
             an explicit ``threshold``.
-        outlier_scale: ``k > 1``, or None. Given, the gate is an inlier/outlier mixture: a
-            block is an outlier with prior probability ``π`` and then has ``k²`` times the
-            innovation covariance. The soft weight is the block's posterior probability of
-            being an inlier, ``sigmoid((threshold - NIS) / s)`` with ``s = 2k² / (k² - 1)``
-            (``softness`` is not used), the hard gate keeps the blocks more likely inliers
-            than not (``NIS <= threshold``), and ``π`` follows from the threshold:
-            ``logit(1 - π) = threshold / s - d log k`` (:meth:`outlier_probability`). Each
-            block's innovation likelihood is the mixture's (:meth:`mixture_nll`), counted
-            for every valid block whatever its weight, so the threshold can be learned as the
-            maximum-likelihood outlier rate (``model.innovation_learns``).
 
     A weight ``w`` multiplies the measurement's innovation rows and Jacobian rows,
     which is exactly an update with noise ``R / w²``: ``w = 0`` adds no information
@@ -148,39 +137,9 @@ class Gate:
     threshold: float | Tensor | None = None
     softness: float | Tensor = 1.0
     scale: float | Tensor = 1.0
-    outlier_scale: float | None = bounded(None, above=1.0)
 
     def __post_init__(self) -> None:
         check_fields(self)
-
-    @property
-    def width(self) -> float | Tensor:
-        """The soft gate's width in NIS units: ``softness``, or the mixture's ``2k² / (k² - 1)``."""
-        if self.outlier_scale is None:
-            return self.softness
-        k2 = float(self.outlier_scale) ** 2
-        return 2.0 * k2 / (k2 - 1.0)
-
-    def outlier_probability(self, dof: int | Tensor = 1) -> Tensor:
-        """The mixture's prior outlier probability ``π`` for blocks of ``dof`` degrees of
-        freedom (``outlier_scale`` set): ``logit(1 - π) = threshold / s - dof log k``."""
-        logit = self._inlier_logit(dof)
-        return torch.sigmoid(-torch.as_tensor(logit, dtype=torch.float64))
-
-    def _inlier_logit(self, dof: int | Tensor, *, max_dof: int | None = None) -> float | Tensor:
-        if self.outlier_scale is None:
-            raise ValueError("Gate: the outlier probability needs outlier_scale")
-        threshold = self.threshold_for(dof, max_dof=max_dof)
-        return threshold / self.width - dof * math.log(float(self.outlier_scale))
-
-    def mixture_nll(self, nis: Tensor, dof: int | Tensor, *, max_dof: int | None = None) -> Tensor:
-        """What the mixture adds to each block's Gaussian negative log-likelihood
-        ``½ (NIS + log det S)``: ``-log(1 - π) + log r`` with ``r`` the block's inlier
-        probability (:attr:`width`), i.e. the block's
-        ``-log((1 - π) N(v; 0, S) + π N(v; 0, k² S))`` without its constant."""
-        logit, threshold = (torch.as_tensor(x, device=nis.device).to(nis.dtype) for x in
-                            (self._inlier_logit(dof, max_dof=max_dof), self.threshold_for(dof, max_dof=max_dof)))
-        return torch.nn.functional.softplus(-logit) - torch.nn.functional.softplus((nis - threshold) / self.width)
 
     def threshold_for(self, dof: int | Tensor, *, max_dof: int | None = None) -> float | Tensor:
         """The NIS threshold for ``dof`` degrees of freedom: an int, or a tensor of them (one per
@@ -206,7 +165,7 @@ class Gate:
             threshold = threshold.to(nis.dtype)
         if self.mode == "hard":
             return (nis <= threshold).to(nis.dtype)
-        return torch.sigmoid((threshold - nis) / self.width)
+        return torch.sigmoid((threshold - nis) / self.softness)
 
 
 #: the gate of an update given none (built once: a step traced by ``torch.compile`` builds no dataclass)
@@ -233,9 +192,6 @@ class UpdateResult(NamedTuple):
     nll: Tensor | None = None
     #: (...,) bool: a factorisation failed (see the module doc); None: nothing was factorised
     failed: Tensor | None = None
-    #: (..., M) how much each block's ``nll`` counts in a run's likelihood; None: its weight
-    #: (a mixture gate's blocks count whole, their ``nll`` the mixture's: :meth:`Gate.mixture_nll`)
-    counted: Tensor | None = None
 
 
 class Posterior(NamedTuple):

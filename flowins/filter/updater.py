@@ -189,15 +189,10 @@ def gated_update(mean: Tensor, cov: Tensor, *, H: Tensor, residual: Tensor, nois
                          f"residual {tuple(residual.shape)}), got {tuple(valid.shape)}")
     result = ekf_update(mean, cov, innovation=residual, H=H, noise_cov=noise_cov, gate=gate, sequential=sequential,
                         normalize=normalize_quaternions, likelihood=likelihood, dof=dof, noise_logdet=noise_logdet)
-    nll, counted = result.nll, None
-    if gate is not None and gate.outlier_scale is not None and gate.mode != "off" and nll is not None:
-        nll = nll + gate.mixture_nll(result.nis, residual.shape[-1] if dof is None else dof, max_dof=residual.shape[-1])
-        counted = torch.ones_like(nll) if valid is None else valid.to(nll.dtype)
-    if valid is None and counted is None:
+    if valid is None:
         return result
-    weight = result.weight if valid is None else result.weight * valid
     # built field by field: torch 2.11's dynamo cannot trace a named tuple's _replace
-    return UpdateResult(result.mean, result.cov, result.nis, weight, nll, result.failed, counted)
+    return UpdateResult(result.mean, result.cov, result.nis, result.weight * valid, result.nll, result.failed)
 
 
 def _compiled_update(compiler: Compiler, mean: Tensor, cov: Tensor, *, rows: int, H: Tensor, residual: Tensor,
@@ -232,15 +227,13 @@ def _compiled_update(compiler: Compiler, mean: Tensor, cov: Tensor, *, rows: int
                    noise_cov=grow(noise_cov, eye), valid=valid, dof=grow(dof, d),
                    noise_logdet=grow(noise_logdet, 0.0), **options)
     return UpdateResult(out.mean[:r], out.cov[:r], out.nis[:r, :M], out.weight[:r, :M],
-                        None if out.nll is None else out.nll[:r, :M], None if out.failed is None else out.failed[:r],
-                        None if out.counted is None else out.counted[:r, :M])
+                        None if out.nll is None else out.nll[:r, :M], None if out.failed is None else out.failed[:r])
 
 
 def likelihood_sums(result: UpdateResult, dim: int | Tensor) -> tuple[Tensor, Tensor]:
     """``(nll, count)`` ``(...)``: the gate-weighted block likelihoods and scalar measurements
-    (``dim`` the blocks' dimension, or each block's degrees of freedom ``(..., M)``); a mixture
-    gate's (:attr:`~flowins.filter.ekf.Gate.outlier_scale`) every valid block, whole."""
-    kept = result.weight.detach() if result.counted is None else result.counted
+    (``dim`` the blocks' dimension, or each block's degrees of freedom ``(..., M)``)."""
+    kept = result.weight.detach()
     count = (dim * kept).sum(-1) if isinstance(dim, Tensor) else dim * kept.sum(-1)
     return (kept * result.nll).sum(-1), count
 

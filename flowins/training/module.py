@@ -96,12 +96,6 @@ class FilterLearner(pl.LightningModule):
         self.innovation_learns = frozenset(model.innovation_learns)
         self.noise_level = model.noise_level
         self.level_names = model.level_group(params.learned)
-        gates = {"flow": (base.flow_update.gate, "filter.flow.gate"), "gnss": (base.gnss_gate, "filter.gnss_gate"),
-                 "tracks": (base.tracks.gate, "filter.tracks.gate")}
-        for kind, (gate, key) in gates.items():
-            if gate.outlier_scale is not None and f"{kind}_gate_softness" in params.learned:
-                raise ValueError(f"model: {kind}_gate_softness is learned, but {key}.outlier_scale="
-                                 f"{gate.outlier_scale:g} sets the gate's width; add it to model.freeze")
         self.loss = model.loss
         self.segment_s = tuple(model.segment_s)
         self.lr = model.lr

@@ -461,7 +461,7 @@ class FilterParameters(nn.Module):
             # the flow and GNSS gates learn their threshold; the tracks', whose dof differ, a factor on χ²_dof(p)
             return Gate(mode="soft" if training else "hard", probability=base.probability,
                         threshold=v.get(f"{kind}_gate_threshold"), scale=v.get(f"{kind}_gate_scale", 1.0),
-                        softness=v[f"{kind}_gate_softness"], outlier_scale=base.outlier_scale)
+                        softness=v[f"{kind}_gate_softness"])
 
         flow = replace(config.flow_update, sigma_scale=v["flow_sigma_scale"], sigma_floor_px=v["flow_sigma_floor_px"],
                        sigma_p0=v["sigma_p0"], sigma_q0=v["sigma_q0"], gate=gate("flow", config.flow_update.gate))

@@ -1,6 +1,5 @@
 """EKF steps against the textbook Kalman filter written out here, and the χ² gate."""
 import math
-from dataclasses import replace
 
 import pytest
 import torch
@@ -574,74 +573,3 @@ def test_a_gated_update_is_one_graph_equal_to_eager(d, M):
     assert got.failed.tolist() == want.failed.tolist() == [False, False]
     for a, b in zip(got[:4], want[:4]):
         torch.testing.assert_close(a, b, atol=1e-12, rtol=0)
-
-
-# --------------------------------------------------------------------------- the mixture gate
-
-
-def mixture_by_hand(v, S, outlier_probability, k):
-    """``-log((1 - π) N(v; 0, S) + π N(v; 0, k² S))`` and the inlier's posterior probability."""
-    zero = torch.zeros(S.shape[-1], dtype=F64)
-    inlier = torch.distributions.MultivariateNormal(zero, covariance_matrix=S).log_prob(v)
-    outlier = torch.distributions.MultivariateNormal(zero, covariance_matrix=k * k * S).log_prob(v)
-    a = inlier + math.log(1 - outlier_probability)
-    b = outlier + math.log(outlier_probability)
-    total = torch.logaddexp(a, b)
-    return -total, torch.exp(a - total)
-
-
-@pytest.mark.parametrize("d", [1, 2, 3])
-def test_a_mixture_gate_is_the_inlier_outlier_mixture_written_out(d):
-    """With ``outlier_scale`` the block's likelihood is the two-Gaussian mixture's and its soft
-    weight the posterior inlier probability, block by block; the hard gate keeps the blocks
-    more likely inliers than not."""
-    gen = torch.Generator().manual_seed(11)
-    D, M, k = 6, 5, 7.0
-    m, P = torch.randn(D, generator=gen, dtype=F64), random_spd(gen, D)
-    H = torch.randn(M, d, D, generator=gen, dtype=F64)
-    R = torch.stack([random_spd(gen, d, scale=0.5) for _ in range(M)])
-    v = torch.randn(M, d, generator=gen, dtype=F64) * torch.tensor([0.5, 1.0, 3.0, 6.0, 20.0], dtype=F64)[:, None]
-    gate = Gate(mode="soft", threshold=torch.tensor(9.0, dtype=F64), outlier_scale=k)
-    pi = float(gate.outlier_probability(d))
-    assert 0.0 < pi < 1.0
-    out = ekf_update(m, P, innovation=v, H=H, noise_cov=R, gate=gate, likelihood=True)
-    extra = gate.mixture_nll(out.nis, d)
-    for i in range(M):
-        S = H[i] @ P @ H[i].T + R[i]
-        nll, inlier = mixture_by_hand(v[i], S, pi, k)
-        torch.testing.assert_close(out.nll[i] + extra[i], nll - 0.5 * d * math.log(2 * math.pi), rtol=1e-9, atol=1e-10)
-        torch.testing.assert_close(out.weight[i], inlier, rtol=1e-11, atol=1e-12)
-    hard = ekf_update(m, P, innovation=v, H=H, noise_cov=R, gate=replace(gate, mode="hard"))
-    assert torch.equal(hard.weight, (out.weight >= 0.5).to(F64))
-    assert 0 < int(hard.weight.sum()) < M
-
-
-def test_the_mixture_likelihood_learns_the_outlier_rate_of_the_data():
-    """The threshold that minimises the summed mixture likelihood of innovations drawn with
-    10 % outliers of 8 times the σ gives back that rate (a maximum-likelihood estimate)."""
-    gen = torch.Generator().manual_seed(3)
-    n, rate, k = 40_000, 0.1, 8.0
-    outlier = torch.rand(n, generator=gen, dtype=F64) < rate
-    v = torch.randn(n, generator=gen, dtype=F64) * torch.where(outlier, k, 1.0)
-    nis = v * v  # S = 1: the Gaussian's own ½ (NIS + log S) does not depend on the threshold
-    threshold = torch.tensor(20.0, dtype=F64, requires_grad=True)
-    opt = torch.optim.LBFGS([threshold], lr=1.0, max_iter=100, line_search_fn="strong_wolfe")
-
-    def closure():
-        opt.zero_grad()
-        loss = Gate(mode="soft", threshold=threshold, outlier_scale=k).mixture_nll(nis, 1).mean()
-        loss.backward()
-        return loss
-
-    opt.step(closure)
-    learned = float(Gate(threshold=threshold.detach(), outlier_scale=k).outlier_probability(1))
-    se = math.sqrt(rate * (1 - rate) / n)
-    assert abs(learned - rate) < 4 * se + 2e-3, learned
-
-
-def test_a_mixture_gate_refuses_an_outlier_scale_of_one_or_less():
-    for k in (1.0, 0.5, -2.0):
-        with pytest.raises(ValueError, match="outlier_scale"):
-            Gate(outlier_scale=k)
-    with pytest.raises(ValueError, match="outlier_scale"):
-        Gate().outlier_probability()

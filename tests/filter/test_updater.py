@@ -88,32 +88,6 @@ def test_the_likelihood_is_half_the_nis_plus_log_det_s_of_the_accepted_blocks():
     assert track.nll_count == 3.0
 
 
-@pytest.mark.parametrize("mode", ["soft", "hard"])
-def test_a_mixture_gate_counts_every_valid_block_with_the_mixture_likelihood(mode):
-    """With ``outlier_scale`` a run's likelihood is ``-log((1 - π) N(v; 0, S) + π N(v; 0, k² S))``
-    summed over every valid block (the far-off one too, which the gate all but rejects), less
-    ``½ d log 2π`` each; an invalid block adds nothing."""
-    mean, cov, H, z, R = toy(4, 3, 2)
-    v = residual(H, z, mean)
-    v[1] += 50.0
-    k, threshold = 6.0, 8.0
-    gate = Gate(mode=mode, threshold=threshold, outlier_scale=k)
-    pi = float(gate.outlier_probability(2))
-    chain = chain_at(mean, cov, likelihood=True)
-    valid = torch.tensor([True, True, False])
-    update(chain, H=H, residual=v, noise_cov=R, gate=gate, valid=valid, kind="toy")
-    track = chain.finish()
-    by_hand = 0.0
-    for i in (0, 1):
-        S = H[i] @ cov @ H[i].T + R[i]
-        zero = torch.zeros(2, dtype=F64)
-        a = torch.distributions.MultivariateNormal(zero, covariance_matrix=S).log_prob(v[i]) + math.log(1 - pi)
-        b = torch.distributions.MultivariateNormal(zero, covariance_matrix=k * k * S).log_prob(v[i]) + math.log(pi)
-        by_hand += float(-torch.logaddexp(a, b)) - math.log(2 * math.pi)
-    assert abs(float(track.nll) - by_hand) <= 1e-9 * abs(by_hand)
-    assert track.nll_count == 4.0
-
-
 def test_rows_update_together_as_each_alone_and_a_row_without_valid_blocks_is_only_logged():
     priors = [toy(seed, 4, 2) for seed in (3, 4, 5)]
     H = torch.stack([p[2] for p in priors])
