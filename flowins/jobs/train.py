@@ -73,6 +73,10 @@ def run(cfg: Mapping[str, Any]) -> dict[str, Any]:
         if module.use_average():  # the last epochs' mean iterate: one more candidate (model.average_epochs)
             trainer.validate(module, datamodule=data, verbose=False)
         chosen = module.select_best()
+        if module.select_flow_gate:  # the chosen parameters with other flow gates: more candidates
+            for _ in module.gate_variants(chosen):
+                trainer.validate(module, datamodule=data, verbose=False)
+            chosen = module.select_best()
         best = checkpoints / "best.ckpt"
         trainer.save_checkpoint(best, weights_only=False)
         log.info("\n" + selection_table(module.history, chosen))

@@ -33,13 +33,14 @@ import json
 import logging
 import math
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 
 import pytorch_lightning as pl
 import torch
 from pytorch_lightning.trainer.states import TrainerFn
 
+from flowins.filter.ekf import chi2_quantile
 from flowins.navigation import NavigationConfig
 from flowins.training.parameters import FilterParameters, ModelSettings
 from flowins.training.schedule import learning_rate, window_length
@@ -103,6 +104,10 @@ class FilterLearner(pl.LightningModule):
         self.warmup_steps = model.warmup_steps
         self.accumulate = model.accumulate_windows
         self.average_epochs = model.average_epochs
+        self.select_flow_gate = tuple(model.select_flow_gate)
+        if self.select_flow_gate and not any("dense" in m for m in self.methods):
+            raise ValueError(f"model.select_flow_gate: no method of {self.methods} uses dense flow, whose gate it "
+                             "chooses; leave it empty or add a method with dense flow")
         #: the running sum of the learned tensors after each step of the averaged epochs, and their count
         self._sums: dict[str, torch.Tensor] = {}
         self._summed = 0
@@ -299,6 +304,27 @@ class FilterLearner(pl.LightningModule):
         first, last = span
         self._next_label = f"mean {first}-{last}" if first < last else f"mean {last}"
         return self._next_label
+
+    def gate_variants(self, chosen: Mapping) -> Iterator[str]:
+        """Load, one after another, the parameters of the validation ``chosen`` (a
+        :attr:`history` entry) with the flow gate's threshold at ``χ²₁(p)`` for each ``p`` of
+        ``model.select_flow_gate``, and yield the label the next validation records each under
+        (``epoch 3, gate 0.95``): each one more candidate for :meth:`select_best`, chosen's own
+        learned gate competing as it is. Where it loaded the adaptive networks they stay as
+        ``chosen`` had them. A ``p`` whose threshold lies outside the gate's bound is said so
+        and left out."""
+        for p in self.select_flow_gate:
+            threshold = chi2_quantile(p, 1)
+            try:
+                a = self.params.coordinate("flow_gate_threshold", threshold)
+            except ValueError as error:
+                log.info(f"model.select_flow_gate: gate {p:g} not tried: {error}")
+                continue
+            with torch.no_grad():
+                for name, value in chosen["raw"].items():
+                    self.params.raw[name].fill_(a if name == "flow_gate_threshold" else value)
+            self._next_label = f"{chosen['label']}, gate {p:g}"
+            yield self._next_label
 
     def _sum_over_processes(self, values: torch.Tensor, reduce: str = "sum") -> torch.Tensor:
         """``values`` summed (or their maximum) over the training processes (itself in one process)."""
@@ -537,13 +563,14 @@ def selection_table(history: list[dict], chosen: dict) -> str:
     select = [m for m in history[0].get("select_rmse_m", {})]
     title = ("held-out filter RMSE (m) at each validation; the checkpoint is the lowest select mean"
              if select else "held-out filter RMSE (m) at each validation; the checkpoint is the best of them")
-    lines = [title, f"{'':<10}" + "".join(f"{m:>18}" for m in methods) + f"{'mean':>10}"
+    width = max(10, *(len(entry["label"]) + 1 for entry in history))
+    lines = [title, f"{'':<{width}}" + "".join(f"{m:>18}" for m in methods) + f"{'mean':>10}"
              + "".join(f"{'select ' + m:>26}" for m in select) + (f"{'select mean':>14}" if select else "")]
     for entry in history:
         mark = "  <- chosen" if entry is chosen else ""
         long = "".join(f"{_mean_std(entry['select_rmse_m'][m]):>26}" for m in select)
         if select:
             long += f"{entry['select_score']:>14.3f}"
-        lines.append(f"{entry['label']:<10}" + "".join(f"{entry['rmse_m'][m]:>18.3f}" for m in methods)
+        lines.append(f"{entry['label']:<{width}}" + "".join(f"{entry['rmse_m'][m]:>18.3f}" for m in methods)
                      + f"{entry['score']:>10.3f}" + long + mark)
     return "\n".join(lines)

@@ -190,6 +190,9 @@ class ModelSettings:
             (:data:`ADAPTIVE_KINDS`; :class:`~flowins.measurements.adaptive_noise.AdaptiveNoise`).
         adaptive_decades: each of its factors within ``10^±adaptive_decades`` of the σ.
         checkpoint: a ``train.py`` checkpoint whose learned values the filter uses.
+        select_flow_gate: probabilities ``p`` whose χ²₁ quantiles compete, after training, as
+            the flow gate's threshold of the chosen validation's parameters (each one more
+            validation; :meth:`~flowins.training.module.FilterLearner.gate_variants`); () for none.
     """
 
     lr: float = bounded(0.1, minimum=1e-12)
@@ -214,6 +217,7 @@ class ModelSettings:
     adaptive: tuple[str, ...] = ()
     adaptive_decades: float = bounded(1.0, above=0.0)
     checkpoint: str | None = None
+    select_flow_gate: tuple[float, ...] = bounded((), above=0.0, below=1.0)
 
     def __post_init__(self) -> None:
         if unknown := sorted(set(self.adaptive) - set(ADAPTIVE_KINDS)):
@@ -436,6 +440,23 @@ class FilterParameters(nn.Module):
 
     def values(self) -> dict[str, float]:
         return {n: float(self.value(n).detach()) for n in NAMES}
+
+    def coordinate(self, name: str, value: float) -> float:
+        """The optimiser's coordinate at which parameter ``name`` (positive, not the dropout rate)
+        is ``value``: :meth:`value`'s inverse. ValueError where its bound or ceiling keeps it
+        from ``value``."""
+        if name in SIGNED or name == "dropout_p":
+            raise ValueError(f"FilterParameters.coordinate: {name} is not a positive parameter")
+        center, decades = float(self.center[name]), float(self.bound[name])
+        ceiling = float(self.ceiling[name])
+        s = math.log(value / center) if value > 0 else -math.inf
+        width = math.inf if math.isinf(decades) else decades * math.log(10.0)
+        if s > 0 and math.isfinite(ceiling):
+            width = min(width, max(math.log(ceiling / center), 0.0))
+        if not abs(s) < width:
+            raise ValueError(f"FilterParameters: {name}={value:g} lies outside its bound (start {center:g}, "
+                             f"{decades:g} decades, ceiling {ceiling:g})")
+        return s if math.isinf(width) else width * math.atanh(s / width)
 
     def bounds(self) -> dict[str, float | None]:
         """Each parameter's bound in decades (None: unbounded); a signed one's largest magnitude."""

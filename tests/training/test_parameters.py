@@ -459,6 +459,8 @@ def test_model_bounds_override_bound_decades_by_name():
     ("bounds", {"acc_noise": 0.0}, r"model\.bounds\.acc_noise=0\.0: expected a number > 0 or null"),
     ("bounds", {"acc_noise": "abc"}, r"model\.bounds\.acc_noise='abc': expected a number"),
     ("innovation_learns", ["flow_sigma_scal"], r"model\.innovation_learns: unknown parameter 'flow_sigma_scal'"),
+    ("select_flow_gate", [0.95, 1.0], r"model\.select_flow_gate\[1\]=1\.0: expected a number < 1"),
+    ("select_flow_gate", [0.0], r"model\.select_flow_gate\[0\]=0\.0: expected a number > 0"),
 ])
 def test_a_bad_bound_raises_naming_its_key(key, value, message):
     from flowins.config import build
@@ -667,3 +669,29 @@ def test_learned_mounting_reaches_the_vehicle_constraint():
     assert isinstance(vehicle.mount_pitch_rad, torch.Tensor) and vehicle.mount_pitch_rad.requires_grad
     assert float(vehicle.mount_pitch_rad) == -0.02 and vehicle.lever_up_m == 0.7 and vehicle.mount_yaw_rad == 0.0
     assert vehicle.mode == "on"
+
+
+@pytest.mark.parametrize("name", ["flow_gate_threshold", "acc_noise", "initial_roll_pitch_rad"])
+def test_coordinate_is_the_inverse_of_value(name):
+    """The coordinate at which a parameter takes a value gives that value back, within its
+    bound (2 decades) and below its ceiling (the roll/pitch 1-σ: π/2, under 2 decades above its
+    start); beyond them it is refused, naming the parameter."""
+    from flowins.training.parameters import starting_values
+
+    start = starting_values(NavigationConfig())
+    params = FilterParameters(start, learn=[name])
+    for factor in (0.011, 0.5, 1.0, 1.7, 40.0):
+        v = start[name] * factor
+        a = params.coordinate(name, v)
+        with torch.no_grad():
+            params.raw[name].fill_(a)
+        assert float(params.value(name).detach()) == pytest.approx(v, rel=1e-10), (name, factor)
+    for v in (start[name] * 150.0, start[name] / 150.0, 0.0):
+        with pytest.raises(ValueError, match=rf"{name}=.* lies outside its bound"):
+            params.coordinate(name, v)
+    if name == "initial_roll_pitch_rad":
+        assert start[name] * 100.0 > math.pi / 2
+        with pytest.raises(ValueError, match="ceiling 1.5708"):
+            params.coordinate(name, 1.6)
+    with pytest.raises(ValueError, match="dropout_p is not a positive parameter"):
+        params.coordinate("dropout_p", 0.5)

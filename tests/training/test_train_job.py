@@ -239,6 +239,47 @@ def test_the_last_epochs_mean_competes_for_the_checkpoint(workdir):
 
 
 @pytest.mark.slow
+def test_the_chosen_parameters_with_other_flow_gates_compete_for_the_checkpoint(workdir):
+    """``model.select_flow_gate=[0.95, 0.99]``: after training, the chosen validation's
+    parameters with the flow gate at χ²₁(0.95) and χ²₁(0.99) are validated as two more
+    candidates, everything else as chosen; each scores what those parameters score run alone,
+    ``best.ckpt`` is the lowest of all."""
+    from flowins.filter.ekf import chi2_quantile
+    from flowins.training.unroll import sequence_rmse
+
+    cfg = _cfg(workdir / "gates", *TINY, "methods=[ins_dense]", "model.select_flow_gate=[0.95, 0.99]")
+    result = run(cfg)
+    history = result["history"]
+    first = min(history[:2], key=lambda entry: entry["score"])
+    assert [e["label"] for e in history] == ["start", "epoch 1", f"{first['label']}, gate 0.95",
+                                             f"{first['label']}, gate 0.99"]
+    seq = load_training_sequence({"seed": 3, "duration_s": 20.0}, {**cfg, "flow": flow_config(cfg, moments=True)},
+                                 methods=["ins_dense"])
+    base = navigation_config(cfg["filter"], imu_model(cfg["imu"], recording=False))
+    for entry, p in zip(history[2:], (0.95, 0.99)):
+        assert entry["values"]["flow_gate_threshold"] == pytest.approx(chi2_quantile(p, 1), rel=1e-12)
+        assert {n: v for n, v in entry["raw"].items() if n != "flow_gate_threshold"} == \
+            {n: v for n, v in first["raw"].items() if n != "flow_gate_threshold"}
+        config = FilterParameters(entry["values"], learn=()).apply(base, training=False)
+        assert entry["score"] == pytest.approx(sequence_rmse(seq, "ins_dense", config), rel=1e-9), entry["label"]
+    assert any(e["score"] != pytest.approx(first["score"], rel=1e-6) for e in history[2:])  # the gate matters here
+    chosen = min(history, key=lambda entry: entry["score"])
+    assert result["chosen"] == chosen["label"]
+    best = FilterParameters.from_checkpoint(Path(cfg["output_dir"]) / "checkpoints" / "best.ckpt")
+    assert float(best.value("flow_gate_threshold")) == pytest.approx(chosen["values"]["flow_gate_threshold"], rel=1e-12)
+
+
+def test_choosing_a_flow_gate_needs_a_method_with_dense_flow():
+    from flowins.navigation import NavigationConfig
+    from flowins.training.module import FilterLearner
+    from flowins.training.parameters import ModelSettings, starting_values
+
+    params = FilterParameters(starting_values(NavigationConfig()), learn=["acc_noise"])
+    with pytest.raises(ValueError, match=r"model\.select_flow_gate: no method of \['ins_gnss'\] uses dense flow"):
+        FilterLearner(params, NavigationConfig(), methods=["ins_gnss"], model=ModelSettings(select_flow_gate=(0.95,)))
+
+
+@pytest.mark.slow
 def test_an_empty_select_list_is_a_run_without_the_key(workdir):
     without = run(_cfg(workdir / "without", *GNSS, "~data.select"))
     empty = run(_cfg(workdir / "empty", *GNSS, "data.select=[]"))
