@@ -310,9 +310,9 @@ class FilterLearner(pl.LightningModule):
         :attr:`history` entry) with the flow gate's threshold at ``χ²₁(p)`` for each ``p`` of
         ``model.select_flow_gate``, and yield the label the next validation records each under
         (``epoch 3, gate 0.95``): each one more candidate for :meth:`select_best`, chosen's own
-        learned gate competing as it is. Where it loaded the adaptive networks they stay as
-        ``chosen`` had them. A ``p`` whose threshold lies outside the gate's bound is said so
-        and left out."""
+        learned gate competing as it is. The adaptive networks stay as :meth:`select_best` loaded
+        them (``chosen``'s). A ``p`` whose threshold lies outside the gate's bound is said so and
+        left out."""
         for p in self.select_flow_gate:
             threshold = chi2_quantile(p, 1)
             try:
