@@ -63,9 +63,12 @@ def test_train_job_writes_a_checkpoint_that_evaluate_reads(workdir, recwarn, cap
     for name in NOISE_NAMES:
         if result["hand-tuned"][name] > 0:
             assert result["start"][name] == pytest.approx(10 * result["hand-tuned"][name])
-    # the start was validated before the first step, and the checkpoint is the best of it and the epoch
+    # the start was validated before the first step, and the checkpoint is the best of it, the epoch
+    # and the better of the two with experiment=mistuned's flow gates
     history = result["history"]
-    assert [entry["label"] for entry in history] == ["start", "epoch 1"]
+    first = min(history[:2], key=lambda entry: entry["score"])
+    assert [entry["label"] for entry in history] == ["start", "epoch 1", *(f"{first['label']}, gate {p}"
+                                                                           for p in ("0.95", "0.99", "0.999"))]
     # each validation said so as it ended, with its score
     assert f"start: held out {history[0]['score']:.3f} m (ins_dense {history[0]['rmse_m']['ins_dense']:.3f}" in caplog.text
     assert f"epoch 1 of 1: held out {history[1]['score']:.3f} m" in caplog.text
