@@ -45,6 +45,7 @@ from flowins.navigation import NavigationConfig
 from flowins.training.parameters import FilterParameters, ModelSettings
 from flowins.training.schedule import learning_rate, window_length
 from flowins.training.unroll import (
+    METHODS,
     TrainingSequence,
     has_moments,
     run_windows,
@@ -105,7 +106,7 @@ class FilterLearner(pl.LightningModule):
         self.accumulate = model.accumulate_windows
         self.average_epochs = model.average_epochs
         self.select_flow_gate = tuple(model.select_flow_gate)
-        if self.select_flow_gate and not any("dense" in m for m in self.methods):
+        if self.select_flow_gate and not any(METHODS.get(m, (False, False, False))[2] for m in self.methods):
             raise ValueError(f"model.select_flow_gate: no method of {self.methods} uses dense flow, whose gate it "
                              "chooses; leave it empty or add a method with dense flow")
         #: the running sum of the learned tensors after each step of the averaged epochs, and their count
