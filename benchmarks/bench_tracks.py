@@ -11,6 +11,7 @@ two-view update of the same tracks (``two-view``, consecutive frames, σ the sam
 in the same process::
 
     python benchmarks/bench_tracks.py [--windows 1 5 10 20] [--duration 30] [--seed 0] [--min-parallax 0.02]
+                                      [--heading-transport on|off]
 """
 from __future__ import annotations
 
@@ -117,6 +118,8 @@ def main() -> None:
     parser.add_argument("--sigma", type=float, default=0.3, help="the tracks' pixel σ the filter uses")
     parser.add_argument("--min-parallax", type=float, default=TrackUpdate.min_parallax_rad,
                         help="filter.tracks.min_parallax_rad (rad; default: the filter's)")
+    parser.add_argument("--heading-transport", choices=("on", "off"), default="off",
+                        help="filter.tracks.heading_transport (default: off, the filter's)")
     args = parser.parse_args()
     flight, imu, tracks, cam, frames = recording(args.duration, args.seed)
     per_frame = torch.unique_consecutive(tracks.t_s, return_counts=True)[1].double().mean()
@@ -141,7 +144,8 @@ def main() -> None:
     run("two-view", dataclasses.replace(base, flow_update=two_view),
         NavigationRun(imu, flow=pairs, camera=cam))
     for window in args.windows:
-        update = TrackUpdate(window=window, sigma_px=args.sigma, min_parallax_rad=args.min_parallax)
+        update = TrackUpdate(window=window, sigma_px=args.sigma, min_parallax_rad=args.min_parallax,
+                             heading_transport=args.heading_transport == "on")
         run(f"N = {window}", dataclasses.replace(base, tracks=update),
             NavigationRun(imu, tracks=tracks, camera=cam))
     reference = rows[0][3]

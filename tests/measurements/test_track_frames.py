@@ -122,15 +122,16 @@ def test_every_window_size_keeps_its_clones_where_the_frames_were(window):
     assert bool(torch.isfinite(track.node_cov).all()) and float(variances.min()) >= 0.0
 
 
-def test_gradient_of_the_track_noise_matches_finite_differences():
+@pytest.mark.parametrize("heading_transport", [False, True])
+def test_gradient_of_the_track_noise_matches_finite_differences(heading_transport):
     """The track update is in the torch graph: d(position error²)/d(σ_px) through the filter
-    (4 s of the walk, window 3) against a central difference."""
+    (4 s of the walk, window 3) against a central difference, with and without the heading transport."""
     walk, t_imu, acc, gyro, tracks = _scene(seed=3, noise_px=0.3)
     keep = t_imu <= T0 + 4.0
     t_imu, acc, gyro = t_imu[keep], acc[keep], gyro[keep]
 
     def loss(sigma):
-        update = TrackUpdate(window=3, sigma_px=sigma, gate=Gate(mode="off"))
+        update = TrackUpdate(window=3, sigma_px=sigma, gate=Gate(mode="off"), heading_transport=heading_transport)
         events = track_frames(tracks, CAMERA, update, t_min_s=T0, t_max_s=float(t_imu[-1]))
         track = _run(walk, t_imu, acc, gyro, events, window=3, velocity_error=(0.2, 0.0, 0.0))
         truth = _truth(walk, track.t)

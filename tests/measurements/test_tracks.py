@@ -21,6 +21,7 @@ from flowins.measurements.tracks import (
     schedule_tracks,
     track_measurements,
 )
+from flowins.filter.unobservable import unobservable_directions
 from flowins.state import normalize_quaternions, pose_slices, state_dim
 
 
@@ -141,7 +142,8 @@ def test_null_space_update_equals_feature_marginalised(views):
     sigma = 0.7
     uv = _observe(x, X, ages)[0] + sigma * torch.randn(views, 2, generator=g)
     # the filter's event: one row, one track, views padded to N + 1
-    update = TrackUpdate(window=N, sigma_px=sigma, gate=Gate(mode="off"), refine_iterations=5)
+    update = TrackUpdate(window=N, sigma_px=sigma, gate=Gate(mode="off"), refine_iterations=5,
+                         heading_transport=False)
     V = N + 1
     views_in = TrackViews(torch.cat((uv, torch.zeros(V - views, 2))).unsqueeze(0),
                           torch.cat((ages[0], torch.zeros(V - views, dtype=torch.long))).unsqueeze(0),
@@ -204,13 +206,14 @@ def test_projected_nis_and_likelihood_are_those_of_an_orthonormal_null_space_bas
     chain.add_nodes([[0.0]], torch.eye(D).expand(1, 1, D, D), x.reshape(1, 1, D), P.reshape(1, 1, D, D))
     views_in = TrackViews(torch.cat((uv, torch.zeros(pad, 2))).unsqueeze(0),
                           torch.cat((ages, torch.zeros(pad, dtype=torch.long))).unsqueeze(0), mask[0], 1)
-    update = TrackUpdate(window=N, sigma_px=sigma, gate=Gate(mode="off"))
+    update = TrackUpdate(window=N, sigma_px=sigma, gate=Gate(mode="off"), heading_transport=False)
     _track_update(chain, [0], [TrackFrame(0.0, views_in, CAMERA, update)])
     (track,) = chain.finish()
     torch.testing.assert_close(track.nll, 0.5 * (ref_nis + torch.logdet(S)), atol=1e-9, rtol=1e-9)
 
 
-def test_padding_and_batching_leave_the_update_unchanged():
+@pytest.mark.parametrize("heading_transport", [False, True])
+def test_padding_and_batching_leave_the_update_unchanged(heading_transport):
     """A track of 3 views updates the same alone (V = 3), padded to V = 6 among other tracks'
     rows' padding, and as one row of a batch of two runs."""
     g = torch.Generator().manual_seed(5)
@@ -221,7 +224,7 @@ def test_padding_and_batching_leave_the_update_unchanged():
     X = _points(4, g)
     ages = torch.tensor([[0, 1, 2], [1, 2, 3], [0, 1, 2], [2, 3, 4]])
     uv = _observe(x, X, ages) + 0.3 * torch.randn(4, 3, 2, generator=g)
-    update = TrackUpdate(window=N, sigma_px=0.5)
+    update = TrackUpdate(window=N, sigma_px=0.5, heading_transport=heading_transport)
 
     def run(rows_x, rows_views):
         chain = BatchChain(len(rows_x))
@@ -397,3 +400,53 @@ def test_schedule_equals_the_frame_by_frame_loop(seed):
             assert g.candidates == w.candidates
             for name in ("uv_px", "ages", "mask"):
                 assert torch.equal(getattr(g, name), getattr(w, name)), name
+
+
+def test_a_track_is_blind_to_a_shift_and_a_turn_of_the_whole_track():
+    """The projected Jacobian at the estimate times the unobservable directions there is zero:
+    a camera cannot tell where the track is or which way it faces."""
+    g = torch.Generator().manual_seed(21)
+    N = 4
+    x = _state(N, g)
+    X = _points(6, g)
+    ages = torch.stack([torch.arange(5)] * 6)
+    uv = _observe(x, X, ages) + 0.3 * torch.randn(6, 5, 2, generator=g)
+    m = track_measurements(x.unsqueeze(0), uv.unsqueeze(0), ages.unsqueeze(0), torch.ones(1, 6, 5, dtype=torch.bool),
+                           CAMERA, TrackUpdate(window=N))
+    assert bool(m.valid.all())
+    blind = m.H[0] @ unobservable_directions(x)
+    assert float(blind.abs().max()) < 1e-9 * float(m.H.abs().max())
+
+
+@pytest.mark.parametrize("heading_transport", [True, False])
+def test_the_track_update_adds_no_information_along_the_unobservable_directions(heading_transport):
+    """``Nᵀ P⁻¹ N`` at the estimate is the same after a track update as before it with the heading
+    transport; the plain update changes the estimate and with it the directions, and ends up
+    with information there that no camera gave."""
+    g = torch.Generator().manual_seed(8)
+    N = 4
+    x = _state(N, g)
+    D = x.shape[-1]
+    P = _psd(D, g, scale=1e-3)
+    X = _points(8, g)
+    ages = torch.stack([torch.arange(5)] * 8)
+    uv = _observe(x, X, ages) + 2.0 * torch.randn(8, 5, 2, generator=g)  # the update moves the estimate
+    update = TrackUpdate(window=N, sigma_px=0.5, gate=Gate(mode="off"), heading_transport=heading_transport)
+    chain = BatchChain(1)
+    chain.add_nodes([[0.0]], torch.eye(D).expand(1, 1, D, D), x.reshape(1, 1, D), P.reshape(1, 1, D, D))
+    from flowins.measurements.tracks import _track_update
+
+    views = TrackViews(uv, ages, torch.ones(8, 5, dtype=torch.bool), 8)
+    _track_update(chain, [0], [TrackFrame(0.0, views, CAMERA, update)])
+    mean, cov = chain.mean[0], chain.cov[0]
+    assert float(torch.linalg.vector_norm(mean[:3] - x[:3])) > 1e-3
+
+    def information(c, at):
+        Nd = unobservable_directions(at)
+        return Nd.T @ torch.linalg.solve(c, Nd)
+
+    change = (information(cov, mean) - information(P, x)).abs().max() / information(P, x).abs().max()
+    if heading_transport:
+        assert float(change) < 1e-8
+    else:
+        assert float(change) > 1e-4
