@@ -61,7 +61,7 @@ def groundtruth_start(seeds: list[int]) -> None:
         cells = []
         for label, settings in starts.items():
             track = navigate(NavigationRun(rec.imu, truth=truth), config=NavigationConfig(start=settings)).filter
-            rmse = trajectory_errors(track.t_s, track.node_mean[:, STATE.p], rec.truth.t_s, rec.truth.pos_m,
+            rmse = trajectory_errors(track.t, track.mean[:, STATE.p], rec.truth.t_s, rec.truth.pos_m,
                                      align="se3").rmse_m
             cells.append(f"{label} {rmse:.2f} m")
         print(f"   seed {seed}: " + ", ".join(cells))

@@ -224,7 +224,8 @@ def prepare_navigation(run: NavigationRun, *, config: NavigationConfig = Navigat
     t_end_s = float(imu.t_s[-1])
     before = [e for e in events if e.time_s < start.t_s]
     events = [e for e in events if e.time_s >= start.t_s]
-    events += [ZeroVelocity(t, config.start.still.zupt_sigma_mps, f"zero velocity at {t:.2f} s")
+    still = config.start.still
+    events += [ZeroVelocity(t, still.zupt_sigma_mps, f"zero velocity at {t:.2f} s", still.zupt_keeps_heading)
                for t in start.zupt_times_s if t <= t_end_s]
     outside = 0
     if run.flow is not None:

@@ -56,6 +56,36 @@ def test_run_warnings_name_flow_pairs_outside_the_filter_span_and_fixes_before_t
     assert run_warnings(quiet) == []
 
 
+def test_the_drift_warning_counts_the_position_sigma_only_after_the_fixes_set_a_free_heading():
+    """A position σ of 300 m before the heading alignment (the free yaw's spread) is no drift; the
+    same σ after it is, and so is either one in a run that never tries to align. An alignment
+    given up says so."""
+    from types import SimpleNamespace
+
+    from flowins.evaluation.run_report import run_warnings
+    from flowins.state import STATE, STATE_DIM
+
+    def warnings(sigma_m, log):
+        cov = torch.eye(STATE_DIM, dtype=torch.float64).repeat(4, 1, 1)
+        cov[:, STATE.p, STATE.p] *= torch.tensor(sigma_m, dtype=torch.float64).square().view(4, 1, 1) / 2
+        track = SimpleNamespace(log=log, node_cov=cov, t_s=torch.tensor([0.0, 10.0, 20.0, 30.0], dtype=torch.float64))
+        result = SimpleNamespace(filter=track, flow_pairs_outside=0, gnss_before_start=0, start=SimpleNamespace(t_s=0.0))
+        return [w for w in run_warnings(result) if "position σ" in w or "heading" in w]
+
+    aligned = [{"t_s": 15.0, "kind": "heading", "status": "aligned"}]
+    assert warnings([1.0, 300.0, 5.0, 5.0], aligned) == []
+    assert warnings([1.0, 300.0, 5.0, 5.0], []) == [
+        "the filter's own horizontal position σ reaches 300 m (at 10 s): nothing bounds the position there, the "
+        "error is inertial drift"]
+    assert warnings([1.0, 5.0, 5.0, 300.0], aligned) == [
+        "the filter's own horizontal position σ reaches 300 m (at 30 s): nothing bounds the position there, the "
+        "error is inertial drift"]
+    given_up = [{"t_s": 15.0, "kind": "heading", "status": "given up", "reason": "the track drifted"}]
+    assert warnings([1.0, 300.0, 5.0, 5.0], given_up) == [
+        "GNSS heading: the held fixes did not set the free heading; given up at 15.0 s (the track drifted; "
+        "filter.gnss_heading)"]
+
+
 @pytest.mark.slow
 def test_the_whole_navigation_in_float32_stays_float32_and_agrees_with_float64(mixed_dtypes):
     """Every tensor a run builds follows the state's dtype: a float64 constant slipped into a

@@ -167,7 +167,7 @@ def test_a_ground_truth_start_on_a_still_recording_is_as_good_as_the_still_start
     def rmse(settings: StartSettings):
         result = navigate(NavigationRun(rec.imu, truth=rec.truth), config=NavigationConfig(start=settings))
         track = result.filter
-        return result.start, trajectory_errors(track.t_s, track.node_mean[:, STATE.p], exact.t_s, exact.pos_m,
+        return result.start, trajectory_errors(track.t, track.mean[:, STATE.p], exact.t_s, exact.pos_m,
                                                align="se3").rmse_m
 
     gt_start, gt = rmse(StartSettings(mode="groundtruth"))

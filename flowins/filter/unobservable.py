@@ -36,8 +36,7 @@ def unobservable_directions(x: Tensor) -> Tensor:
     for p, q in pose_slices(x.shape[-1]):
         N[..., p, :3] = eye3
         N[..., p, 3] = _turn(x[..., p])
-        qs = x[..., q]  # ½ L((0, 0, 0, 1)) q = ½ (-q_z, -q_y, q_x, q_w)
-        N[..., q, 3] = 0.5 * torch.stack((-qs[..., 3], -qs[..., 2], qs[..., 1], qs[..., 0]), -1)
+        N[..., q, 3] = _turn_quaternion(x[..., q])
     N[..., STATE.v, 3] = _turn(x[..., STATE.v])
     return N
 
@@ -45,6 +44,45 @@ def unobservable_directions(x: Tensor) -> Tensor:
 def _turn(w: Tensor) -> Tensor:
     """``e_z × w = (-w_y, w_x, 0)``."""
     return torch.stack((-w[..., 1], w[..., 0], torch.zeros_like(w[..., 0])), -1)
+
+
+def _turn_quaternion(q: Tensor) -> Tensor:
+    """``½ L((0, e_z)) q = ½ (-q_z, -q_y, q_x, q_w)``: the derivative of ``q`` turned about the
+    world's vertical."""
+    return 0.5 * torch.stack((-q[..., 3], -q[..., 2], q[..., 1], q[..., 0]), -1)
+
+
+def heading_weights(x: Tensor) -> Tensor:
+    """``(..., D)``: ``w`` with ``wᵀ δx`` the turn about the world's vertical of the current
+    quaternion's error ``δq`` (the ``q`` rows of :func:`unobservable_directions`'s column 3 over
+    their squared norm, zero elsewhere), so that ``wᵀ N_ψ(x) = 1`` and ``wᵀ`` of a translation is 0."""
+    n_q = torch.zeros_like(x)
+    n_q[..., STATE.q] = _turn_quaternion(x[..., STATE.q])
+    return n_q / (n_q * n_q).sum(-1, keepdim=True).clamp_min(torch.finfo(x.dtype).tiny)
+
+
+def blind_to_heading(H: Tensor, x: Tensor) -> Tensor:
+    """The Jacobian ``H`` ``(..., m, D)`` of a measurement whose likelihood a turn of the whole
+    state about the world's vertical leaves as it is, made blind to that turn at ``x`` ``(..., D)``:
+    ``H - (H N_ψ(x)) wᵀ`` with ``w`` of :func:`heading_weights`, so that ``H' N_ψ(x) = 0`` and
+    only the columns of the current quaternion change. A zero-velocity update is one: its
+    ``0 = v + n`` with isotropic ``n`` is as likely for ``v`` as for ``v`` turned, but ``H = ∂v/∂x``
+    at a small ``v̂ ≠ 0`` sees the turn ``e_z × v̂``, and with the heading free (a still start)
+    the filter takes that for heading information it has not got."""
+    n = unobservable_directions(x)[..., 3]
+    Hn = (H * n.unsqueeze(-2)).sum(-1)
+    return H - Hn.unsqueeze(-1) * heading_weights(x).unsqueeze(-2)
+
+
+def heading_transport_step(before: Tensor, after: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`transport_heading` as a linear step of the chain, ``x ↦ T x + b`` ``(..., D, D)``,
+    ``(..., D)``, with ``b = -u (wᵀ after)`` so that ``after`` stays where it is and the covariance
+    becomes ``T P Tᵀ``. Recorded as a step (no process noise), the RTS smoother carries it back
+    exactly; a covariance replaced in place is a change the smoother takes for information."""
+    u = unobservable_directions(after)[..., 3] - unobservable_directions(before)[..., 3]
+    w = heading_weights(before)
+    T = torch.eye(after.shape[-1], dtype=after.dtype, device=after.device) + u.unsqueeze(-1) * w.unsqueeze(-2)
+    return T, -u * (w * after).sum(-1, keepdim=True)
 
 
 def transport_heading(cov: Tensor, before: Tensor, after: Tensor) -> Tensor:
@@ -59,12 +97,8 @@ def transport_heading(cov: Tensor, before: Tensor, after: Tensor) -> Tensor:
     ``T`` maps the directions at ``before`` onto those at ``after`` and is a congruence, so the
     information ``Nᵀ P⁻¹ N`` along them is the same before and after (a test checks it) and
     the result is positive semi-definite where ``cov`` is."""
-    n_before = unobservable_directions(before)[..., 3]
-    u = unobservable_directions(after)[..., 3] - n_before
-    at_q = torch.zeros(cov.shape[-1], dtype=torch.bool, device=cov.device)
-    at_q[STATE.q] = True
-    n_q = torch.where(at_q, n_before, 0.0)
-    w = n_q / (n_q * n_q).sum(-1, keepdim=True).clamp_min(torch.finfo(cov.dtype).tiny)
+    u = unobservable_directions(after)[..., 3] - unobservable_directions(before)[..., 3]
+    w = heading_weights(before)
     Pw = (cov @ w.unsqueeze(-1)).squeeze(-1)
     wPw = (w * Pw).sum(-1, keepdim=True)
     shear = u.unsqueeze(-1) * Pw.unsqueeze(-2)

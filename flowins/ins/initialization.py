@@ -144,6 +144,9 @@ class StillSettings:
         max_gravity_error_mps2: the mean specific force's magnitude must be within this of
             gravity (a device accelerating steadily is not still).
         zupt_hz, zupt_sigma_mps: zero-velocity updates over the still interval (0: none).
+        zupt_keeps_heading: the updates are blind to a turn about the vertical, which a still
+            device does not observe (:mod:`flowins.measurements.zero_velocity`); False: the
+            plain update, which makes up heading information from its linearisation.
     """
 
     min_s: float = bounded(1.0, above=0.0)
@@ -153,6 +156,7 @@ class StillSettings:
     max_gravity_error_mps2: float = bounded(0.5, above=0.0)
     zupt_hz: float = bounded(10.0, minimum=0.0)
     zupt_sigma_mps: float = bounded(0.01, above=0.0)
+    zupt_keeps_heading: bool = True
 
     def __post_init__(self) -> None:
         check_fields(self)

@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from flowins.filter.propagation import propagate_batched
-from flowins.filter.unobservable import transport_heading, unobservable_directions
+from flowins.filter.unobservable import (blind_to_heading, heading_transport_step, heading_weights, transport_heading,
+                                         unobservable_directions)
 from flowins.geometry import quaternion as quat
 from flowins.ins.mechanization import STANDARD_GRAVITY_MPS2, ProcessNoise
 from flowins.state import STATE, pose_slices, state_dim
@@ -113,3 +114,48 @@ def test_transport_is_differentiable_and_keeps_a_singular_covariance_positive_se
     assert float(torch.linalg.eigvalsh(moved).min()) > -1e-12
     assert torch.autograd.gradcheck(lambda c, a: transport_heading(c, before, a),
                                      (P.clone().requires_grad_(), after.clone().requires_grad_()))
+
+
+def test_heading_weights_pick_the_turn_and_ignore_a_translation():
+    """``wᵀ N_ψ = 1`` and ``wᵀ`` of each translation 0, with clones in the state; ``w`` lives on
+    the current quaternion alone."""
+    for clones in (1, 3):
+        x = _state(clones, (), torch.Generator().manual_seed(4))
+        N = unobservable_directions(x)
+        w = heading_weights(x)
+        torch.testing.assert_close(w @ N, torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=F64), atol=1e-12, rtol=0)
+        off_q = torch.ones(x.shape[-1], dtype=torch.bool)
+        off_q[STATE.q] = False
+        assert torch.all(w[off_q] == 0)
+
+
+def test_blind_to_heading_sees_no_turn_and_changes_only_the_quaternion_columns():
+    """``H' N_ψ(x) = 0``; ``H'`` differs from ``H`` in the current quaternion's columns only, and
+    agrees with it on every direction ``w`` does not see (``wᵀ d = 0``); blind twice is blind
+    once. Batched ``(3, 2)`` Jacobians of 5 rows each."""
+    gen = torch.Generator().manual_seed(5)
+    x = _state(1, (3, 2), gen)
+    H = torch.randn(3, 2, 5, x.shape[-1], generator=gen, dtype=F64)
+    blind = blind_to_heading(H, x)
+    N = unobservable_directions(x)
+    assert float((blind @ N[..., 3:]).abs().max()) < 1e-12
+    assert float((H @ N[..., 3:]).abs().min()) > 1e-6  # a Jacobian that did see it
+    off_q = torch.ones(x.shape[-1], dtype=torch.bool)
+    off_q[STATE.q] = False
+    assert torch.equal(blind[..., off_q], H[..., off_q])
+    d = torch.randn(3, 2, x.shape[-1], 1, generator=gen, dtype=F64)
+    w = heading_weights(x).unsqueeze(-1)
+    d = d - w * (w.transpose(-1, -2) @ d) / (w.transpose(-1, -2) @ w)  # wᵀ d = 0
+    torch.testing.assert_close(blind @ d, H @ d, atol=1e-12, rtol=0)
+    torch.testing.assert_close(blind_to_heading(blind, x), blind, atol=1e-12, rtol=0)
+
+
+def test_the_transport_as_a_step_keeps_the_estimate_and_gives_the_transported_covariance():
+    """``T after + b = after`` and ``T P Tᵀ`` is :func:`transport_heading`'s covariance."""
+    gen = torch.Generator().manual_seed(6)
+    before = _state(2, (3,), gen)
+    after = before + 0.05 * torch.randn(before.shape, generator=gen, dtype=F64)
+    cov = torch.stack([_psd(before.shape[-1], gen) for _ in range(3)])
+    T, b = heading_transport_step(before, after)
+    torch.testing.assert_close((T @ after.unsqueeze(-1)).squeeze(-1) + b, after, atol=1e-12, rtol=0)
+    torch.testing.assert_close(T @ cov @ T.transpose(-1, -2), transport_heading(cov, before, after), atol=1e-12, rtol=0)
