@@ -91,7 +91,11 @@ def test_the_whole_navigation_in_float32_stays_float32_and_agrees_with_float64(m
     """Every tensor a run builds follows the state's dtype: a float64 constant slipped into a
     float32 run (or a device's into another's) would promote the nodes or raise. The still start
     with its zero-velocity updates, the GNSS heading alignment and fixes, and the vehicle
-    constraint, 30 s of a walk; the float32 track stays within 5 cm of the float64 one."""
+    constraint, 30 s of a walk; the float32 track stays within 5 cm of the float64 one, plus 1 %
+    of the largest horizontal position σ the filter has had so far: until the held fixes are
+    given up (at 25 s) the yaw is free (σ π) and the position σ grows from 44 to 78 m, and
+    float32's rounding moves that dead-reckoned track by decimetres, which the fixes then take
+    seconds to pull back."""
     from flowins.measurements.vehicle import VehicleSettings
     from flowins.state import STATE
 
@@ -107,7 +111,11 @@ def test_the_whole_navigation_in_float32_stays_float32_and_agrees_with_float64(m
         assert result.filter.node_mean.dtype == dtype and result.filter.node_cov.dtype == dtype
         assert result.smoother.node_mean.dtype == dtype
         tracks[dtype] = result.filter.node_mean[:, STATE.p].double()
-    assert float((tracks[torch.float32] - tracks[torch.float64]).norm(dim=-1).max()) < 0.05
+        if dtype == torch.float64:
+            sigma = result.filter.node_cov[:, STATE.p, STATE.p].diagonal(dim1=-2, dim2=-1)[:, :2].sum(-1).sqrt()
+    difference = (tracks[torch.float32] - tracks[torch.float64]).norm(dim=-1)
+    bound = 0.05 + 0.01 * sigma.cummax(0).values
+    assert bool((difference < bound).all()), float((difference - bound).max())
 
 
 @pytest.mark.slow

@@ -122,15 +122,18 @@ def run_warnings(result: RunLog) -> list[str]:
                         "inflated to let the flow back in (filter.flow.recovery)")
     sigma = result.filter.node_cov[:, STATE.p, STATE.p].diagonal(dim1=-2, dim2=-1)[:, :2].sum(-1).sqrt()
     heading = [e for e in log if e.get("kind") == "heading" and e.get("status") in ("aligned", "given up")]
+    first = 0
     if heading:  # until the fixes set a free heading (or are applied as they come), its σ of π
-        sigma = torch.where(result.filter.t_s >= heading[0]["t_s"], sigma, 0.0)  # spreads the position: no drift
+        first = int(torch.searchsorted(result.filter.t_s, heading[0]["t_s"]))  # spreads the position: no drift
         if heading[0]["status"] == "given up":
             warnings.append(f"GNSS heading: the held fixes did not set the free heading; given up at "
                             f"{heading[0]['t_s']:.1f} s ({heading[0].get('reason', 'no reason logged')}; "
                             "filter.gnss_heading)")
-    if float(sigma.max()) > 100.0:
-        k = int(sigma.argmax())
-        warnings.append(f"the filter's own horizontal position σ reaches {float(sigma[k]):.0f} m (at "
+    sigma = sigma[first:]
+    if sigma.numel() and float(sigma.max()) > 100.0:
+        worst = int(sigma.argmax())
+        k = first + worst
+        warnings.append(f"the filter's own horizontal position σ reaches {float(sigma[worst]):.0f} m (at "
                         f"{float(result.filter.t_s[k]):.0f} s): nothing bounds the position there, the error is "
                         "inertial drift")
     fixes = [e for e in log if e.get("kind") == "gnss" and "nis" in e]
