@@ -99,11 +99,11 @@ def navigate_in_workers(navigate_batch: Callable[..., list], runs: Sequence[Load
     """``navigate_batch`` on ``runs`` split into ``config.workers`` parts of about equal work
     (:func:`run_load`), each part in a worker process with ``workers=1``, the results in the
     order of ``runs``; None where the batch belongs in this process (:func:`batch_workers`,
-    or this process is a daemonic worker, which may not start processes: said in the log)."""
+    or this process is a worker itself, which starts no processes: said in the log)."""
     if batch_workers(runs, config, gradient=gradient, here=False) == 1:
         return None
     if not can_start_workers():
-        log.info("filter: %d runs in this process: it is a daemonic worker, which may not start the "
+        log.info("filter: %d runs in this process: it is a worker process itself, which starts none of the "
                  "filter.workers=%d processes", len(runs), config.workers)
         return None
     parts = split_by_load([run_load(run) for run in runs], config.workers)

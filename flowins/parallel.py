@@ -12,7 +12,9 @@ elsewhere, where their inputs are pickled to them and each imports flowins first
 seconds). Results come back as torch's process pool sends them: a tensor's storage moved to
 shared memory and mapped here, not copied through a pipe. The workers' log records,
 progress lines included (under ``worker i/N``), reach the caller's ``flowins`` logger; an
-error in a worker is raised again in the caller, with the worker's traceback as its cause.
+error in a worker is raised again in the caller, with the worker's traceback as its cause, and
+a worker killed before it returns (the system's out-of-memory killer) raises
+ChildProcessError instead of leaving the caller waiting.
 """
 from __future__ import annotations
 
@@ -23,6 +25,8 @@ import os
 import pickle
 import sys
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
 import torch
@@ -30,6 +34,9 @@ import torch
 from flowins import progress
 
 log = logging.getLogger("flowins")
+
+#: whether this process is a worker of :func:`run_in_processes`
+_IN_WORKER = False
 
 #: what a forked worker reads instead of a pickled copy: ``(fn, parts)`` of the running call
 _INHERITED: tuple[Callable[..., Any], Sequence[tuple]] | None = None
@@ -65,8 +72,9 @@ def available_cores() -> int:
 
 def can_start_workers() -> bool:
     """Whether this process may start worker processes: not when it is itself a daemonic worker
-    (a process pool's, a data loader's), which Python's multiprocessing forbids."""
-    return not multiprocessing.current_process().daemon
+    (a data loader's), which Python's multiprocessing forbids, nor one of
+    :func:`run_in_processes`'s (each has its share of the cores already)."""
+    return not (multiprocessing.current_process().daemon or _IN_WORKER)
 
 
 def start_method() -> str:
@@ -90,16 +98,29 @@ def run_in_processes(fn: Callable[..., Any], parts: Sequence[tuple], *, method: 
              for i, args in enumerate(parts)]
     _INHERITED = (fn, parts) if forked else None
     try:
-        with context.Pool(len(parts), initializer=_start_worker, initargs=(records, log.getEffectiveLevel())) as pool:
+        with ProcessPoolExecutor(len(parts), mp_context=context, initializer=_start_worker,
+                                 initargs=(records, log.getEffectiveLevel())) as pool:
+            futures = [pool.submit(_work, task) for task in tasks]  # one process each, started here
             listener.start()  # after the workers started: no thread of this one is forked into them
             try:
-                results = pool.map(_work, tasks, chunksize=1)
+                return [_result(future, i, len(parts)) for i, future in enumerate(futures)]
             finally:
                 listener.stop()
     finally:
         _INHERITED = None
         records.close()
-    return results
+
+
+def _result(future: Future, index: int, count: int) -> Any:
+    """The result of worker ``index``; ChildProcessError where a worker process ended without
+    one (killed: a pool of processes would otherwise wait for it for ever)."""
+    try:
+        return future.result()
+    except BrokenProcessPool as error:
+        raise ChildProcessError(
+            f"a worker process (of {count}; waiting for worker {index + 1}) ended without returning its result: "
+            "killed, e.g. by the system for lack of memory; fewer recordings per process "
+            "(filter.workers) or shorter ones need less") from error
 
 
 class _Forward(logging.Handler):
@@ -117,6 +138,8 @@ class _Forward(logging.Handler):
 
 def _start_worker(records: Any, level: int) -> None:
     """In each worker: one thread, and the ``flowins`` logger's records sent to the caller."""
+    global _IN_WORKER
+    _IN_WORKER = True
     torch.set_num_threads(1)
     for handler in list(log.handlers):
         log.removeHandler(handler)

@@ -59,6 +59,26 @@ def test_an_error_in_a_worker_is_raised_here_with_its_message():
         run_in_processes(split_by_load, [([1.0], 1), ([1.0], 0)], method="fork")
 
 
+def _killed(seconds: float) -> float:
+    """Kills its worker process (as the system's out-of-memory killer does) after ``seconds``."""
+    import os
+    import signal
+    import time
+
+    time.sleep(seconds)
+    if seconds > 0:
+        os.kill(os.getpid(), signal.SIGKILL)
+    return seconds
+
+
+def test_a_killed_worker_raises_here_instead_of_leaving_the_caller_waiting():
+    """A pool that lost a worker to SIGKILL would wait for its result for ever; here the call
+    ends with a ChildProcessError (an OSError: the jobs print it as ``error: ...``)."""
+    with pytest.raises(ChildProcessError, match="ended without returning its result: killed"):
+        run_in_processes(_killed, [(0.0,), (0.2,)], method="fork")
+    assert run_in_processes(_killed, [(0.0,), (0.0,)], method="fork") == [0.0, 0.0]
+
+
 def _report(name: str, count: int) -> int:
     logging.getLogger("flowins.test_parallel").warning("warning: %s done", name)
     for _ in progress.progress(range(count), description="counting", unit="step", min_seconds=0.0):
@@ -84,7 +104,7 @@ def test_a_worker_runs_one_thread():
 
 
 def _nested_batch(count: int) -> str:
-    """In a daemonic worker: a batch asked to use workers runs in the worker itself."""
+    """In a worker process: a batch asked to use workers runs in the worker itself."""
     from flowins.data.synthetic import synthetic_walk_recording
     from flowins.navigation import NavigationConfig, NavigationRun, navigate_batch
     from flowins.parallel import can_start_workers
@@ -100,4 +120,4 @@ def test_a_daemonic_worker_runs_its_batch_itself_instead_of_starting_workers(cap
     assert can_start_workers()
     with caplog.at_level(logging.INFO, logger="flowins"):
         assert run_in_processes(_nested_batch, [(2,)], method="fork") == ["False 2"]
-    assert any("2 runs in this process: it is a daemonic worker" in r.getMessage() for r in caplog.records)
+    assert any("2 runs in this process: it is a worker process itself" in r.getMessage() for r in caplog.records)

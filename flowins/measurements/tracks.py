@@ -53,7 +53,7 @@ from flowins.constants import cached_constant, scalar_like
 from flowins.filter.augmentation import augment_pose_rows
 from flowins.filter.chain import BatchChain, RowBatchEvent
 from flowins.filter.ekf import Gate
-from flowins.filter.unobservable import heading_transport_step
+from flowins.filter.unobservable import transport_heading
 from flowins.filter.updater import update_rows
 from flowins.geometry import quaternion as quat
 from flowins.geometry.triangulation import camera_matrix, solve_dlt
@@ -77,8 +77,8 @@ class TrackUpdate:
         refine_iterations: Gauss-Newton steps on the triangulated point.
         gate: the χ² gate of each track (``2m - 3`` degrees of freedom).
         heading_transport: after each update, carry the covariance's heading direction to the
-            updated estimate (a linear step of the chain,
-            :func:`~flowins.filter.unobservable.heading_transport_step`), so that
+            updated estimate (:func:`~flowins.filter.unobservable.transport_heading`, in place:
+            the smoother takes the change for information), so that
             the tracks add no heading information, which no camera has; False: the plain EKF
             update, whose changes of the estimate let later tracks make some up.
     """
@@ -408,10 +408,9 @@ def _track_update(chain: BatchChain, rows: list[int], frames: list[TrackFrame]) 
                       (m.valid.sum(-1), m.n_degenerate, m.n_behind, m.n_low_parallax)))
     update_rows(chain, rows, H=m.H, residual=m.residual, noise_cov=None, noise_logdet=m.noise_logdet, gate=u.gate,
                 valid=m.valid, dof=m.dof, infos=infos, values=counts)
-    if u.heading_transport:  # as a step of the chain, which the smoother carries back exactly
-        after, _ = chain.newest(rows)
-        T, b = heading_transport_step(mean, after)
-        chain.linear_predict_rows(rows, T, T.new_zeros(()).expand(T.shape), b)
+    if u.heading_transport:  # in place: a step of the chain per frame would double its nodes
+        after, cov = chain.newest(rows)
+        chain.update_rows(rows, after, transport_heading(cov, mean, after))
 
 
 def _pad_rows(t: Tensor, M: int) -> Tensor:
