@@ -14,7 +14,11 @@ batch size it prints the eager time per call, the compiled one (``--backend``, d
 second process finds inductor's code in its cache) and the largest difference of the outputs::
 
     python benchmarks/bench_compile.py [--step flow|frame|propagation] [--batch 1 8] [--points 256]
-                                       [--imu-steps 10] [--backend inductor] [--repeats 50]
+                                       [--imu-steps 10] [--backend inductor] [--repeats 50] [--cpp-wrapper]
+
+``--cpp-wrapper``: inductor writes the code that calls its kernels in C++ too (its Python
+wrapper runs about 2,200 statements per call of the frame step: allocations, kernel calls,
+frees), at the cost of a longer compile.
 
 ``--backend eager`` checks only that the step is one graph (``fullgraph=True``: any graph
 break is an error), which needs no compiler.
@@ -118,7 +122,13 @@ def main() -> None:
     parser.add_argument("--imu-steps", type=int, default=10)
     parser.add_argument("--backend", default="inductor")
     parser.add_argument("--repeats", type=int, default=50)
+    parser.add_argument("--cpp-wrapper", action="store_true",
+                        help="inductor's C++ wrapper (torch._inductor.config.cpp_wrapper) instead of its Python one")
     args = parser.parse_args()
+    if args.cpp_wrapper:
+        from torch._inductor import config as inductor
+
+        inductor.cpp_wrapper = True
     if args.step == "flow":
         what, fn, make = f"flow_iteration, {args.points} points a frame", step, lambda b: frame(b, args.points)
     elif args.step == "frame":
@@ -127,7 +137,8 @@ def main() -> None:
     else:
         what, fn, make = (f"propagate_batched, {args.imu_steps} IMU steps to one node", propagation,
                           lambda b: imu_run(b, args.imu_steps))
-    print(f"{what}, float64, {torch.get_num_threads()} threads, backend {args.backend}")
+    print(f"{what}, float64, {torch.get_num_threads()} threads, backend {args.backend}"
+          + (", C++ wrapper" if args.cpp_wrapper else ""))
     for batch in args.batch:
         inputs = make(batch)
         with torch.inference_mode():
