@@ -74,13 +74,19 @@ def blind_to_heading(H: Tensor, x: Tensor) -> Tensor:
     return H - Hn.unsqueeze(-1) * heading_weights(x).unsqueeze(-2)
 
 
+def _shear(before: Tensor, after: Tensor) -> tuple[Tensor, Tensor]:
+    """``(u, w)`` of the transport's ``T = I + u wᵀ``: ``u = N_ψ(after) - N_ψ(before)`` and ``w``
+    of :func:`heading_weights` at ``before``."""
+    return (unobservable_directions(after)[..., 3] - unobservable_directions(before)[..., 3],
+            heading_weights(before))
+
+
 def heading_transport_step(before: Tensor, after: Tensor) -> tuple[Tensor, Tensor]:
     """:func:`transport_heading` as a linear step of the chain, ``x ↦ T x + b`` ``(..., D, D)``,
     ``(..., D)``, with ``b = -u (wᵀ after)`` so that ``after`` stays where it is and the covariance
     becomes ``T P Tᵀ``. Recorded as a step (no process noise), the RTS smoother carries it back
     exactly; a covariance replaced in place is a change the smoother takes for information."""
-    u = unobservable_directions(after)[..., 3] - unobservable_directions(before)[..., 3]
-    w = heading_weights(before)
+    u, w = _shear(before, after)
     T = torch.eye(after.shape[-1], dtype=after.dtype, device=after.device) + u.unsqueeze(-1) * w.unsqueeze(-2)
     return T, -u * (w * after).sum(-1, keepdim=True)
 
@@ -97,8 +103,7 @@ def transport_heading(cov: Tensor, before: Tensor, after: Tensor) -> Tensor:
     ``T`` maps the directions at ``before`` onto those at ``after`` and is a congruence, so the
     information ``Nᵀ P⁻¹ N`` along them is the same before and after (a test checks it) and
     the result is positive semi-definite where ``cov`` is."""
-    u = unobservable_directions(after)[..., 3] - unobservable_directions(before)[..., 3]
-    w = heading_weights(before)
+    u, w = _shear(before, after)
     Pw = (cov @ w.unsqueeze(-1)).squeeze(-1)
     wPw = (w * Pw).sum(-1, keepdim=True)
     shear = u.unsqueeze(-1) * Pw.unsqueeze(-2)

@@ -3,8 +3,8 @@
 Its likelihood, ``0 = v + n`` with isotropic ``n``, is the same for a velocity and that velocity
 turned about the vertical, so a still device says nothing about its heading. ``∂v/∂x`` at the
 small ``v̂`` an update starts from does see the turn (``e_z × v̂``), and a still start with a free
-yaw (σ π) would take that for heading information: 50 updates in 5 s bring the heading σ of
-the default walk's IMU-only run to 31° (docs/initialization.md). By default the update is
+yaw (σ π) would take that for heading information: the 53 updates of the default walk's
+5.26 s still start bring the heading σ of its IMU-only run to 31° (docs/initialization.md). By default the update is
 blind to the turn (:func:`~flowins.filter.unobservable.blind_to_heading`) and its covariance
 carried to the updated estimate by a linear step of the chain
 (:func:`~flowins.filter.unobservable.heading_transport_step`), so the heading keeps what the
