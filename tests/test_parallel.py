@@ -73,9 +73,21 @@ def _killed(seconds: float) -> float:
 
 def test_a_killed_worker_raises_here_instead_of_leaving_the_caller_waiting():
     """A pool that lost a worker to SIGKILL would wait for its result for ever; here the call
-    ends with a ChildProcessError (an OSError: the jobs print it as ``error: ...``)."""
-    with pytest.raises(ChildProcessError, match="ended without returning its result: killed"):
-        run_in_processes(_killed, [(0.0,), (0.2,)], method="fork")
+    ends with a ChildProcessError (an OSError: the jobs print it as ``error: ...``). An alarm
+    turns such a wait into a failure of this test after 60 s."""
+    import signal
+
+    def waited(signum, frame):
+        raise TimeoutError("run_in_processes still waits for a killed worker after 60 s")
+
+    previous = signal.signal(signal.SIGALRM, waited)
+    signal.alarm(60)
+    try:
+        with pytest.raises(ChildProcessError, match="ended without returning its result: killed"):
+            run_in_processes(_killed, [(0.0,), (0.2,)], method="fork")
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
     assert run_in_processes(_killed, [(0.0,), (0.0,)], method="fork") == [0.0, 0.0]
 
 
