@@ -30,7 +30,7 @@ The last line is ``RESULT single=<x>x batched=<x>x batch=<B> device=<device> wor
 
     python benchmarks/bench_flow_filter.py [--points 256] [--batch 8] [--reference-s 20] [--repeats 3]
                                            [--breakdown-s 60] [--count-ops-s 20] [--profile-s 0]
-                                           [--device cpu|cuda] [--quick] [KEY=VALUE ...]
+                                           [--device cpu|cuda] [--quick] [--cpp-wrapper] [KEY=VALUE ...]
 """
 from __future__ import annotations
 
@@ -355,9 +355,16 @@ def main() -> None:
                         help="each batched run this much shorter than the one before (0: all the whole walk)")
     parser.add_argument("--stages", action="store_true",
                         help="also print the batched run's seconds in BatchChain.finish and in the smoother")
+    parser.add_argument("--cpp-wrapper", action="store_true",
+                        help="with filter.compile: inductor's C++ wrapper (torch._inductor.config.cpp_wrapper) "
+                        "instead of its Python one")
     parser.add_argument("overrides", nargs="*", help="evaluate.py's KEY=VALUE overrides of the filter, e.g. "
                         "filter.gnss_heading.second_pass=true")
     args = parser.parse_args()
+    if args.cpp_wrapper:
+        from torch._inductor import config as inductor
+
+        inductor.cpp_wrapper = True
     for name in ("repeats", "batch", "step_s"):
         if getattr(args, name) < 0:
             parser.error(f"--{name.replace('_', '-')} must be >= 0, got {getattr(args, name)}")
