@@ -97,16 +97,20 @@ def run_in_processes(fn: Callable[..., Any], parts: Sequence[tuple], *, method: 
     tasks = [(i, len(parts), None if forked else pickle.dumps((fn, args), protocol=pickle.HIGHEST_PROTOCOL))
              for i, args in enumerate(parts)]
     _INHERITED = (fn, parts) if forked else None
+    listening = False
     try:
         with ProcessPoolExecutor(len(parts), mp_context=context, initializer=_start_worker,
                                  initargs=(records, log.getEffectiveLevel())) as pool:
             futures = [pool.submit(_work, task) for task in tasks]  # one process each, started here
             listener.start()  # after the workers started: no thread of this one is forked into them
-            try:
-                return [_result(future, i, len(parts)) for i, future in enumerate(futures)]
-            finally:
-                listener.stop()
+            listening = True
+            results = [_result(future, i, len(parts)) for i, future in enumerate(futures)]
+        # the pool has shut down: each worker's queue thread wrote its last records before the
+        # worker ended, so the listener's stop mark comes after them
+        return results
     finally:
+        if listening:
+            listener.stop()
         _INHERITED = None
         records.close()
 
