@@ -118,8 +118,9 @@ def main() -> None:
     parser.add_argument("--sigma", type=float, default=0.3, help="the tracks' pixel σ the filter uses")
     parser.add_argument("--min-parallax", type=float, default=TrackUpdate.min_parallax_rad,
                         help="filter.tracks.min_parallax_rad (rad; default: the filter's)")
-    parser.add_argument("--heading-transport", choices=("on", "off"), default="off",
-                        help="filter.tracks.heading_transport (default: off, the filter's)")
+    parser.add_argument("--heading-transport", choices=("on", "off"),
+                        default="on" if TrackUpdate.heading_transport else "off",
+                        help="filter.tracks.heading_transport (default: the filter's)")
     args = parser.parse_args()
     flight, imu, tracks, cam, frames = recording(args.duration, args.seed)
     per_frame = torch.unique_consecutive(tracks.t_s, return_counts=True)[1].double().mean()

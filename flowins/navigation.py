@@ -75,7 +75,7 @@ class NavigationConfig:
     compile: Literal["false", "true", "auto"] = "false"
     flow_update: FlowUpdate = field(default_factory=FlowUpdate)
     #: the multi-view update of sparse tracks over a window of cloned poses (``filter.tracks``;
-    #: :mod:`flowins.measurements.tracks`); its window 0 (the default) leaves it off
+    #: :mod:`flowins.measurements.tracks`; default 10 poses); window 0 is the paper's two-view update
     tracks: TrackUpdate = field(default_factory=TrackUpdate)
     #: the settings of each registered measurement kind by name (``filter.measurements.<name>``,
     #: :func:`~flowins.measurements.registry.measurement_settings`); a kind not named here

@@ -83,7 +83,7 @@ class TrackUpdate:
             update, whose changes of the estimate let later tracks make some up.
     """
 
-    window: int = bounded(0, minimum=0)
+    window: int = bounded(10, minimum=0)
     sigma_px: float | Tensor = bounded(0.3, above=0.0)
     max_tracks: int | None = bounded(128, minimum=1)
     min_parallax_rad: float = bounded(0.005, minimum=0.0)
@@ -91,7 +91,7 @@ class TrackUpdate:
     min_conditioning: float = bounded(1e-9, minimum=0.0)
     refine_iterations: int = bounded(2, minimum=0)
     gate: Gate = field(default_factory=Gate)
-    heading_transport: bool = False
+    heading_transport: bool = True
 
     def __post_init__(self) -> None:
         check_fields(self)
