@@ -363,8 +363,10 @@ def _hold_for_heading(chain: BatchChain, rows: Sequence[int], fixes: Sequence[Gn
         memory["heading_baseline_m"] = max(memory["heading_baseline_m"], math.hypot(x - x0, y - y0))
         held.append((mean[k, xy], fix.position_m[:2], filter_var[k], fix_var[k]))  # the fix where it is
         holding.append(i)
-    fits = _fit_held(chain, rows, [i for i in holding if len(chain.memories[rows[i]]["heading_fixes"]) >= a.min_fixes
-                                   and chain.memories[rows[i]]["heading_baseline_m"] >= a.baseline_m], a)
+    fits, sigmas = _fit_held(chain, rows, [i for i in holding
+                                           if len(chain.memories[rows[i]]["heading_fixes"]) >= a.min_fixes
+                                           and chain.memories[rows[i]]["heading_baseline_m"] >= a.baseline_m], a,
+                             drifted=drifted)
     for i in holding:
         chain_row, fix = chain.row(rows[i]), fixes[i]
         fit = fits.get(i)
@@ -374,10 +376,15 @@ def _hold_for_heading(chain: BatchChain, rows: Sequence[int], fixes: Sequence[Gn
             # the fixes held so far are in the past and are not applied; this one and
             # every later one are, as they come
             chain_row.memory["heading"] = "given up"
+            fitted = "" if i not in sigmas else (
+                f", their fit's σ {sigmas[i]:.3f} rad > filter.gnss_heading.drifted_max_sigma_rad="
+                f"{max(a.max_sigma_rad, a.drifted_max_sigma_rad):g}")
             chain_row.log.append({"t_s": chain_row.time_s, "kind": "heading", "name": fix.name, "status": "given up",
-                                  "fixes": len(chain_row.memory["heading_fixes"]) - 1, "reason": "the track drifted "
-                                  "more than a fix before the held fixes could set the heading; they are left out, "
-                                  "this fix and the later ones are applied as they come"})
+                                  "fixes": len(chain_row.memory["heading_fixes"]) - 1,
+                                  **({"fit_sigma_rad": sigmas[i]} if i in sigmas else {}),
+                                  "reason": "the track drifted more than a fix before the held fixes could set the "
+                                  f"heading{fitted}; they are left out, this fix and the later ones are applied as "
+                                  "they come"})
             applied.append(i)
         else:
             chain_row.log.append({"t_s": chain_row.time_s, "kind": "gnss", "name": fix.name, "accepted": 0.0,
@@ -385,11 +392,14 @@ def _hold_for_heading(chain: BatchChain, rows: Sequence[int], fixes: Sequence[Gn
     return sorted(applied)
 
 
-def _fit_held(chain: BatchChain, rows: Sequence[int], which: list[int], a: HeadingAlignment) -> dict[int, HeadingFit]:
+def _fit_held(chain: BatchChain, rows: Sequence[int], which: list[int], a: HeadingAlignment, *,
+              drifted: dict[int, bool]) -> tuple[dict[int, HeadingFit], dict[int, float]]:
     """The heading fits of the held fixes of the rows ``rows[i]``, ``i`` in ``which``, fitted
-    together; only those whose σ_ψ is at most ``max_sigma_rad`` are returned."""
+    together, and every fit's σ_ψ; only the fits whose σ_ψ is at most ``max_sigma_rad`` are
+    returned, or at most ``drifted_max_sigma_rad`` for a row whose track has drifted
+    (``drifted[i]``)."""
     if not which:
-        return {}
+        return {}, {}
     held = [chain.memories[rows[i]]["heading_fixes"] for i in which]
     counts = [len(h) for h in held]
     N, pad = max(counts), sum(counts)
@@ -408,8 +418,10 @@ def _fit_held(chain: BatchChain, rows: Sequence[int], which: list[int], a: Headi
     var = padded(2) + padded(3).to(filter_xy)
     fit = fit_heading_batch(filter_xy, fix_xy, var, counts, outlier_probability=a.outlier_probability)
     sigma = fit.sigma_rad.detach().tolist()
-    return {i: HeadingFit(*(part[k] for part in fit[:-1]), fit.used[k, : counts[k]])
-            for k, i in enumerate(which) if sigma[k] <= a.max_sigma_rad}
+    fits = {i: HeadingFit(*(part[k] for part in fit[:-1]), fit.used[k, : counts[k]])
+            for k, i in enumerate(which)
+            if sigma[k] <= (max(a.max_sigma_rad, a.drifted_max_sigma_rad) if drifted[i] else a.max_sigma_rad)}
+    return fits, dict(zip(which, sigma))
 
 
 def _align(chain: ChainBuilder, fit: HeadingFit, fix: GnssFix, a: HeadingAlignment) -> None:

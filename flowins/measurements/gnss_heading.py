@@ -61,6 +61,10 @@ class HeadingAlignment:
         baseline_m: align once the held-back fixes reach this far from the first one.
         max_sigma_rad: ... and the fit's σ_ψ is at most this (a filter track too short
             or too uncertain waits for more fixes).
+        drifted_max_sigma_rad: once the track has drifted more than a fix is off (waiting
+            brings no better fit), it aligns if the fit's σ_ψ is at most this (or
+            ``max_sigma_rad``, the larger), and gives up if not: the held fixes are left out
+            and the later ones applied as they come, the yaw still free.
         min_fixes: at least this many fixes in the fit.
         outlier_probability: χ²₂ acceptance of a fix's residual in the fit.
         condition_sigma_rad: σ of the step-1 yaw conditioning.
@@ -75,6 +79,7 @@ class HeadingAlignment:
     unknown_yaw_sigma_rad: float = bounded(0.5, above=0.0)
     baseline_m: float = bounded(20.0, minimum=0.0)
     max_sigma_rad: float = bounded(0.2, above=0.0)
+    drifted_max_sigma_rad: float = bounded(0.2, above=0.0)
     min_fixes: int = bounded(3, minimum=2)  # a rotation needs two points
     outlier_probability: float = 0.999
     condition_sigma_rad: float = bounded(1e-4, above=0.0)

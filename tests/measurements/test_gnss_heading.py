@@ -318,3 +318,36 @@ def test_fixes_still_held_when_the_run_ends_are_reported_as_never_set():
     # with the heading known from the start nothing is held and nothing is reported
     known = navigate(NavigationRun(rec.imu, rec.gnss), config=dataclasses.replace(config, gnss_heading=HeadingAlignment(enabled=False)))
     assert known.heading_status == []
+
+
+def test_a_drifted_track_aligns_with_a_fit_within_drifted_max_sigma_instead_of_giving_up():
+    """The walk of the test above gives up at the fix where its track has drifted. There the
+    fit of its held fixes is wider than ``max_sigma_rad``; with ``drifted_max_sigma_rad`` just
+    above that fit's σ the row aligns at that same fix with it, just below it gives up."""
+    from flowins.data.synthetic import synthetic_walk_recording
+    from flowins.navigation import NavigationConfig, NavigationRun, navigate
+    from flowins.start import StartSettings
+
+    rec = synthetic_walk_recording(duration_s=60.0, seed=1)
+    base = NavigationConfig(start=StartSettings(yaw_rad=2.0))
+
+    def heading_entry(drifted_max_sigma_rad: float) -> dict:
+        config = dataclasses.replace(base, gnss_heading=dataclasses.replace(
+            base.gnss_heading, drifted_max_sigma_rad=drifted_max_sigma_rad))
+        (entry,) = [e for e in navigate(NavigationRun(rec.imu, rec.gnss), config=config).filter.log
+                    if e.get("kind") == "heading"]
+        return entry
+
+    given_up = heading_entry(base.gnss_heading.max_sigma_rad)
+    assert given_up["status"] == "given up"
+    any_fit = heading_entry(math.pi)
+    assert any_fit["status"] == "aligned" and any_fit["t_s"] == given_up["t_s"]
+    sigma = any_fit["sigma_rad"]
+    assert sigma > base.gnss_heading.max_sigma_rad
+    # the give-up names the fit it did not take, and the setting that would take it
+    assert given_up["fit_sigma_rad"] == pytest.approx(sigma, rel=1e-9)
+    assert f"their fit's σ {sigma:.3f} rad > filter.gnss_heading.drifted_max_sigma_rad=0.2" in given_up["reason"]
+    assert heading_entry(0.99 * sigma)["status"] == "given up"
+    just_above = heading_entry(1.01 * sigma)
+    assert just_above["status"] == "aligned" and just_above["t_s"] == given_up["t_s"]
+    assert just_above["sigma_rad"] == pytest.approx(sigma, rel=1e-9)
