@@ -345,3 +345,28 @@ def test_simulation_is_deterministic_in_the_seed():
     c = simulate_imu(walk, config, torch.Generator().manual_seed(6))
     assert torch.equal(a[1], b[1]) and torch.equal(a[2], b[2])
     assert not torch.equal(a[1], c[1])
+
+
+def test_a_city_without_movers_is_the_city_with_them_less_its_movers():
+    """``CityConfig(movers=False)`` draws the movers and leaves them out: the facades, the parked
+    cars and the ground are those of the city with movers, to the bit, and no box moves."""
+    import dataclasses
+
+    from flowins.data.simulate.world import CityConfig, build_city
+    from flowins.data.synthetic import Walk, WalkConfig
+
+    walk = Walk(WalkConfig(duration_s=30.0))
+    full, still = build_city(walk, seed=3), build_city(walk, seed=3, config=CityConfig(movers=False))
+    assert full.n_movers == CityConfig().n_moving_cars + CityConfig().n_pedestrians and still.n_movers == 0
+    static = full.box_object_id == 0
+    assert int(static.sum()) == still.box_object_id.numel() > 0 and bool((still.box_object_id == 0).all())
+    for f in dataclasses.fields(full):
+        a, b = getattr(full, f.name), getattr(still, f.name)
+        if not isinstance(a, torch.Tensor):
+            continue
+        if f.name.startswith("mover_"):
+            assert b.numel() == 0, f.name
+        elif f.name.startswith("box_"):
+            assert torch.equal(a[static], b), f.name
+        else:
+            assert torch.equal(a, b), f.name

@@ -37,6 +37,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--flow-every", type=int, default=1, help="write exact flow for every n-th frame pair (0: none)")
     parser.add_argument("--motion-blur", action="store_true")
     parser.add_argument("--exposure-changes", action="store_true")
+    parser.add_argument("--no-movers", action="store_true",
+                        help="walk: no moving cars or pedestrians (the rest of the city the same)")
     parser.add_argument("--overwrite", action="store_true", help="replace a folder holding something else")
     parser.add_argument("--mount-deg", type=float, nargs=2, default=(0.0, 0.0), metavar=("PITCH", "YAW"),
                         help="drive: the IMU turned from the car's axes (degrees; its forward axis down, left)")
@@ -76,6 +78,7 @@ def _config(args: argparse.Namespace) -> SimulationConfig:
         seed=args.seed,
         duration_s=args.duration,
         flow_every=args.flow_every,
+        movers=not args.no_movers,
         vibration=Vibration(args.vibration, 0.08 * args.vibration, until_s=WalkConfig().stationary_s)
         if args.vibration else Vibration(),
         camera=replace(

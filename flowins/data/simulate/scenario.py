@@ -106,6 +106,8 @@ class SimulationConfig:
     #: ``tracks.csv``: static scene points followed through the frames (``count=0``: none)
     tracks: TrackConfig = field(default_factory=TrackConfig)
     gravity_mps2: float = STANDARD_GRAVITY_MPS2
+    #: the city's moving cars and pedestrians (False: none, the rest of the city the same)
+    movers: bool = True
 
     def __post_init__(self) -> None:
         if self.duration_s < 10.0:
@@ -235,9 +237,9 @@ def _simulate(out: Path, config: SimulationConfig, key: str, *, progress: bool) 
     t_end = float(t_imu[-1])
 
     # the world and the camera
-    from flowins.data.simulate.world import build_city
+    from flowins.data.simulate.world import CityConfig, build_city
 
-    city = build_city(walk, seed=config.seed)
+    city = build_city(walk, seed=config.seed, config=CityConfig(movers=config.movers))
     camera = config.camera.intrinsics()
     imu_to_camera = config.camera.imu_to_camera()
     trajectory = CameraTrajectory(walk, imu_to_camera)

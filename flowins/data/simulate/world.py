@@ -77,6 +77,8 @@ class CityConfig:
     car_speed_mps: tuple[float, float] = (6.0, 11.0)
     n_pedestrians: int = 8
     pedestrian_speed_mps: tuple[float, float] = (1.0, 1.6)
+    #: False: the movers are drawn (the rest of the city stays as it is with them) and left out
+    movers: bool = True
     ground_resolution_m: float = 0.1
     ground_margin_m: float = 30.0
 
@@ -484,6 +486,9 @@ def build_city(walk: Walk, *, seed: int = 0, config: CityConfig = CityConfig()) 
     half, xy_list, yaw_list, kind, rgb = boxes.half, boxes.xy, boxes.yaw, boxes.kind, boxes.rgb
     mover_offset, mover_s0, mover_rate = boxes.mover_offset, boxes.mover_s0, boxes.mover_rate
     n_static = len(xy_list)
+    if not config.movers:  # drawn above all the same, so the ground's texture below is the same
+        half, kind, rgb = half[:n_static], kind[:n_static], rgb[:n_static]
+        mover_offset, mover_s0, mover_rate = [], [], []
     n_movers = len(mover_s0)
     xy_list += [np.zeros(2)] * n_movers
     yaw_list += [0.0] * n_movers
