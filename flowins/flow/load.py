@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from flowins.cache import cache_root
-from flowins.config import instantiate
+from flowins.config import instantiate, setting
 from flowins.data.load import Recording
 from flowins.data.sequence import Tracks
 from flowins.flow.mounting import MountingCheck, check_mounting
@@ -90,7 +90,7 @@ TRACKS_FORMAT = 1
 def uses_tracks(cfg: Mapping[str, Any]) -> bool:
     """Whether a job's sparse rows take tracks over many frames (``filter.tracks.window >= 1``, the
     multi-view update) instead of flow pairs."""
-    return int(((cfg.get("filter") or {}).get("tracks") or {}).get("window") or 0) >= 1
+    return setting(cfg, "filter.tracks.window", int, minimum=0) >= 1
 
 
 def load_tracks(rec: Recording, cfg: Mapping[str, Any], *, progress: bool) -> Tracks | str:

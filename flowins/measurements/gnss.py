@@ -378,7 +378,7 @@ def _hold_for_heading(chain: BatchChain, rows: Sequence[int], fixes: Sequence[Gn
             chain_row.memory["heading"] = "given up"
             fitted = "" if i not in sigmas else (
                 f", their fit's σ {sigmas[i]:.3f} rad > filter.gnss_heading.drifted_max_sigma_rad="
-                f"{max(a.max_sigma_rad, a.drifted_max_sigma_rad):g}")
+                f"{a.drifted_limit_rad:g}")
             chain_row.log.append({"t_s": chain_row.time_s, "kind": "heading", "name": fix.name, "status": "given up",
                                   "fixes": len(chain_row.memory["heading_fixes"]) - 1,
                                   **({"fit_sigma_rad": sigmas[i]} if i in sigmas else {}),
@@ -420,7 +420,7 @@ def _fit_held(chain: BatchChain, rows: Sequence[int], which: list[int], a: Headi
     sigma = fit.sigma_rad.detach().tolist()
     fits = {i: HeadingFit(*(part[k] for part in fit[:-1]), fit.used[k, : counts[k]])
             for k, i in enumerate(which)
-            if sigma[k] <= (max(a.max_sigma_rad, a.drifted_max_sigma_rad) if drifted[i] else a.max_sigma_rad)}
+            if sigma[k] <= (a.drifted_limit_rad if drifted[i] else a.max_sigma_rad)}
     return fits, dict(zip(which, sigma))
 
 

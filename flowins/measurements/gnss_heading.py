@@ -88,6 +88,11 @@ class HeadingAlignment:
     def __post_init__(self) -> None:
         check_fields(self)
 
+    @property
+    def drifted_limit_rad(self) -> float:
+        """The largest σ_ψ a drifted track's fit may have to set the heading."""
+        return max(self.max_sigma_rad, self.drifted_max_sigma_rad)
+
 
 def heading_jacobian(x: Tensor) -> Tensor:
     """``∂θ_z/∂x`` ``(..., D)``: the rotation angle about the world vertical of a change of ``q``.
