@@ -240,3 +240,30 @@ def test_exposure_and_motion_blur(city, walk):
     blurred = render(city, CAMERA, *pose, motion_blur=[walk_pose(walk, 50.02), walk_pose(walk, 50.04)])
     assert torch.equal(blurred.depth, plain.depth)  # geometry is the main pose's
     assert (blurred.image.int() - plain.image.int()).abs().float().mean() > 0.5
+
+
+def test_value_noise_is_a_bilinear_sample_that_wraps_at_every_coordinate():
+    """``sample_noise`` against a float64 bilinear sampler with modular indices, at points inside
+    its texels and at coordinates a hair below 0 or a multiple of its size, which wrap to that size
+    itself in float32 (a mover's face at z = -1e-9 m, which once indexed past the table)."""
+    from flowins.data.simulate.world import sample_noise
+
+    gen = torch.Generator().manual_seed(4)
+    n = 16
+    noise = torch.rand(n, n, generator=gen)
+    u = torch.cat((torch.rand(200, generator=gen) * 5 * n - 2 * n,
+                   torch.tensor([-1e-9, -1e-7, n - 1e-6, 2 * n - 1e-6, 0.0, float(n), 3.25])))
+    v = torch.cat((torch.rand(200, generator=gen) * 5 * n - 2 * n,
+                   torch.tensor([-1e-9, n - 1e-6, -1e-7, 0.5, -1e-9, -1e-9, -1e-9])))
+    got = sample_noise(noise, u, v)
+    u64, v64, table = u.double(), v.double(), noise.double()
+    i, j = torch.floor(u64), torch.floor(v64)
+    fu, fv = u64 - i, v64 - j
+    i, j = i.long() % n, j.long() % n
+
+    def at(a, b):
+        return table[b % n, a % n]
+
+    want = ((1 - fv) * ((1 - fu) * at(i, j) + fu * at(i + 1, j))
+            + fv * ((1 - fu) * at(i, j + 1) + fu * at(i + 1, j + 1)))
+    torch.testing.assert_close(got.double(), want, rtol=0, atol=1e-4)

@@ -545,6 +545,8 @@ def sample_noise(noise: Tensor, u: Tensor, v: Tensor) -> Tensor:
     v = v - n * torch.floor(v * (1.0 / n))
     i0, j0 = torch.floor(u), torch.floor(v)
     fu, fv = u - i0, v - j0
+    # a coordinate a hair below a multiple of n wraps to n itself in float32: texel 0 again
+    i0, j0 = torch.remainder(i0, n), torch.remainder(j0, n)
     idx = torch.addcmul(i0, j0, torch.tensor(float(n + 1))).to(torch.int64)  # exact in float32 below 2^24
 
     def at(offset: int) -> Tensor:
