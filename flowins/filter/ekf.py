@@ -400,6 +400,35 @@ def _scalar_innovation_variance(cov: Tensor, H: Tensor, noise_cov: Tensor | None
     return torch.linalg.vecdot(h @ cov, h) + (1.0 if noise_cov is None else noise_cov[..., 0, 0])
 
 
+def left_out_nis(innovation: Tensor, H: Tensor, noise_var: Tensor, weight: Tensor, prior_mean: Tensor,
+                 mean: Tensor, cov: Tensor) -> Tensor:
+    """``(..., M)``: the NIS of each of ``M`` independent scalar measurements against the
+    posterior of the others (its leave-one-out or deleted residual), from the posterior
+    ``(mean, cov)`` that an update of ``prior_mean`` with all of them gave.
+
+    Args:
+        innovation ``(..., M)`` at ``prior_mean`` ``(..., D)``, H ``(..., M, D)``, noise_var
+        ``(..., M)`` (``r``), weight ``(..., M)``: each measurement's gate weight ``w`` in that
+        update (it entered with noise ``r / w²``; 0: not at all), mean ``(..., D)`` and cov
+        ``(..., D, D)`` the posterior.
+
+    With the posterior residual ``e = v - h (m⁺ - m)`` and ``a = h P⁺ hᵀ``, taking measurement
+    ``i`` out of a linear update gives the residual ``e r / (r - w² a)`` and its predicted
+    variance ``r + a r / (r - w² a)``, so
+
+        NIS₋ᵢ = e² r / ((r - w² a) (r - w² a + a)),
+
+    χ²₁ under the model: ``e² / (r - a)`` for a measurement that entered (``w = 1``),
+    ``e² / (r + a)`` for one that did not (``w = 0``). No ``M x M`` matrix is formed: one
+    ``(M, D) x (D, D)`` product. ``r - w² a > 0`` in exact arithmetic; it is kept above
+    ``1e-12 r`` against rounding.
+    """
+    e = innovation - (H @ (mean - prior_mean).unsqueeze(-1)).squeeze(-1)
+    a = torch.linalg.vecdot(H @ cov, H)
+    left = torch.maximum(noise_var - weight.square() * a, 1e-12 * noise_var)
+    return e.square() * noise_var / (left * (left + a))
+
+
 def _block_diagonal(blocks: Tensor) -> Tensor:
     """``(..., M, d, d)`` -> block-diagonal ``(..., M d, M d)``."""
     *batch, M, d, _ = blocks.shape

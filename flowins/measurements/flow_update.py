@@ -16,10 +16,10 @@ from flowins.constants import cached_constant, scalar_like
 from flowins.filter.augmentation import augment_pose_rows
 from flowins.filter.chain import BatchChain, RowBatchEvent
 from flowins.filter.compiling import bucket, map_tensors
-from flowins.filter.ekf import Gate, UpdateResult
+from flowins.filter.ekf import Gate, UpdateResult, left_out_nis
 from flowins.filter.updater import gated_update, likelihood_sums
 from flowins.flow.points import FlowPoints
-from flowins.measurements.flow import FlowCamera, FlowMeasurements, epipolar_update, flow_measurements
+from flowins.measurements.flow import EpipolarUpdate, FlowCamera, FlowMeasurements, epipolar_update, flow_measurements
 from flowins.measurements.selection import select_points
 from flowins.state import STATE
 
@@ -97,6 +97,11 @@ class FlowUpdate:
             noisy flow, and without the correction a low-parallax point claims
             ``(p² + σ²) / p²`` times the information it has (errors in variables).
         gate: χ² gate on each point's scalar innovation (moving objects, bad flow).
+        recheck: after the gated update, each point is tested again against the posterior
+            of the others (:func:`~flowins.filter.ekf.left_out_nis`, χ²₁ at this gate) and
+            the update is made again from the prior without the points that fail (a moving
+            object's points agree with one another and pass the prior's wide gate; the
+            static scene's posterior is narrow enough to see them); mode ``off``: one update.
         sequential: the paper's point-by-point update instead of one stacked update.
         iterations: relinearisations of the measurement (1: EKF, > 1: iterated EKF).
         augmentation: the pose forgetting + augmentation after the update.
@@ -111,6 +116,7 @@ class FlowUpdate:
     min_parallax_sigma: float = bounded(1.0, minimum=0.0)
     parallax_inflation: bool = True
     gate: Gate = field(default_factory=Gate)
+    recheck: Gate = field(default_factory=lambda: Gate(probability=0.99))
     sequential: bool = False
     iterations: int = bounded(1, minimum=1)
     augmentation_mode: str = "limit"
@@ -124,7 +130,7 @@ class FlowUpdate:
 
 #: every point used, no inflation, no parallax limit, no gate: the paper's update as written
 PAPER_FLOW_UPDATE = FlowUpdate(n_points=None, min_parallax_sigma=0.0, parallax_inflation=False,
-                               sigma_floor_px=0.0, gate=Gate(mode="off"))
+                               sigma_floor_px=0.0, gate=Gate(mode="off"), recheck=Gate(mode="off"))
 
 
 @dataclass(frozen=True)
@@ -340,7 +346,26 @@ def flow_iteration(x_i: Tensor, mean: Tensor, cov: Tensor, points: FlowPoints, c
     innovation = upd.innovation if first else upd.innovation - (upd.H @ (mean - x_i)[:, None, :, None]).squeeze(-1)
     result = gated_update(mean, cov, H=upd.H, residual=innovation, noise_cov=upd.noise_cov, gate=update.gate,
                           sequential=update.sequential, valid=m.valid, likelihood=likelihood)
+    if update.recheck.mode != "off":
+        result = _recheck(result, mean, cov, upd, innovation, m.valid, update)
     return FlowIteration(m, result)
+
+
+def _recheck(first: UpdateResult, mean: Tensor, cov: Tensor, upd: EpipolarUpdate, innovation: Tensor,
+             valid: Tensor, update: FlowUpdate) -> UpdateResult:
+    """The update ``first`` made again from the prior ``(mean, cov)`` with each point weighed
+    by ``update.recheck`` on its NIS against the posterior of the others
+    (:func:`~flowins.filter.ekf.left_out_nis`); the prior's NIS and likelihood kept from
+    ``first``, the weights those of both gates."""
+    nis = left_out_nis(innovation[..., 0], upd.H[..., 0, :], upd.noise_cov[..., 0, 0], first.weight, mean,
+                       first.mean, first.cov)
+    keep = update.recheck.weights(nis, 1)  # (r, M)
+    again = gated_update(mean, cov, H=upd.H * keep[..., None, None], residual=innovation * keep.unsqueeze(-1),
+                         noise_cov=upd.noise_cov, gate=update.gate, sequential=update.sequential, valid=valid,
+                         likelihood=False)
+    failed = first.failed if again.failed is None else again.failed if first.failed is None \
+        else first.failed | again.failed
+    return UpdateResult(again.mean, again.cov, first.nis, again.weight * keep, first.nll, failed)
 
 
 def stack_points(points: list[FlowPoints], *, like: Tensor, lengths: list[Tensor] | None = None,

@@ -484,8 +484,14 @@ class FilterParameters(nn.Module):
                         threshold=v.get(f"{kind}_gate_threshold"), scale=v.get(f"{kind}_gate_scale", 1.0),
                         softness=v[f"{kind}_gate_softness"])
 
+        def recheck(base: Gate) -> Gate:  # its probability kept; soft as the flow gate while training
+            return base if base.mode == "off" else Gate(mode="soft" if training else "hard",
+                                                        probability=base.probability,
+                                                        softness=v["flow_gate_softness"])
+
         flow = replace(config.flow_update, sigma_scale=v["flow_sigma_scale"], sigma_floor_px=v["flow_sigma_floor_px"],
-                       sigma_p0=v["sigma_p0"], sigma_q0=v["sigma_q0"], gate=gate("flow", config.flow_update.gate))
+                       sigma_p0=v["sigma_p0"], sigma_q0=v["sigma_q0"], gate=gate("flow", config.flow_update.gate),
+                       recheck=recheck(config.flow_update.recheck))
         vehicle = replace(_vehicle(config), **{f: v[n] for n, (w, f) in _FIELDS.items() if w == "vehicle"},
                           noise_model=self.adaptive["vehicle"] if "vehicle" in self.adaptive else None)
         return replace(config, noise=noise, initial=initial, gnss_noise_scale=v["gnss_noise_scale"],

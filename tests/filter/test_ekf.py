@@ -9,6 +9,7 @@ from flowins.filter.ekf import (
     chi2_quantile,
     ekf_update,
     joseph_update,
+    left_out_nis,
     linear_predict,
     scalar_update,
 )
@@ -355,6 +356,40 @@ def test_weight_w_equals_noise_divided_by_w_squared():
     em, eP = textbook_update(m, P, v.reshape(-1) + Hk @ m, Hk, block_diag([R[i] / w[i] ** 2 for i in range(M)]))
     torch.testing.assert_close(out.mean, em, rtol=0, atol=1e-10)
     torch.testing.assert_close(out.cov, eP, rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("batch", [(), (1,), (3, 2)])
+def test_left_out_nis_is_each_measurement_against_the_update_without_it(batch):
+    """``left_out_nis`` from the posterior of all against the naive reference: for each
+    measurement the textbook update of the others (each with its noise ``r / w²``, the
+    ``w = 0`` ones left out), its residual there and that residual's predicted variance."""
+    gen = torch.Generator().manual_seed(3)
+    D, M = 6, 9
+    n = max(1, math.prod(batch))
+    P = torch.stack([random_spd(gen, D) for _ in range(n)]).reshape(*batch, D, D)
+    m = torch.randn(*batch, D, generator=gen, dtype=F64)
+    H = torch.randn(*batch, M, D, generator=gen, dtype=F64)
+    v = 3.0 * torch.randn(*batch, M, generator=gen, dtype=F64)
+    r = 0.05 + torch.rand(*batch, M, generator=gen, dtype=F64)
+    w = torch.rand(*batch, M, generator=gen, dtype=F64)
+    w[..., 0], w[..., 1] = 0.0, 1.0  # one left out of the update, one in it at full weight
+    mean, cov, _ = scalar_update(m, P, w * v, w.unsqueeze(-1) * H, r)
+    got = left_out_nis(v, H, r, w, m, mean, cov)
+    flat = lambda t, k: t.reshape(-1, *t.shape[t.ndim - k:])  # noqa: E731
+    Pf, mf, Hf, vf, rf, wf = flat(P, 2), flat(m, 1), flat(H, 2), flat(v, 1), flat(r, 1), flat(w, 1)
+    want = torch.empty(n, M, dtype=F64)
+    for b in range(n):
+        for i in range(M):
+            others = [j for j in range(M) if j != i and wf[b, j] > 0]
+            Ho = Hf[b, others]
+            mo, Po = textbook_update(mf[b], Pf[b], vf[b, others] + Ho @ mf[b], Ho,
+                                     torch.diag(rf[b, others] / wf[b, others] ** 2))
+            e = vf[b, i] - Hf[b, i] @ (mo - mf[b])
+            want[b, i] = e**2 / (Hf[b, i] @ Po @ Hf[b, i] + rf[b, i])
+    torch.testing.assert_close(got.reshape(n, M), want, rtol=1e-9, atol=0)
+    # under the model it is chi-square with one degree of freedom, not the prior's NIS
+    prior = v**2 / (torch.linalg.vecdot(H @ P, H) + r)
+    assert not torch.allclose(got, prior, rtol=1e-3)
 
 
 def test_soft_gate_is_differentiable_in_threshold_and_softness():
