@@ -97,3 +97,26 @@ def test_the_recheck_leaves_out_the_car_that_a_wide_prior_lets_through():
     assert moving_once >= 0.2 and error_once > 0.1, runs  # the prior's gate alone lets the car pull the pose
     assert moving < 0.7 * moving_once and error < 0.5 * error_once, runs
     assert static >= 0.7, runs
+
+
+def test_a_soft_recheck_s_gradient_is_the_finite_difference():
+    """Training makes the recheck soft (``sigmoid((χ²₁(p) - NIS₋ᵢ) / softness)``): the updated
+    position's gradient in the flow noise's scale, through both updates and the deleted
+    residuals, against central differences."""
+    x, cov, uv1, flow, sigma, camera, _ = car_scene(position_var_m2=1e-2)
+    update = FlowUpdate(n_points=None, min_parallax_sigma=0.0, gate=Gate(mode="soft", probability=0.999),
+                        recheck=Gate(mode="soft", probability=0.99, softness=2.0))
+    no_parallax_limit = torch.zeros(1, uv1.shape[0], dtype=F64)
+
+    def position(scale):
+        points = FlowPoints(uv1[None], flow[None], sigma[None] * scale)
+        it = flow_iteration(x[None], x[None], cov[None], points, camera, None, no_parallax_limit, update=update)
+        return (it.result.mean[0, STATE.p] - x[STATE.p]) @ torch.tensor([1.0, -2.0, 0.5], dtype=F64)
+
+    scale = torch.tensor(1.3, dtype=F64, requires_grad=True)
+    (grad,) = torch.autograd.grad(position(scale), scale)
+    h = 1e-5
+    with torch.no_grad():
+        numeric = (position(scale + h) - position(scale - h)) / (2 * h)
+    assert torch.isfinite(grad) and abs(float(grad)) > 1e-6
+    torch.testing.assert_close(grad, numeric, rtol=1e-5, atol=1e-9)
