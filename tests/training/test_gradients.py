@@ -298,8 +298,8 @@ def unroll_loss(params: FilterParameters, s: dict, parallax_inflation: bool = Tr
                 innovation: bool = False) -> tuple[torch.Tensor, list]:
     """Squared final position error of the filter over the walk segment (soft gates, learned values);
     ``innovation``: the summed innovation negative log-likelihood instead (and the track, not its
-    log), with the gates off."""
-    off = {"gate": Gate(mode="off")} if innovation else {}
+    log), with the gates (and the flow recheck) off."""
+    off = {"gate": Gate(mode="off"), "recheck": Gate(mode="off")} if innovation else {}
     base = NavigationConfig(initial=InitialUncertainty(yaw_rad=0.05), gnss_gate=off.get("gate", Gate()),
                             flow_update=FlowUpdate(parallax_inflation=parallax_inflation, **off))
     config = params.apply(base, training=True)
