@@ -106,6 +106,7 @@ class FilterLearner(pl.LightningModule):
         self.accumulate = model.accumulate_windows
         self.average_epochs = model.average_epochs
         self.select_flow_gate = tuple(model.select_flow_gate)
+        self.recheck_while_training = model.recheck_while_training
         if self.select_flow_gate and not any(METHODS.get(m, (False, False, False))[2] for m in self.methods):
             raise ValueError(f"model.select_flow_gate: no method of {self.methods} uses dense flow, whose gate it "
                              "chooses; leave it empty or add a method with dense flow")
@@ -140,6 +141,7 @@ class FilterLearner(pl.LightningModule):
                                    "lr_final": self.lr_final, "warmup_steps": self.warmup_steps,
                                    "accumulate_windows": self.accumulate, "average_epochs": self.average_epochs,
                                    "gradient_clip": self.gradient_clip,
+                                   "recheck_while_training": self.recheck_while_training,
                                    "reference": self.reference, "learned": params.learned})
 
     def configure_optimizers(self):
@@ -199,7 +201,7 @@ class FilterLearner(pl.LightningModule):
         the batch (its remaining windows counted as skipped)."""
         if not rows:
             return []
-        config = self.params.apply(self.base, training=True, device=self.device)
+        config = self.filter_config(self.params, training=True)
         moments = any(_has_moments(seqs[pairs[r][0]], pairs[r][1]) for r in rows)
         p = self.params.value("dropout_p") if moments else None
         results = run_windows([seqs[pairs[r][0]] for r in rows], [pairs[r][1] for r in rows], config,
@@ -363,6 +365,12 @@ class FilterLearner(pl.LightningModule):
     def _skip(self, n: int) -> None:
         self.skipped_windows += n
 
+    def filter_config(self, params: FilterParameters, *, training: bool) -> NavigationConfig:
+        """The filter's configuration with ``params``' values: soft gates in a training step
+        (the flow recheck off there without ``model.recheck_while_training``), hard otherwise."""
+        return params.apply(self.base, training=training, device=self.device,
+                            recheck=self.recheck_while_training or not training)
+
     # ------------------------------------------------------------------ held-out
     def _errors(self, seqs: Sequence[TrainingSequence], params: FilterParameters, *,
                 smoother: bool) -> dict[str, list[tuple[float, float]]]:
@@ -371,7 +379,7 @@ class FilterLearner(pl.LightningModule):
         :func:`~flowins.training.unroll.sequences_errors` computes them (the smoother's NaN
         without ``smoother``); every sequence under every method runs in one batched filter
         pass (the dropout rate applies to the rows whose flow has dropout moments)."""
-        config = params.apply(self.base, training=False, device=self.device)
+        config = self.filter_config(params, training=False)
         pairs = [(k, method) for method in self.methods for k in range(len(seqs))]
         moments = any(_has_moments(seqs[k], m) for k, m in pairs)
         p = float(params.value("dropout_p").detach()) if moments else None

@@ -193,6 +193,8 @@ class ModelSettings:
         select_flow_gate: probabilities ``p`` whose χ²₁ quantiles compete, after training, as
             the flow gate's threshold of the chosen validation's parameters (each one more
             validation; :meth:`~flowins.training.module.FilterLearner.gate_variants`); () for none.
+        recheck_while_training: the flow recheck (``filter.flow.recheck``) soft in the training
+            steps; False: off there (one update per frame), as configured in every validation.
     """
 
     lr: float = bounded(0.1, minimum=1e-12)
@@ -218,6 +220,7 @@ class ModelSettings:
     adaptive_decades: float = bounded(1.0, above=0.0)
     checkpoint: str | None = None
     select_flow_gate: tuple[float, ...] = bounded((), above=0.0, below=1.0)
+    recheck_while_training: bool = True
 
     def __post_init__(self) -> None:
         if unknown := sorted(set(self.adaptive) - set(ADAPTIVE_KINDS)):
@@ -463,10 +466,11 @@ class FilterParameters(nn.Module):
         return {n: None if math.isinf(b := float(self.bound[n])) else b for n in NAMES}
 
     def apply(self, config: NavigationConfig, *, training: bool,
-              device: torch.device | str | None = None) -> NavigationConfig:
+              device: torch.device | str | None = None, recheck: bool = True) -> NavigationConfig:
         """``config`` with this module's values: tensors with a gradient; the gates soft
         while ``training``, hard (at the learned threshold) otherwise. ``device``: where the
-        filter runs (default: ``config.device``, i.e. ``filter.device``)."""
+        filter runs (default: ``config.device``, i.e. ``filter.device``). ``recheck=False``:
+        the flow recheck off."""
         v = {n: self.value(n) for n in NAMES}
         if not training:
             v = {n: float(x.detach()) for n, x in v.items()}
@@ -484,14 +488,16 @@ class FilterParameters(nn.Module):
                         threshold=v.get(f"{kind}_gate_threshold"), scale=v.get(f"{kind}_gate_scale", 1.0),
                         softness=v[f"{kind}_gate_softness"])
 
-        def recheck(base: Gate) -> Gate:  # its probability kept; soft as the flow gate while training
+        def rechecked(base: Gate) -> Gate:  # its probability kept; soft as the flow gate while training
+            if not recheck:
+                return Gate(mode="off")
             return base if base.mode == "off" else Gate(mode="soft" if training else "hard",
                                                         probability=base.probability,
                                                         softness=v["flow_gate_softness"])
 
         flow = replace(config.flow_update, sigma_scale=v["flow_sigma_scale"], sigma_floor_px=v["flow_sigma_floor_px"],
                        sigma_p0=v["sigma_p0"], sigma_q0=v["sigma_q0"], gate=gate("flow", config.flow_update.gate),
-                       recheck=recheck(config.flow_update.recheck))
+                       recheck=rechecked(config.flow_update.recheck))
         vehicle = replace(_vehicle(config), **{f: v[n] for n, (w, f) in _FIELDS.items() if w == "vehicle"},
                           noise_model=self.adaptive["vehicle"] if "vehicle" in self.adaptive else None)
         return replace(config, noise=noise, initial=initial, gnss_noise_scale=v["gnss_noise_scale"],

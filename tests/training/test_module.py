@@ -261,3 +261,26 @@ def test_the_average_is_the_mean_of_every_step_of_the_last_epochs_and_its_label(
     off._trainer = SimpleNamespace(max_epochs=3, current_epoch=2)
     off._add_to_average()
     assert off.use_average() is None
+
+
+def test_the_recheck_is_off_in_the_training_steps_only_where_the_model_says():
+    """``model.recheck_while_training=false``: a training step's flow update has no recheck,
+    every validation the configured one (hard, at its probability); by default the training
+    step's recheck is soft, with the flow gate's softness."""
+    from flowins.training.parameters import ModelSettings, starting_values
+
+    params = FilterParameters(starting_values(NavigationConfig()), learn=["flow_gate_softness"])
+    softness = float(params.value("flow_gate_softness"))
+    configured = NavigationConfig().flow_update.recheck
+    assert configured.mode == "hard"
+    for flag in (True, False):
+        learner = FilterLearner(params, NavigationConfig(), methods=["ins_dense"],
+                                model=ModelSettings(recheck_while_training=flag))
+        step = learner.filter_config(params, training=True).flow_update.recheck
+        held_out = learner.filter_config(params, training=False).flow_update.recheck
+        assert (held_out.mode, held_out.probability) == ("hard", configured.probability)
+        if flag:
+            assert (step.mode, step.probability) == ("soft", configured.probability)
+            assert float(step.softness) == pytest.approx(softness)
+        else:
+            assert step.mode == "off"
