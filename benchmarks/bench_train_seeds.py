@@ -17,7 +17,8 @@ single walk. The last line is ``RESULT runs=N at_or_below=K spread=X worst_walk=
 
 ``--jobs 2`` runs two trainings at once, each with one thread (on 2 cores about as fast in all
 as one after the other with two; the thread count changes the rounding, and from a 10x start
-the outcome with it). ``--reuse`` keeps the runs and scores already in ``OUT`` that were
+the outcome with it); ``--threads N`` sets the threads per process instead (``--threads 1 --
+trainer=ddp``: one run at a time, its two processes one thread each). ``--reuse`` keeps the runs and scores already in ``OUT`` that were
 made with the same overrides, held-out walks and checkpoint. A run takes about
 20 min on a 2-core CPU; the held-out walks' flow is computed once (about 10 min a walk) and
 cached. Arguments after ``--`` go to every ``train.py`` run.
@@ -134,11 +135,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     parser.add_argument("--heldout", type=int, nargs="+", default=[8, 9, 10])
     parser.add_argument("--jobs", type=int, default=1)
+    parser.add_argument("--threads", type=int, default=None,
+                        help="threads per training process (default: the cores / --jobs; 1 with trainer=ddp's two "
+                             "processes on two cores)")
     parser.add_argument("--reuse", action="store_true", help="keep the runs and scores in --out made with the same arguments")
     args = parser.parse_args(ours)
     if args.jobs < 1:
         parser.error(f"--jobs {args.jobs}: expected 1 or more")
-    threads = max(1, (os.cpu_count() or 1) // args.jobs)
+    if args.threads is not None and args.threads < 1:
+        parser.error(f"--threads {args.threads}: expected 1 or more")
+    threads = args.threads or max(1, (os.cpu_count() or 1) // args.jobs)
     with ThreadPoolExecutor(args.jobs) as pool:
         best = dict(zip(args.seeds, pool.map(lambda s: train(s, args.out, threads, overrides, args.reuse), args.seeds)))
     hand = score("hand-tuned", None, args.heldout, args.out, args.reuse)

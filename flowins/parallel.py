@@ -77,6 +77,14 @@ def can_start_workers() -> bool:
     return not (multiprocessing.current_process().daemon or _IN_WORKER)
 
 
+def in_distributed_run() -> bool:
+    """Whether this process is one of several of a distributed run (``torch.distributed``
+    initialised with more than one process: ``train.py trainer=ddp``), which has its share of
+    the cores already."""
+    return (torch.distributed.is_available() and torch.distributed.is_initialized()
+            and torch.distributed.get_world_size() > 1)
+
+
 def start_method() -> str:
     """``fork`` on Linux (the inputs are inherited, nothing is pickled to the workers), else ``spawn``."""
     return "fork" if sys.platform.startswith("linux") else "spawn"

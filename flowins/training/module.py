@@ -40,8 +40,10 @@ import pytorch_lightning as pl
 import torch
 from pytorch_lightning.trainer.states import TrainerFn
 
+from flowins.batching import run_load
 from flowins.filter.ekf import chi2_quantile
 from flowins.navigation import NavigationConfig
+from flowins.parallel import in_distributed_run, split_by_load
 from flowins.training.parameters import FilterParameters, ModelSettings
 from flowins.training.schedule import learning_rate, window_length
 from flowins.training.unroll import (
@@ -49,6 +51,7 @@ from flowins.training.unroll import (
     TrainingSequence,
     has_moments,
     run_windows,
+    sequence_load,
     sequences_errors,
     split_gradient,
     window_bounds,
@@ -331,7 +334,7 @@ class FilterLearner(pl.LightningModule):
 
     def _sum_over_processes(self, values: torch.Tensor, reduce: str = "sum") -> torch.Tensor:
         """``values`` summed (or their maximum) over the training processes (itself in one process)."""
-        if not (torch.distributed.is_available() and torch.distributed.is_initialized()):
+        if not in_distributed_run():
             return values
         out = values.clone()
         op = torch.distributed.ReduceOp.MAX if reduce == "max" else torch.distributed.ReduceOp.SUM
@@ -378,17 +381,37 @@ class FilterLearner(pl.LightningModule):
         with ``params`` (hard gates, no gradient) after the SE(3) alignment of Table I, as
         :func:`~flowins.training.unroll.sequences_errors` computes them (the smoother's NaN
         without ``smoother``); every sequence under every method runs in one batched filter
-        pass (the dropout rate applies to the rows whose flow has dropout moments)."""
-        config = self.filter_config(params, training=False)
+        pass (the dropout rate applies to the rows whose flow has dropout moments), split over
+        ``filter.workers`` processes on the CPU (its tensors made without a graph, so that none
+        crosses to a worker); with ``trainer=ddp`` each process runs its share (:meth:`_share`)
+        and the values are summed over the processes (each entry comes from one of them)."""
+        with torch.no_grad():
+            config = self.filter_config(params, training=False)
         pairs = [(k, method) for method in self.methods for k in range(len(seqs))]
         moments = any(_has_moments(seqs[k], m) for k, m in pairs)
         p = float(params.value("dropout_p").detach()) if moments else None
-        values = sequences_errors([seqs[k] for k, _ in pairs], [m for _, m in pairs], config, dropout_p=p,
-                                  smoother=smoother)
+        mine = self._share(seqs, pairs)
+        values = sequences_errors([seqs[pairs[r][0]] for r in mine], [pairs[r][1] for r in mine], config,
+                                  dropout_p=p, smoother=smoother) if mine else []
+        if in_distributed_run():  # trainer=ddp: every process its share, everyone's values everywhere
+            table = torch.zeros(len(pairs), 2, dtype=torch.float64, device=self.device)
+            if mine:
+                table[mine] = torch.tensor(values, dtype=torch.float64, device=self.device)
+            values = [tuple(row) for row in self._sum_over_processes(table).tolist()]
         errors = {method: [(math.nan, math.nan)] * len(seqs) for method in self.methods}
         for (k, m), value in zip(pairs, values):
             errors[m][k] = value
         return errors
+
+    def _share(self, seqs: Sequence[TrainingSequence], pairs: Sequence[tuple[int, str]]) -> list[int]:
+        """The rows of ``pairs`` (sequence index, method) this process runs: all of them in one
+        process; with several (``trainer=ddp``), a part of about equal work each
+        (:func:`~flowins.parallel.split_by_load`, the same split in every process)."""
+        if not in_distributed_run():
+            return list(range(len(pairs)))
+        world, rank = torch.distributed.get_world_size(), torch.distributed.get_rank()
+        parts = split_by_load([run_load(sequence_load(seqs[k], m)) for k, m in pairs], world)
+        return parts[rank] if rank < len(parts) else []
 
     def _filter_rmse(self, seqs: Sequence[TrainingSequence], params: FilterParameters) -> dict[str, list[float]]:
         """``{method: [filter RMSE (m) of each sequence]}`` (:meth:`_errors` without the smoother)."""

@@ -10,6 +10,9 @@ uses), so each window sees the current values.
 """
 from __future__ import annotations
 
+import dataclasses
+import functools
+import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -18,6 +21,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
+from flowins.batching import batch_workers, run_load
 from flowins.data.sequence import Tracks
 from flowins.data.streams import GnssStream, ImuStream, PoseStream
 from flowins.evaluation.alignment import (
@@ -40,8 +44,11 @@ from flowins.filter.smoother import rts_smooth_batch
 from flowins.flow.pairs import FlowPairs
 from flowins.measurements.flow import FlowCamera
 from flowins.navigation import NavigationConfig, NavigationRun, prepare_navigation
+from flowins.parallel import in_distributed_run, run_in_processes, split_by_load
 from flowins.second_pass import smoother_tracks
 from flowins.state import STATE, STATE_DIM
+
+log = logging.getLogger(__name__)
 
 #: the rows of Table I as (GNSS, sparse, dense) sources
 METHODS: dict[str, tuple[bool, bool, bool]] = {
@@ -432,12 +439,56 @@ def sequences_errors(seqs: Sequence[TrainingSequence], method: str | Sequence[st
                      dropout_p: float | None = None, smoother: bool = True) -> list[tuple[float, float]]:
     """The filter and the RTS smoother RMSE (m) of ``method`` (one, or one per sequence) over each
     whole sequence of ``seqs`` after the SE(3) alignment of Table I, their filters run as one batch
-    (:func:`run_windows`), no gradient; ``smoother=False``: the filter alone (the smoother's RMSE is NaN)."""
+    (:func:`run_windows`), no gradient; ``smoother=False``: the filter alone (the smoother's RMSE is NaN).
+
+    With ``config.workers > 1`` on the CPU the sequences are split into that many parts of about
+    equal work, each part one batch in a worker process of its own with one thread
+    (:mod:`flowins.parallel`; as :func:`~flowins.navigation.navigate_batch` splits a batch): the
+    held-out validations of ``train.py`` use every core. A part is another batch, so its RMSE
+    differs from the one-process batch's by rounding."""
+    methods = [method] * len(seqs) if isinstance(method, str) else list(method)
+    if len(methods) != len(seqs):
+        raise ValueError(f"sequences_errors: {len(methods)} methods for {len(seqs)} sequences; expected one per sequence")
+    loads = [sequence_load(seq, m) for seq, m in zip(seqs, methods)]
+    if batch_workers(loads, config, gradient=False) > 1 and not in_distributed_run():
+        parts = split_by_load([run_load(load) for load in loads], config.workers)
+        log.info("held-out RMSE: %d runs in %d worker processes (filter.workers=%d)", len(seqs), len(parts),
+                 config.workers)
+        task = functools.partial(_sequences_errors_here, config=dataclasses.replace(config, workers=1),
+                                 dropout_p=dropout_p, smoother=smoother)
+        done = run_in_processes(task, [([seqs[i] for i in part], [methods[i] for i in part]) for part in parts])
+        errors: list[tuple[float, float]] = [(math.nan, math.nan)] * len(seqs)
+        for part, part_errors in zip(parts, done):
+            for i, value in zip(part, part_errors):
+                errors[i] = value
+        return errors
+    return _sequences_errors_here(seqs, methods, config, dropout_p=dropout_p, smoother=smoother)
+
+
+def _sequences_errors_here(seqs: Sequence[TrainingSequence], methods: Sequence[str], config: NavigationConfig, *,
+                           dropout_p: float | None, smoother: bool) -> list[tuple[float, float]]:
+    """:func:`sequences_errors` as one batch in this process."""
     with torch.no_grad():
-        results = run_windows(list(seqs), method, config, [(0, seq.imu.t_s.shape[0] - 1) for seq in seqs],
+        results = run_windows(list(seqs), list(methods), config, [(0, seq.imu.t_s.shape[0] - 1) for seq in seqs],
                               dropout_p=dropout_p, smooth=smoother)
         return [(track_rmse(result.track, seq.truth), track_rmse(result.smoothed, seq.truth) if smoother
                  else float("nan")) for seq, result in zip(seqs, results)]
+
+
+class SequenceLoad(NamedTuple):
+    """What :func:`~flowins.batching.run_load` reads of a run: a sequence under one method."""
+
+    imu: ImuStream
+    flow: FlowPairs | None
+    tracks: Tracks | None
+
+
+def sequence_load(seq: TrainingSequence, method: str) -> SequenceLoad:
+    """``seq`` under ``method`` as :func:`~flowins.batching.run_load` weighs a run (splitting
+    held-out runs over processes evens them out)."""
+    _, flow = seq.sources(method)
+    tracks = flow if isinstance(flow, Tracks) else None
+    return SequenceLoad(seq.imu, None if tracks is not None else flow, tracks)
 
 
 def track_rmse(track: NodeTrack, truth: PoseStream) -> float:

@@ -1,6 +1,7 @@
 """Two training processes (``trainer=ddp``, gloo on the CPU), really run: each takes one of the
-two training sequences per step, and after the run their parameters equal those of one
-process that takes both sequences per step.
+two training sequences per step and validates its share of the held-out runs, and after the
+run their parameters and validations equal those of one process that takes both sequences
+per step and validates every run.
 
 The two-process run is ``python train.py trainer=ddp ...`` in a subprocess (Lightning's DDP
 launches the second process by running the same command again, which must not be pytest).
@@ -24,7 +25,8 @@ ROOT = Path(__file__).resolve().parents[2]
 
 COMMON = ["methods=[ins_gnss]", "filter.gnss_heading.enabled=false", "progress=false", "logger=csv",
           "data.train=[{seed: 1, duration_s: 12.0},{seed: 2, duration_s: 12.0}]",
-          "data.val=[{seed: 3, duration_s: 12.0}]", "window_s=4.0", "curriculum_window_s=[]",
+          "data.val=[{seed: 3, duration_s: 12.0}]",
+          "data.select=[{seed: 4, duration_s: 12.0},{seed: 5, duration_s: 10.0}]", "window_s=4.0", "curriculum_window_s=[]",
           "trainer.max_epochs=2", "model.warmup_steps=2"]
 
 
@@ -52,8 +54,12 @@ def test_two_processes_take_the_steps_of_one_process_with_both_sequences(tmp_pat
     assert {"acc_noise", "gyro_noise", "gnss_noise_scale"} <= set(moved), moved  # learning did happen
     for name in NAMES:
         assert float(ddp_last.raw[name]) == pytest.approx(float(one_last.raw[name]), rel=1e-9, abs=1e-12), name
-    # and the same validations, so the same choice of checkpoint
+    # and the same validations (each process runs its share of the held-out runs, every value
+    # summed from the one that ran it), so the same choice of checkpoint
     ddp_selection = json.loads((ddp_dir / "selection.json").read_text())
     assert ddp_selection["chosen"] == one["chosen"]
-    assert [e["score"] for e in ddp_selection["history"]] == pytest.approx([e["score"] for e in one["history"]],
-                                                                          rel=1e-9)
+    for key in ("score", "select_score"):
+        assert [e[key] for e in ddp_selection["history"]] == pytest.approx([e[key] for e in one["history"]],
+                                                                          rel=1e-9), key
+    for a, b in zip(ddp_selection["history"], one["history"], strict=True):
+        assert a["select_rmse_m"] == {m: pytest.approx(v, rel=1e-9) for m, v in b["select_rmse_m"].items()}

@@ -69,6 +69,35 @@ def test_the_heldout_filter_and_smoother_rmse_are_those_of_navigate():
     assert [f for f, _ in errors] == sequences_rmse(seqs, "ins_gnss", config)
 
 
+@pytest.mark.parametrize("start", ["fork", "spawn"])
+def test_the_heldout_rmse_split_over_worker_processes_is_the_batch_here_in_order(start, caplog, monkeypatch):
+    """filter.workers=2 (train.py's validations on the CPU): three walks of different seeds and
+    lengths under one method each (so a result in the wrong place shows), with learned
+    parameters, give each walk the filter and smoother RMSE of the batch in this process, up to
+    rounding (another batch, one thread); also where the workers are started by spawn and every
+    input crosses pickled."""
+    import dataclasses
+
+    import flowins.parallel as parallel
+    from flowins.training.unroll import sequences_errors
+
+    recs = [synthetic_walk_recording(duration_s=d, seed=s) for d, s in ((8.0, 1), (10.0, 2), (6.0, 3))]
+    seqs = [TrainingSequence(f"walk {k}", r.imu, r.gnss, r.truth) for k, r in enumerate(recs)]
+    base = NavigationConfig(gnss_heading=HeadingAlignment(enabled=False))
+    params = FilterParameters(starting_values(base), learn=["acc_noise", "gnss_noise_scale"])
+    with torch.no_grad():
+        config = params.apply(base, training=False)
+    methods = ["ins_gnss", "ins_gnss", "ins"]
+    here = sequences_errors(seqs, methods, config)
+    assert len({round(f, 6) for f, _ in here}) == 3
+    monkeypatch.setattr(parallel, "start_method", lambda: start)
+    with caplog.at_level("INFO", logger="flowins"):
+        there = sequences_errors(seqs, methods, dataclasses.replace(config, workers=2))
+    assert any("3 runs in 2 worker processes" in r.getMessage() for r in caplog.records)
+    for (f_there, s_there), (f_here, s_here) in zip(there, here, strict=True):
+        assert f_there == pytest.approx(f_here, rel=1e-9) and s_there == pytest.approx(s_here, rel=1e-7)
+
+
 def test_one_sequence_under_two_methods_in_one_batch_equals_each_method_alone():
     """run_windows with one method per row (the training step's rows: each sequence under each
     method): the batched windows' end states, losses and the gradient of their summed loss equal
