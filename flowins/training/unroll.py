@@ -452,8 +452,9 @@ def sequences_errors(seqs: Sequence[TrainingSequence], method: str | Sequence[st
     loads = [sequence_load(seq, m) for seq, m in zip(seqs, methods)]
     if batch_workers(loads, config, gradient=False) > 1 and not in_distributed_run():
         parts = split_by_load([run_load(load) for load in loads], config.workers)
-        log.info("held-out RMSE: %d runs in %d worker processes (filter.workers=%d)", len(seqs), len(parts),
-                 config.workers)
+        # a line per validation would crowd train.py's story: debug level
+        log.debug("held-out RMSE: %d runs in %d worker processes (filter.workers=%d)", len(seqs), len(parts),
+                  config.workers)
         task = functools.partial(_sequences_errors_here, config=dataclasses.replace(config, workers=1),
                                  dropout_p=dropout_p, smoother=smoother)
         done = run_in_processes(task, [([seqs[i] for i in part], [methods[i] for i in part]) for part in parts])

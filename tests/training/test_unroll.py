@@ -91,7 +91,7 @@ def test_the_heldout_rmse_split_over_worker_processes_is_the_batch_here_in_order
     here = sequences_errors(seqs, methods, config)
     assert len({round(f, 6) for f, _ in here}) == 3
     monkeypatch.setattr(parallel, "start_method", lambda: start)
-    with caplog.at_level("INFO", logger="flowins"):
+    with caplog.at_level("DEBUG", logger="flowins"):
         there = sequences_errors(seqs, methods, dataclasses.replace(config, workers=2))
     assert any("3 runs in 2 worker processes" in r.getMessage() for r in caplog.records)
     for (f_there, s_there), (f_here, s_here) in zip(there, here, strict=True):
