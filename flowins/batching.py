@@ -16,7 +16,7 @@ from typing import Any, Protocol
 import torch
 from torch import Tensor
 
-from flowins.parallel import can_start_workers, run_in_processes, split_by_load
+from flowins.parallel import can_start_workers, run_parts, split_by_load
 
 
 class BatchConfig(Protocol):
@@ -109,9 +109,4 @@ def navigate_in_workers(navigate_batch: Callable[..., list], runs: Sequence[Load
     parts = split_by_load([run_load(run) for run in runs], config.workers)
     log.info("filter: %d runs in %d worker processes (filter.workers=%d)", len(runs), len(parts), config.workers)
     task = functools.partial(navigate_batch, config=dataclasses.replace(config, workers=1), progress=progress)
-    done = run_in_processes(task, [([runs[i] for i in part],) for part in parts])
-    results: list[Any] = [None] * len(runs)
-    for part, part_results in zip(parts, done):
-        for i, result in zip(part, part_results):
-            results[i] = result
-    return results  # type: ignore[return-value]
+    return run_parts(task, parts, runs)

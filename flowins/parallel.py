@@ -123,6 +123,23 @@ def run_in_processes(fn: Callable[..., Any], parts: Sequence[tuple], *, method: 
         records.close()
 
 
+def run_parts(fn: Callable[..., Sequence[Any]], parts: Sequence[Sequence[int]], *columns: Sequence[Any],
+              method: str | None = None) -> list[Any]:
+    """``fn`` on the items of each part of ``parts`` (lists of indices, e.g. from
+    :func:`split_by_load`), each part in a worker process (:func:`run_in_processes`): ``fn`` takes
+    each of ``columns`` cut to the part's items and returns one result per item; the results in
+    the items' order (an index in no part keeps None)."""
+    done = run_in_processes(fn, [tuple([column[i] for i in part] for column in columns) for part in parts],
+                            method=method)
+    results: list[Any] = [None] * (len(columns[0]) if columns else 0)
+    for part, part_results in zip(parts, done):
+        if len(part_results) != len(part):
+            raise ValueError(f"run_parts: {fn!r} gave {len(part_results)} results for a part of {len(part)} items")
+        for i, result in zip(part, part_results):
+            results[i] = result
+    return results
+
+
 def _result(future: Future, index: int, count: int) -> Any:
     """The result of worker ``index``; ChildProcessError where a worker process ended without
     one (killed: a pool of processes would otherwise wait for it for ever)."""

@@ -4,12 +4,13 @@ log records."""
 import functools
 import itertools
 import logging
+import os
 import random
 
 import pytest
 
 from flowins import progress
-from flowins.parallel import run_in_processes, split_by_load
+from flowins.parallel import run_in_processes, run_parts, split_by_load
 
 
 def best_split(loads, parts):
@@ -52,6 +53,25 @@ def test_calls_in_workers_return_what_they_return_here_in_order(method):
     # a flowins function, so that a spawned worker imports it as this process does
     parts = [([4.0, 1.0, 3.0, 2.0], 2), ([1.0] * 5, 3), ([7.0], 4)]
     assert run_in_processes(split_by_load, parts, method=method) == [split_by_load(*args) for args in parts]
+
+
+def _sums_and_process(xs, ys):
+    return [(x * 10 + y, os.getpid()) for x, y in zip(xs, ys)]
+
+
+def test_parts_run_in_workers_come_back_in_the_items_order_and_a_short_part_is_an_error():
+    xs, ys = list(range(7)), list(range(7, 0, -1))
+    parts = split_by_load([float(y) for y in ys], 3)  # not contiguous: each part gathers from the whole list
+    assert any(part != list(range(part[0], part[-1] + 1)) for part in parts)
+    got = run_parts(_sums_and_process, parts, xs, ys, method="fork")
+    assert [value for value, _ in got] == [x * 10 + y for x, y in zip(xs, ys)]
+    assert os.getpid() not in {pid for _, pid in got}  # in workers (a quick one may take two parts)
+    with pytest.raises(ValueError, match="gave 1 results for a part of 2 items"):
+        run_parts(_first_only, [[0, 1], [2]], xs, method="fork")
+
+
+def _first_only(xs):
+    return xs[:1]
 
 
 def test_an_error_in_a_worker_is_raised_here_with_its_message():

@@ -44,7 +44,7 @@ from flowins.filter.smoother import rts_smooth_batch
 from flowins.flow.pairs import FlowPairs
 from flowins.measurements.flow import FlowCamera
 from flowins.navigation import NavigationConfig, NavigationRun, prepare_navigation
-from flowins.parallel import in_distributed_run, run_in_processes, split_by_load
+from flowins.parallel import in_distributed_run, run_parts, split_by_load
 from flowins.second_pass import smoother_tracks
 from flowins.state import STATE, STATE_DIM
 
@@ -457,12 +457,7 @@ def sequences_errors(seqs: Sequence[TrainingSequence], method: str | Sequence[st
                   config.workers)
         task = functools.partial(_sequences_errors_here, config=dataclasses.replace(config, workers=1),
                                  dropout_p=dropout_p, smoother=smoother)
-        done = run_in_processes(task, [([seqs[i] for i in part], [methods[i] for i in part]) for part in parts])
-        errors: list[tuple[float, float]] = [(math.nan, math.nan)] * len(seqs)
-        for part, part_errors in zip(parts, done):
-            for i, value in zip(part, part_errors):
-                errors[i] = value
-        return errors
+        return run_parts(task, parts, seqs, methods)
     return _sequences_errors_here(seqs, methods, config, dropout_p=dropout_p, smoother=smoother)
 
 
