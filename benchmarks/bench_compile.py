@@ -9,16 +9,22 @@ whole update, :func:`flowins.measurements.flow_update.flow_frame_step` (the para
 selection of 3/4 of the points, two iterations, the recovery's count). ``--step propagation``:
 :func:`flowins.filter.propagation.propagate_batched` over ``--imu-steps`` IMU samples
 (100 Hz, one node at the end: the propagation between two flow frames at 10 Hz). For each
-batch size it prints the eager time per call, the compiled one (``--backend``, default
+batch size it prints the eager time per call, the compiled one (medians over ``--repeats``
+rounds that call each once, interleaved: this machine's speed drifts) (``--backend``, default
 ``inductor``: it needs a C++ compiler), their ratio, the compile time (the first call; a
 second process finds inductor's code in its cache) and the largest difference of the outputs::
 
     python benchmarks/bench_compile.py [--step flow|frame|propagation] [--batch 1 8] [--points 256]
                                        [--imu-steps 10] [--backend inductor] [--repeats 50] [--cpp-wrapper]
+                                       [--eigen eigh|jacobi]
 
 ``--cpp-wrapper``: inductor writes the code that calls its kernels in C++ too (its Python
 wrapper runs about 2,200 statements per call of the frame step: allocations, kernel calls,
 frees), at the cost of a longer compile.
+
+``--eigen jacobi`` triangulates the flow points by Jacobi rotations
+(:func:`flowins.linalg.jacobi_right_singular`, what a GPU runs) instead of ``eigh``, eager and
+compiled alike.
 
 ``--backend eager`` checks only that the step is one graph (``fullgraph=True``: any graph
 break is an error), which needs no compiler.
@@ -115,6 +121,8 @@ def propagation(x0, P0, acc, gyro, dt, variances, group, node_step):
 
 
 def main() -> None:
+    from timing import interleaved_ms  # beside this script (the tests import its frames without it)
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--step", choices=("flow", "frame", "propagation"), default="flow")
     parser.add_argument("--batch", type=int, nargs="+", default=[1, 8])
@@ -124,7 +132,16 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=50)
     parser.add_argument("--cpp-wrapper", action="store_true",
                         help="inductor's C++ wrapper (torch._inductor.config.cpp_wrapper) instead of its Python one")
+    parser.add_argument("--eigen", choices=("eigh", "jacobi"), default="eigh",
+                        help="how the flow points are triangulated (flowins.geometry.triangulation.solve_dlt)")
     args = parser.parse_args()
+    if args.eigen != "eigh":  # before anything is traced: the flow model looks solve_dlt up at each call
+        import functools
+
+        import flowins.measurements.flow as flow_model
+        from flowins.geometry.triangulation import solve_dlt
+
+        flow_model.solve_dlt = functools.partial(solve_dlt, eigen=args.eigen)
     if args.cpp_wrapper:
         from torch._inductor import config as inductor
 
@@ -138,7 +155,7 @@ def main() -> None:
         what, fn, make = (f"propagate_batched, {args.imu_steps} IMU steps to one node", propagation,
                           lambda b: imu_run(b, args.imu_steps))
     print(f"{what}, float64, {torch.get_num_threads()} threads, backend {args.backend}"
-          + (", C++ wrapper" if args.cpp_wrapper else ""))
+          + (", C++ wrapper" if args.cpp_wrapper else "") + (f", triangulation by {args.eigen}" if args.step != "propagation" else ""))
     for batch in args.batch:
         inputs = make(batch)
         with torch.inference_mode():
@@ -149,14 +166,8 @@ def main() -> None:
             compile_s = time.perf_counter() - t0
             want = fn(*inputs)
             diff = max(float((a.double() - b.double()).abs().max()) for a, b in zip(got[:4], want[:4]))
-            times = {}
-            for name, call in (("eager", fn), ("compiled", compiled)):
-                for _ in range(3):
-                    call(*inputs)
-                t0 = time.perf_counter()
-                for _ in range(args.repeats):
-                    call(*inputs)
-                times[name] = (time.perf_counter() - t0) / args.repeats * 1e3
+            eager_ms, compiled_ms = interleaved_ms([lambda: fn(*inputs), lambda: compiled(*inputs)], args.repeats)
+            times = {"eager": eager_ms, "compiled": compiled_ms}
         print(f"  batch {batch}: eager {times['eager']:.3f} ms, compiled {times['compiled']:.3f} ms "
               f"({times['eager'] / times['compiled']:.2f}x), compile {compile_s:.1f} s, largest difference {diff:.1e}")
 

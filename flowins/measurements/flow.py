@@ -50,7 +50,7 @@ from flowins.constants import cached_constant
 from flowins.geometry import quaternion as quat
 from flowins.geometry.triangulation import camera_matrix, project_homogeneous, solve_dlt, triangulate
 from flowins.linalg import dot
-from flowins.state import STATE, STATE_DIM, split, window_size
+from flowins.state import STATE, STATE_DIM, make_state, split, window_size
 
 
 class CameraTerms(NamedTuple):
@@ -535,8 +535,9 @@ def flow_measurements(
 
     Without a gradient to carry, one closed-form pass over all points serves the screening
     and the valid points. With one (an input requires grad, or ``"autodiff"``), the points
-    are screened without it and the valid ones alone are linearised again, so that
-    degenerate points and padding have no part in the graph.
+    are screened without it and linearised again with it, every point in place, those not
+    valid on a valid point's inputs (:func:`_tracked_in_place`), so that degenerate points and
+    padding have no part in the gradient; ``"autodiff"`` gathers the valid ones instead.
     """
     dim = state_size(x, "flow_measurements")
     if dim != STATE_DIM:
@@ -567,6 +568,8 @@ def flow_measurements(
     with torch.no_grad():
         lin = _linearise(x, flow_px, uv1_px, camera, mask=mask, derivatives=False)
         valid, parallax_px, counts = _screen(lin, camera, mask, min_conditioning, min_depth, min_parallax_px)
+    if jacobians == "analytic":
+        return _tracked_in_place(x, flow_px, uv1_px, camera, valid, parallax_px, counts)
     return _tracked_measurements(x, flow_px, uv1_px, camera, valid, parallax_px, counts, jacobians)
 
 
@@ -592,9 +595,59 @@ def _screen(lin: _Linearised, camera: FlowCamera, mask: Tensor | None, min_condi
     return valid, parallax_px, lost if mask is not None else (valid.shape[-1] - n[0], *lost)
 
 
+def _tracked_in_place(x: Tensor, flow_px: Tensor, uv1_px: Tensor, camera: FlowCamera, valid: Tensor,
+                      parallax_px: Tensor, counts: tuple) -> FlowMeasurements:
+    """Every point linearised again with its gradient, in place (no gather of the valid ones: the
+    shapes are the inputs', and nothing is read back): a point that is not valid is computed on
+    the inputs of its row's first valid point, and a row without one on a well-posed stand-in
+    (:func:`_stand_in`), their results then replaced by zeros, so that degenerate points and
+    padding put nothing into the graph, not even zero times an infinite derivative."""
+    M = valid.shape[-1]
+    if M == 0:
+        return _tracked_measurements(x, flow_px, uv1_px, camera, valid, parallax_px, counts, "analytic")
+    has = valid.any(-1)  # (...,)
+    first = valid.to(torch.uint8).argmax(-1)[..., None, None].expand(*valid.shape[:-1], 1, 4)
+    x_in, uvf_in = _stand_in(camera, x)  # (..., 26), (..., 1, 4)
+    uvf = torch.cat((uv1_px, flow_px), -1)  # (..., M, 4)
+    keep = valid.unsqueeze(-1)
+    uvf = torch.where(keep, uvf, torch.where(has[..., None, None], uvf.gather(-2, first), uvf_in))
+    lin = _linearise(torch.where(has.unsqueeze(-1), x, x_in), uvf[..., 2:], uvf[..., :2], camera)
+    # zeroed after the chain rule: the state's gradient takes nothing from these rows (a NaN that
+    # reaches them from further on, e.g. a padded point's σ, is not multiplied into it)
+    H = torch.where(keep.unsqueeze(-1), _chain(lin.dh, lin.J), 0.0)
+    parallax = torch.where(valid, lin.parallax * _per_row(camera.terms.focal_mean, 0, 1), parallax_px)
+    return FlowMeasurements(torch.where(keep, lin.residual, 0.0), H[..., :STATE_DIM], H[..., STATE_DIM:], valid,
+                            *counts, parallax)
+
+
+def _stand_in(camera: FlowCamera, like: Tensor) -> tuple[Tensor, Tensor]:
+    """A state ``(..., 26)`` (``like``'s batch dims, no gradient) and one flow point's first pixel
+    and flow ``(..., 1, 4)`` that triangulate well for ``camera``: the body unrotated, the camera
+    moved 1 m along its own x axis between the frames, the point 6.3 m ahead of the first camera
+    and off its axis (a 9° ray angle). Kept on the camera unless it carries a gradient."""
+    kept = camera.__dict__.setdefault("_stand_ins", {})
+    made = kept.get((like.dtype, like.device))
+    if made is None:
+        with torch.no_grad():
+            K, R_ci = camera.K.detach().to(like), camera.R_ci.detach().to(like)
+            ahead = 6.3
+            uv1 = _to_pixels(like.new_tensor([0.31, -0.17]), K)
+            uv2 = _to_pixels(like.new_tensor([0.31 - 1.0 / ahead, -0.17]), K)  # the centre 1 m along the camera's x
+            p = R_ci[..., 0, :]  # the camera's x axis in the world
+            zero = torch.zeros_like(p)
+            q = quat.identity(dtype=like.dtype, device=like.device).expand(*p.shape[:-1], 4)
+            made = (make_state(p=p, v=zero, q=q, p_prev=zero), torch.cat((uv1, uv2 - uv1), -1).unsqueeze(-2))
+        if not camera.tracked:
+            kept[like.dtype, like.device] = made
+    x, uvf = made
+    batch = like.shape[:-1]
+    return x.expand(*batch, x.shape[-1]), uvf.expand(*batch, 1, 4)
+
+
 def _tracked_measurements(x: Tensor, flow_px: Tensor, uv1_px: Tensor, camera: FlowCamera, valid: Tensor,
                           parallax_px: Tensor, counts: tuple, jacobians: str) -> FlowMeasurements:
-    """The valid points alone, gathered over the batch, linearised with their gradient and put back."""
+    """The valid points alone, gathered over the batch, linearised with their gradient and put back
+    (the ``"autodiff"`` reference; it reads the count back)."""
     batch, M = valid.shape[:-1], valid.shape[-1]
     flat_rows = math.prod(batch)
     rows, points = valid.reshape(flat_rows, M).nonzero(as_tuple=True)

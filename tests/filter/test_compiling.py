@@ -183,8 +183,9 @@ def test_a_pass_of_every_event_kind_with_every_step_compiled_equals_the_eager_pa
             assert torch.equal(a.t_s, b.t_s)
             assert [(e.get("kind"), e.get("accepted")) for e in a.log] == [(e.get("kind"), e.get("accepted"))
                                                                            for e in b.log]
-            for name in ("node_mean", "node_cov", "transition"):
-                torch.testing.assert_close(getattr(a, name), getattr(b, name), rtol=0, atol=1e-9)
+            for name in ("node_mean", "node_cov", "transition"):  # padded sums round apart: 1e-9 of the largest
+                want = getattr(b, name)
+                torch.testing.assert_close(getattr(a, name), want, rtol=0, atol=1e-9 * max(1.0, float(want.abs().max())))
             torch.testing.assert_close(a.nll, b.nll, rtol=1e-9, atol=0)  # log-dets summed in another order
         kinds = {e.get("kind") for e in eager[0].log}
         assert {"flow", "gnss", "zero_velocity", "vehicle"} <= kinds, kinds

@@ -225,6 +225,52 @@ def test_degenerate_points_and_padding_put_no_nan_into_gradients(dtype, jacobian
     assert float(grad_x[1].abs().max()) == 0.0  # the still row has no valid point
 
 
+@pytest.mark.parametrize("fill", ["zeros", "nan"])
+def test_the_tracked_closed_form_in_place_has_the_gradient_of_the_per_point_reference(fill):
+    """With a gradient to carry, the closed form linearises every point in place (a point that is
+    not valid on its row's first valid point, a row without one on a stand-in): the gradient of an
+    update's statistics with respect to the states and a noise scale equals that of the reference
+    (``torch.func.jacrev`` per valid point, gathered), with a still row, a row moving ahead past the
+    nearer points and padding of zeros or NaN; as one graph with its backward (a gather of the valid
+    points, whose count is data, would break it)."""
+    rows = make_rows([14, 9, 12], seed=13, still_row=1, ahead_row=2)
+    x0, camera, points, mask = padded(rows, (3,), fill)
+    threshold = min_parallax(points, mask)
+    sigma = torch.where(mask.unsqueeze(-1), points.sigma_px, 0.5)  # the padding's pixels hold the fill
+
+    def loss(x, log_scale, jacobians):
+        m = flow_measurements(x, points.flow_px, points.uv1_px, camera, mask=mask, min_parallax_px=threshold,
+                              jacobians=jacobians)
+        upd = epipolar_update(m, sigma * log_scale.exp(), parallax_inflation=True)
+        return ((upd.innovation.square() / upd.noise_cov.squeeze(-1)).sum() + upd.H.square().sum()
+                + m.parallax_px.sum(), m.valid)
+
+    grads = {}
+    for jacobians in ("analytic", "autodiff"):
+        x, log_scale = x0.clone().requires_grad_(True), torch.tensor(0.2, dtype=F64, requires_grad=True)
+        value, valid = loss(x, log_scale, jacobians)
+        grads[jacobians] = (value, *torch.autograd.grad(value, (x, log_scale)))
+    assert bool(valid[0].any()) and not bool(valid[1].any()) and not bool(valid[2].all()) and bool(valid[2].any())
+    for a, b in zip(grads["analytic"], grads["autodiff"]):
+        assert torch.isfinite(a).all()
+        torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-8 * max(1.0, float(b.abs().max())))
+    assert float(grads["analytic"][1][1].abs().max()) == 0.0  # the still row has no valid point
+    if fill != "nan":
+        return  # one graph: traced once (a minute or two here)
+    torch._dynamo.reset()
+
+    def value_and_gradient(x, log_scale):
+        value = loss(x, log_scale, "analytic")[0]
+        return value, *torch.autograd.grad(value, (x, log_scale))
+
+    x, log_scale = x0.clone().requires_grad_(True), torch.tensor(0.2, dtype=F64, requires_grad=True)
+    compiled = torch.compile(lambda x, s: loss(x, s, "analytic")[0], fullgraph=True, backend="aot_eager")(x, log_scale)
+    got = (compiled, *torch.autograd.grad(compiled, (x, log_scale)))
+    for a, b in zip(got, value_and_gradient(x0.clone().requires_grad_(True), torch.tensor(0.2, dtype=F64,
+                                                                                         requires_grad=True))):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12 * max(1.0, float(b.abs().max())))
+
+
 class CountOperations(TorchDispatchMode):
     """Dispatcher operations that are not views (what the per-operation overhead multiplies)."""
 
