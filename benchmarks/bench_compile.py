@@ -9,9 +9,9 @@ whole update, :func:`flowins.measurements.flow_update.flow_frame_step` (the para
 selection of 3/4 of the points, two iterations, the recovery's count). ``--step propagation``:
 :func:`flowins.filter.propagation.propagate_batched` over ``--imu-steps`` IMU samples
 (100 Hz, one node at the end: the propagation between two flow frames at 10 Hz). For each
-batch size it prints the eager time per call, the compiled one (medians over ``--repeats``
-rounds that call each once, interleaved: this machine's speed drifts) (``--backend``, default
-``inductor``: it needs a C++ compiler), their ratio, the compile time (the first call; a
+batch size it prints the eager time per call and the compiled one (``--backend``, default
+``inductor``: it needs a C++ compiler), each the median over ``--repeats`` rounds that call both
+once, interleaved (this machine's speed drifts), their ratio, the compile time (the first call; a
 second process finds inductor's code in its cache) and the largest difference of the outputs::
 
     python benchmarks/bench_compile.py [--step flow|frame|propagation] [--batch 1 8] [--points 256]
