@@ -625,7 +625,8 @@ def _stand_in(camera: FlowCamera, like: Tensor) -> tuple[Tensor, Tensor]:
     and flow ``(..., 1, 4)`` that triangulate well for ``camera``: the body unrotated, the camera
     moved 1 m along its own x axis between the frames, the point 6.3 m ahead of the first camera
     and off its axis (a 9° ray angle). Kept on the camera unless it carries a gradient."""
-    kept = camera.__dict__.setdefault("_stand_ins", {})
+    # traced (torch.compile) it is made afresh: older dynamo cannot trace the camera's __dict__
+    kept = {} if torch.compiler.is_compiling() else camera.__dict__.setdefault("_stand_ins", {})
     made = kept.get((like.dtype, like.device))
     if made is None:
         with torch.no_grad():
@@ -637,7 +638,7 @@ def _stand_in(camera: FlowCamera, like: Tensor) -> tuple[Tensor, Tensor]:
             zero = torch.zeros_like(p)
             q = quat.identity(dtype=like.dtype, device=like.device).expand(*p.shape[:-1], 4)
             made = (make_state(p=p, v=zero, q=q, p_prev=zero), torch.cat((uv1, uv2 - uv1), -1).unsqueeze(-2))
-        if not camera.tracked:
+        if not camera.tracked and not torch.compiler.is_compiling():
             kept[like.dtype, like.device] = made
     x, uvf = made
     batch = like.shape[:-1]
