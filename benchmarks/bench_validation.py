@@ -12,6 +12,11 @@ core), alternating, then prints each one's seconds, the ratio and the largest RM
     python benchmarks/bench_validation.py [--repeats 3] [--workers 2] [-- TRAIN_OVERRIDE ...]
 
 The last line is ``RESULT one_process=<s> workers=<s> speedup=<x> rmse_difference=<m>``.
+
+``--no-grad-reference`` times instead, in one process, the validation as it runs (in
+``torch.inference_mode``) against the same batch under ``torch.no_grad`` alone (autograd's
+bookkeeping of views and in-place operations kept), alternating; its last line is
+``RESULT no_grad=<s> inference=<s> speedup=<x> rmse_difference=<m>``.
 """
 from __future__ import annotations
 
@@ -29,7 +34,7 @@ from flowins.parallel import available_cores
 from flowins.settings import flow_config, training_setup
 from flowins.training.data import load_training_sequence
 from flowins.training.parameters import FilterParameters
-from flowins.training.unroll import sequences_errors
+from flowins.training.unroll import run_windows, sequences_errors, track_rmse
 
 CONFIGS = str(Path(__file__).resolve().parents[1] / "configs")
 
@@ -38,6 +43,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repeats", type=int, default=3, help="timed pairs (one process, then the workers)")
     parser.add_argument("--workers", type=int, default=available_cores(), help="worker processes (default: the cores)")
+    parser.add_argument("--no-grad-reference", action="store_true",
+                        help="one process: inference mode against torch.no_grad alone")
     parser.add_argument("overrides", nargs="*", help="train.py overrides (after --)")
     args = parser.parse_args()
     if args.repeats < 1 or args.workers < 1:
@@ -68,21 +75,33 @@ def main() -> None:
                                   dataclasses.replace(config, workers=workers), dropout_p=p, smoother=False)
         return time.perf_counter() - t0, errors
 
-    timed(1)  # warm-up: constants, caches
-    times: dict[int, list[float]] = {1: [], args.workers: []}
-    errors: dict[int, list[tuple[float, float]]] = {}
+    def timed_no_grad() -> tuple[float, list[tuple[float, float]]]:
+        """The one-process validation's batch under torch.no_grad alone (the reference)."""
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            results = run_windows([s for s, _ in rows], [m for _, m in rows], dataclasses.replace(config, workers=1),
+                                  [(0, s.imu.t_s.shape[0] - 1) for s, _ in rows], dropout_p=p)
+            errors = [(track_rmse(r.track, s.truth), float("nan")) for (s, _), r in zip(rows, results)]
+        return time.perf_counter() - t0, errors
+
+    ways = {"no_grad": timed_no_grad, "inference": lambda: timed(1)} if args.no_grad_reference else \
+        {"one_process": lambda: timed(1), "workers": lambda: timed(args.workers)}
+    first, second = ways
+    ways[first]()  # warm-up: constants, caches
+    times: dict[str, list[float]] = {way: [] for way in ways}
+    errors: dict[str, list[tuple[float, float]]] = {}
     for r in range(args.repeats):
-        for workers in (1, args.workers):
-            dt, errors[workers] = timed(workers)
-            times[workers].append(dt)
-            print(f"  pair {r + 1}: workers={workers}: {dt:.2f} s ({seconds / dt:.1f}x real time)")
-    one, many = statistics.median(times[1]), statistics.median(times[args.workers])
-    difference = max(abs(a[0] - b[0]) for a, b in zip(errors[1], errors[args.workers]))
-    for (seq, m), (f, _) in zip(rows, errors[args.workers]):
+        for way, run in ways.items():
+            dt, errors[way] = run()
+            times[way].append(dt)
+            print(f"  pair {r + 1}: {way}: {dt:.2f} s ({seconds / dt:.1f}x real time)")
+    a, b = statistics.median(times[first]), statistics.median(times[second])
+    difference = max(abs(x[0] - y[0]) for x, y in zip(errors[first], errors[second]))
+    for (seq, m), (f, _) in zip(rows, errors[second]):
         print(f"  {m} {seq.name}: filter RMSE {f:.3f} m")
-    print(f"median: one process {one:.2f} s, {args.workers} workers {many:.2f} s ({one / many:.2f}x); "
-          f"largest filter RMSE difference {difference:.2e} m")
-    print(f"RESULT one_process={one:.2f} workers={many:.2f} speedup={one / many:.2f} rmse_difference={difference:.1e}")
+    print(f"median: {first} {a:.2f} s, {second} {b:.2f} s ({a / b:.2f}x); largest filter RMSE difference "
+          f"{difference:.2e} m")
+    print(f"RESULT {first}={a:.2f} {second}={b:.2f} speedup={a / b:.2f} rmse_difference={difference:.1e}")
 
 
 if __name__ == "__main__":

@@ -38,6 +38,7 @@ With a gradient to carry, the Jacobians of the valid points only are computed.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -125,9 +126,11 @@ class FlowCamera:
         copies = self.__dict__.setdefault("_copies", {})
         if key in copies:
             return copies[key]
-        copy = FlowCamera(self.K.to(like), self.R_ci.to(like), self.t_ci.to(like))
-        if not self.tracked:
-            copies[key] = copy
+        if self.tracked:
+            return FlowCamera(self.K.to(like), self.R_ci.to(like), self.t_ci.to(like))
+        with torch.inference_mode(False):  # plain tensors, usable by later runs with gradients too
+            copy = FlowCamera(self.K.to(like), self.R_ci.to(like), self.t_ci.to(like))
+        copies[key] = copy
         return copy
 
     def take(self, index: Tensor, batch: torch.Size) -> FlowCamera:
@@ -629,7 +632,9 @@ def _stand_in(camera: FlowCamera, like: Tensor) -> tuple[Tensor, Tensor]:
     kept = {} if torch.compiler.is_compiling() else camera.__dict__.setdefault("_stand_ins", {})
     made = kept.get((like.dtype, like.device))
     if made is None:
-        with torch.no_grad():
+        # plain tensors (outside a caller's inference mode), usable by later runs with gradients too
+        plain = contextlib.nullcontext() if torch.compiler.is_compiling() else torch.inference_mode(False)
+        with plain, torch.no_grad():
             K, R_ci = camera.K.detach().to(like), camera.R_ci.detach().to(like)
             ahead = 6.3
             uv1 = _to_pixels(like.new_tensor([0.31, -0.17]), K)

@@ -463,8 +463,9 @@ def sequences_errors(seqs: Sequence[TrainingSequence], method: str | Sequence[st
 
 def _sequences_errors_here(seqs: Sequence[TrainingSequence], methods: Sequence[str], config: NavigationConfig, *,
                            dropout_p: float | None, smoother: bool) -> list[tuple[float, float]]:
-    """:func:`sequences_errors` as one batch in this process."""
-    with torch.no_grad():
+    """:func:`sequences_errors` as one batch in this process, in inference mode (its cached
+    tensors are made outside it: :mod:`flowins.constants`)."""
+    with torch.inference_mode():
         results = run_windows(list(seqs), list(methods), config, [(0, seq.imu.t_s.shape[0] - 1) for seq in seqs],
                               dropout_p=dropout_p, smooth=smoother)
         return [(track_rmse(result.track, seq.truth), track_rmse(result.smoothed, seq.truth) if smoother

@@ -244,3 +244,23 @@ def test_low_parallax_points_are_left_out_and_counted(frame_pair):
     low = m.parallax_px < threshold
     assert gated.n_low_parallax == int(low.sum()) and torch.equal(gated.valid, ~low)
     assert float(gated.H_x[low].abs().max()) == 0.0 and float(gated.H_x[~low].abs().max()) > 0.0
+
+
+def test_the_camera_s_kept_tensors_made_in_inference_mode_serve_a_later_run_with_gradients(frame_pair):
+    """A validation runs in inference mode and a training step after it, on the same camera. What
+    the camera keeps from the first (its float32 copy, the flow update's stand-in point) must be a
+    plain tensor, or the training step could not save it for backward."""
+    from flowins.measurements.flow import _stand_in
+
+    x, _, _, camera = frame_pair
+    camera = FlowCamera(camera.K.clone(), camera.R_ci.clone(), camera.t_ci.clone())  # nothing kept yet
+    rows = x.expand(3, -1)
+    with torch.inference_mode():
+        copy = camera.to(rows.float())
+        stand_in = _stand_in(camera, rows)
+    assert camera.to(rows.float()) is copy and _stand_in(camera, rows)[0]._base is stand_in[0]._base
+    kept = (copy.K, copy.R_ci, copy.t_ci, *stand_in)
+    assert not any(t.is_inference() for t in kept)
+    w = torch.tensor(2.0, dtype=F64, requires_grad=True)
+    (grad,) = torch.autograd.grad(sum((w * w * t.to(F64)).sum() for t in kept), w)
+    assert float(grad) == pytest.approx(2 * 2.0 * sum(float(t.to(F64).sum()) for t in kept), rel=1e-12)
