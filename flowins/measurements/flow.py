@@ -122,12 +122,12 @@ class FlowCamera:
         copy is kept unless the camera carries a gradient)."""
         if all(t.dtype == like.dtype and t.device == like.device for t in (self.K, self.R_ci, self.t_ci)):
             return self
+        if self.tracked:  # carries a gradient: converted afresh, never kept
+            return FlowCamera(self.K.to(like), self.R_ci.to(like), self.t_ci.to(like))
         key = (like.dtype, like.device)
         copies = self.__dict__.setdefault("_copies", {})
         if key in copies:
             return copies[key]
-        if self.tracked:
-            return FlowCamera(self.K.to(like), self.R_ci.to(like), self.t_ci.to(like))
         with torch.inference_mode(False):  # plain tensors, usable by later runs with gradients too
             copy = FlowCamera(self.K.to(like), self.R_ci.to(like), self.t_ci.to(like))
         copies[key] = copy
@@ -629,11 +629,12 @@ def _stand_in(camera: FlowCamera, like: Tensor) -> tuple[Tensor, Tensor]:
     moved 1 m along its own x axis between the frames, the point 6.3 m ahead of the first camera
     and off its axis (a 9° ray angle). Kept on the camera unless it carries a gradient."""
     # traced (torch.compile) it is made afresh: older dynamo cannot trace the camera's __dict__
-    kept = {} if torch.compiler.is_compiling() else camera.__dict__.setdefault("_stand_ins", {})
+    compiling = torch.compiler.is_compiling()
+    kept = {} if compiling else camera.__dict__.setdefault("_stand_ins", {})
     made = kept.get((like.dtype, like.device))
     if made is None:
         # plain tensors (outside a caller's inference mode), usable by later runs with gradients too
-        plain = contextlib.nullcontext() if torch.compiler.is_compiling() else torch.inference_mode(False)
+        plain = contextlib.nullcontext() if compiling else torch.inference_mode(False)
         with plain, torch.no_grad():
             K, R_ci = camera.K.detach().to(like), camera.R_ci.detach().to(like)
             ahead = 6.3
@@ -643,7 +644,7 @@ def _stand_in(camera: FlowCamera, like: Tensor) -> tuple[Tensor, Tensor]:
             zero = torch.zeros_like(p)
             q = quat.identity(dtype=like.dtype, device=like.device).expand(*p.shape[:-1], 4)
             made = (make_state(p=p, v=zero, q=q, p_prev=zero), torch.cat((uv1, uv2 - uv1), -1).unsqueeze(-2))
-        if not camera.tracked and not torch.compiler.is_compiling():
+        if not camera.tracked and not compiling:
             kept[like.dtype, like.device] = made
     x, uvf = made
     batch = like.shape[:-1]
