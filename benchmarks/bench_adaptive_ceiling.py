@@ -62,7 +62,7 @@ def hand_form(scales: dict[str, float], forward_axis: str, up_axis: str):
     fwd, up = AXES[forward_axis][0], AXES[up_axis][0]
     lat = ({0, 1, 2} - {fwd, up}).pop()
 
-    def factors(windows: torch.Tensor) -> torch.Tensor:
+    def factors(windows: torch.Tensor, steady: torch.Tensor | None = None) -> torch.Tensor:
         acc = windows[:, 3:, -LAST:]
         lateral = (acc[:, lat].mean(-1) / scales["a_lat"]) ** 2
         vertical = (acc[:, fwd].mean(-1) / scales["a_fwd"]) ** 2 + (acc[:, up].std(-1) / scales["s_up"]) ** 2

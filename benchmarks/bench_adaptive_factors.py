@@ -9,7 +9,14 @@ recording this prints the checkpoint's learned constant σs times the factors' 1
 and how many updates sit within 1 % of a bound::
 
     python benchmarks/bench_adaptive_factors.py RUN/checkpoints/best.ckpt /tmp/drv_s2 /tmp/kitti/recordings/kitti-seed0 \
-        [--rate-hz 1] [--start-s 10] [--end-s 0]
+        [--rate-hz 1] [--start-s 10] [--end-s 0] [--forward-axis x --up-axis z]
+
+A network that also sets the mounting's angles (``model.adaptive_angles_rad``) has them
+printed too: the pitch and yaw offsets' 10th, 50th and 90th percentiles, and each one's slope
+(rad per g) and correlation against the mean specific force of the last 0.2 s along the car's
+forward axis (pitch) and left axis (yaw), the car's axes as ``--forward-axis`` / ``--up-axis``
+name them (the drive simulator's car: a yaw of +0.049 rad per g of lateral force, its
+``slip_per_lateral_rad``, and a pitch of −0.098 rad per g of forward force).
 
 ``--start-s`` / ``--end-s`` crop each recording (seconds after its first IMU sample; end 0: to
 its end).
@@ -22,21 +29,44 @@ import math
 import torch
 
 from flowins.data.folder.reading import read_folder
-from flowins.measurements.adaptive_noise import imu_windows
+from flowins.measurements.adaptive_noise import RECENT_SAMPLES, imu_windows, steady_window
+from flowins.measurements.vehicle import VehicleSettings
 from flowins.training.parameters import FilterParameters
 
 
 def summary(network, sigmas: torch.Tensor, t_s: torch.Tensor, acc: torch.Tensor, gyro: torch.Tensor,
-            times: torch.Tensor) -> tuple[torch.Tensor, int]:
+            times: torch.Tensor, steady: torch.Tensor | None = None) -> tuple[torch.Tensor, int]:
     """The σs ``sigmas`` ``(2,)`` times the network's factors at the update times ``times`` ``(E,)``:
     their 10th, 50th and 90th percentiles ``(3, 2)``, and the updates with a factor within 1 % of
     a bound."""
     with torch.no_grad():
-        f = network(imu_windows(t_s, acc, gyro, times))
+        f = network(imu_windows(t_s, acc, gyro, times), steady)
+    if isinstance(f, tuple):  # factors and angles
+        f = f[0]
     levels = torch.tensor([0.1, 0.5, 0.9], dtype=f.dtype)
     log_bound = float(network.decades) * math.log(10.0)
     pinned = ((f.log().abs() - log_bound).abs() < math.log(1.01)).any(-1).sum()
     return torch.quantile(f, levels, dim=0) * sigmas, int(pinned)
+
+
+def angle_summary(network, windows: torch.Tensor, steady: torch.Tensor, C_cb: torch.Tensor) -> list[str]:
+    """For the pitch and the yaw offsets at ``windows (E, 6, S)``: a line with their 10th, 50th and
+    90th percentiles and their least-squares slope and correlation against the recent mean
+    specific force along the car's forward (pitch) and left (yaw) axes (``C_cb``'s rows)."""
+    with torch.no_grad():
+        _, angles = network(windows, steady)
+    force = windows[:, 3:, -RECENT_SAMPLES:].mean(-1) @ C_cb.T  # (E, 3) in g along the car's axes
+    levels = torch.tensor([0.1, 0.5, 0.9], dtype=angles.dtype)
+    lines = []
+    for name, column, axis in (("pitch", 0, 0), ("yaw", 1, 1)):
+        y, x = angles[:, column], force[:, axis]
+        design = torch.stack((x, torch.ones_like(x)), -1)
+        slope = float(torch.linalg.lstsq(design, y.unsqueeze(-1)).solution[0, 0])
+        corr = float(torch.corrcoef(torch.stack((x, y)))[0, 1]) if float(y.std()) > 0 else float("nan")
+        q = " / ".join(f"{v:+.4f}" for v in torch.quantile(y, levels).tolist())
+        lines.append(f"  {name:>5} offset p10 / p50 / p90 {q} rad; {slope:+.4f} rad per g of "
+                     f"{'forward' if axis == 0 else 'lateral'} force, correlation {corr:+.3f}")
+    return lines
 
 
 def main() -> None:
@@ -46,6 +76,8 @@ def main() -> None:
     parser.add_argument("--rate-hz", type=float, default=1.0)
     parser.add_argument("--start-s", type=float, default=10.0)
     parser.add_argument("--end-s", type=float, default=0.0)
+    parser.add_argument("--forward-axis", default="x", help="the IMU axis along the car's forward direction")
+    parser.add_argument("--up-axis", default="z", help="the IMU axis along the car's up direction")
     args = parser.parse_args()
     params = FilterParameters.from_checkpoint(args.checkpoint)
     if "vehicle" not in params.adaptive:
@@ -54,6 +86,10 @@ def main() -> None:
     values = params.values()
     sigmas = torch.tensor([values["vehicle_lateral_sigma_mps"], values["vehicle_vertical_sigma_mps"]], dtype=torch.float64)
     bound = 10.0 ** float(network.decades)
+    car = VehicleSettings(forward_axis=args.forward_axis, up_axis=args.up_axis,
+                          mount_pitch_rad=values["vehicle_mount_pitch_rad"], mount_yaw_rad=values["vehicle_mount_yaw_rad"])
+    C_cb = car.vehicle_from_imu(sigmas)
+    steady = steady_window(C_cb[2])
     print(f"{args.checkpoint}: constant σs {sigmas[0]:.3f} / {sigmas[1]:.3f} m/s, factors within "
           f"[{1 / bound:.3g}, {bound:.3g}]")
     print(f"{'recording':<40} {'updates':>7}  {'lateral σ p10 / p50 / p90 (m/s)':>32}  {'vertical σ p10 / p50 / p90':>28}  at a bound")
@@ -64,10 +100,12 @@ def main() -> None:
         times = torch.arange(t0 + args.start_s, end, 1.0 / args.rate_hz, dtype=torch.float64)
         if not len(times):
             raise SystemExit(f"error: {path}: no update between --start-s and --end-s")
-        q, pinned = summary(network, sigmas, imu.t_s, imu.acc_mps2, imu.gyro_rps, times)
+        q, pinned = summary(network, sigmas, imu.t_s, imu.acc_mps2, imu.gyro_rps, times, steady)
         lat = " / ".join(f"{v:.3f}" for v in q[:, 0].tolist())
         up = " / ".join(f"{v:.3f}" for v in q[:, 1].tolist())
         print(f"{path:<40} {len(times):>7}  {lat:>32}  {up:>28}  {pinned:>5} of {len(times)}")
+        if network.angles:
+            print("\n".join(angle_summary(network, imu_windows(imu.t_s, imu.acc_mps2, imu.gyro_rps, times), steady, C_cb)))
 
 
 if __name__ == "__main__":

@@ -35,3 +35,23 @@ def test_a_network_pinned_at_its_bound_says_so_and_one_that_varies_does_not(repo
             p.copy_(0.5 * torch.randn(p.shape, generator=gen, dtype=F64))
     q, pinned = bench.summary(net, sigmas, t, acc, gyro, times)
     assert pinned == 0 and bool((q[2] > q[0]).all())
+
+
+def test_the_angle_summary_finds_the_slope_of_a_linear_slip(repo_module):
+    """Angles only from the linear path with ``W`` mapping the lateral force (IMU y, in g) to
+    the yaw by 0.04 rad per g and the forward one to the pitch by -0.08: the printed slopes are
+    those, with correlation ±1 (small angles: the tanh bound of 0.5 rad hardly bends them)."""
+    bench = repo_module("benchmarks/bench_adaptive_factors.py")
+    from flowins.measurements.adaptive_noise import imu_windows, steady_window
+
+    t, acc, gyro = _imu()
+    acc = acc * torch.tensor([0.3, 0.3, 0.0], dtype=F64) + torch.tensor([0.0, 0.0, 9.80665], dtype=F64)
+    net = AdaptiveNoise(angles=2, angle_bound_rad=0.5)
+    with torch.no_grad():
+        net.recent.weight.zero_()
+        net.recent.weight[0, 3], net.recent.weight[1, 4] = -0.08, 0.04
+    times = torch.arange(5.0, 29.0, 0.5, dtype=F64)
+    C_cb = torch.eye(3, dtype=F64)
+    lines = bench.angle_summary(net, imu_windows(t, acc, gyro, times), steady_window(C_cb[2]), C_cb)
+    assert "-0.0800 rad per g of forward force, correlation -1.000" in lines[0]
+    assert "+0.0400 rad per g of lateral force, correlation +1.000" in lines[1]

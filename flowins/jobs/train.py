@@ -51,11 +51,14 @@ def run(cfg: Mapping[str, Any]) -> dict[str, Any]:
             log.info(f"{seq.name}: {hint} To learn how much it holds to it: experiment=real_vehicle.")
     tuned, start, learn = setup.parameters
     params = FilterParameters(start, learn, bounds=setup.parameters.bounds, adaptive=settings.model.adaptive,
-                              adaptive_decades=settings.model.adaptive_decades)
+                              adaptive_decades=settings.model.adaptive_decades,
+                              adaptive_angles_rad=settings.model.adaptive_angles_rad)
     log.info(f"learning {len(params.learned)} parameters: {', '.join(params.learned)}")
     for kind, network in params.adaptive.items():
         log.info(f"learning adaptive noise for {kind}: {sum(p.numel() for p in network.parameters())} weights "
-                 f"(flowins/measurements/adaptive_noise.py), factors within 10^±{settings.model.adaptive_decades:g}")
+                 f"(flowins/measurements/adaptive_noise.py), factors within 10^±{settings.model.adaptive_decades:g}"
+                 + (f", the mounting's pitch and yaw within ±{settings.model.adaptive_angles_rad:g} rad"
+                    if network.angles else ""))
     module = FilterLearner(params, setup.filter.navigation, methods=methods, model=settings.model,
                            window_s=settings.window_s, curriculum_window_s=settings.curriculum_window_s or (),
                            reference={"start": start, "hand-tuned": tuned}, output_dir=str(out))

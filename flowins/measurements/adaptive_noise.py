@@ -10,7 +10,14 @@ returns one factor per σ,
     s = exp(B tanh(z / B)),   B = decades · ln 10,
 
 where ``z`` is its output, so each factor stays within ``10^±decades`` of 1 whatever the
-weights are. Its last layer starts at zero: an untrained module is the constant σs exactly.
+weights are. With ``angles > 0`` it also returns that many angles ``α = A tanh(y / A)`` (rad),
+``A = angle_bound_rad``, from further outputs ``y`` (the head's, plus a linear map of the mean
+of the last ``RECENT_SAMPLES`` readings: a car's slip angle grows about linearly with its
+lateral acceleration, its pitch with its forward one): for the vehicle constraint, offsets of
+the mounting's pitch and yaw at each update, the car's pitch under acceleration and its slip
+in a turn, which no σ can take out of the constraint (a σ only weighs a biased measurement
+down). Its last layer starts at zero: an untrained module is the constant σs (and the given
+mounting) exactly.
 Two strided 1-D convolutions (kernel 9, stride 2, ReLU), a mean over time and a linear head:
 1,042 weights for 8 channels and 2 outputs. The module is float64, as the filter is.
 ``train.py`` learns it through the filter (``model.adaptive=[vehicle]``,
@@ -27,6 +34,16 @@ from flowins.constants import STANDARD_GRAVITY_MPS2
 
 #: the IMU readings a factor reads: 1 s at 100 Hz
 WINDOW_SAMPLES = 100
+#: the last readings whose mean the angles' linear path reads: 0.2 s at 100 Hz
+RECENT_SAMPLES = 20
+
+
+def steady_window(up_in_imu: Tensor, samples: int = WINDOW_SAMPLES) -> Tensor:
+    """``(1, 6, samples)``: the readings of a car going straight at a constant speed on a level
+    road, the gyroscope at 0 and the specific force 1 g along ``up_in_imu (3,)`` (the car's up
+    axis in the IMU frame), laid out as :func:`imu_windows` lays them."""
+    reading = torch.cat((torch.zeros_like(up_in_imu), up_in_imu))
+    return reading.reshape(1, 6, 1).expand(1, 6, samples)
 
 
 def covering_sample(t_imu_s: Tensor, times_s: Tensor) -> Tensor:
@@ -48,23 +65,56 @@ def imu_windows(t_imu_s: Tensor, acc_mps2: Tensor, gyro_rps: Tensor, times_s: Te
 
 
 class AdaptiveNoise(nn.Module):
-    """IMU windows ``(E, 6, S)`` -> σ factors ``(E, outputs)`` (module docstring)."""
+    """IMU windows ``(E, 6, S)`` -> σ factors ``(E, outputs)``, and with ``angles > 0`` the tuple
+    of them and angles ``(E, angles)`` in rad (module docstring)."""
 
-    def __init__(self, outputs: int = 2, *, channels: int = 8, decades: float = 1.0) -> None:
+    def __init__(self, outputs: int = 2, *, channels: int = 8, decades: float = 1.0, angles: int = 0,
+                 angle_bound_rad: float = 0.05) -> None:
         super().__init__()
         if not decades > 0:
             raise ValueError(f"AdaptiveNoise: decades={decades!r}; expected a number > 0")
+        if angles and not 0 < angle_bound_rad <= 0.5:
+            raise ValueError(f"AdaptiveNoise: angle_bound_rad={angle_bound_rad!r}; expected a number in (0, 0.5] rad")
         f64 = {"dtype": torch.float64}
+        self.outputs = outputs
         self.conv1 = nn.Conv1d(6, channels, 9, stride=2, **f64)
         self.conv2 = nn.Conv1d(channels, channels, 9, stride=2, **f64)
-        self.head = nn.Linear(channels, outputs, **f64)
+        self.head = nn.Linear(channels, outputs + angles, **f64)
         nn.init.zeros_(self.head.weight)
         nn.init.zeros_(self.head.bias)
         self.register_buffer("decades", torch.tensor(float(decades), **f64))
+        if angles:  # only then: a checkpoint without angles keeps its layout
+            self.recent = nn.Linear(6, angles, bias=False, **f64)
+            nn.init.zeros_(self.recent.weight)
+            self.register_buffer("angle_bound_rad", torch.tensor(float(angle_bound_rad), **f64))
 
-    def forward(self, windows: Tensor) -> Tensor:
-        x = torch.relu(self.conv1(windows.to(self.head.weight.dtype)))
+    @property
+    def angles(self) -> int:
+        """How many angles it returns beside the factors (0: factors only)."""
+        return self.head.out_features - self.outputs
+
+    def _outputs(self, windows: Tensor) -> tuple[Tensor, Tensor]:
+        """``(z (E, outputs), y (E, angles))``: the factors' and the angles' outputs, unbounded."""
+        windows = windows.to(self.head.weight.dtype)
+        x = torch.relu(self.conv1(windows))
         x = torch.relu(self.conv2(x))
         z = self.head(x.mean(-1))
+        y = z[..., self.outputs:]
+        if self.angles:
+            y = y + self.recent(windows[..., -RECENT_SAMPLES:].mean(-1))
+        return z[..., :self.outputs], y
+
+    def forward(self, windows: Tensor, steady: Tensor | None = None) -> Tensor | tuple[Tensor, Tensor]:
+        """The factors of ``windows (E, 6, S)``; with angles, the tuple of them and the angles,
+        taken relative to those of ``steady (1, 6, S)`` where given (the readings of a car going
+        straight at a constant speed on a level road: no slip and no pitch there, whatever the
+        weights; the mounting's constant part is the mounting's, ``mount_*_rad``)."""
+        z, y = self._outputs(windows)
         scale = self.decades * math.log(10.0)
-        return torch.exp(scale * torch.tanh(z / scale))
+        factors = torch.exp(scale * torch.tanh(z / scale))
+        if not self.angles:
+            return factors
+        if steady is not None:
+            y = y - self._outputs(steady)[1]
+        bound = self.angle_bound_rad
+        return factors, bound * torch.tanh(y / bound)

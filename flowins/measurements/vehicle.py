@@ -45,7 +45,7 @@ from flowins.constants import cached_constant, scalar_like
 from flowins.filter.chain import BatchChain, RowBatchEvent
 from flowins.filter.updater import update_rows
 from flowins.geometry import quaternion as quat
-from flowins.measurements.adaptive_noise import covering_sample, imu_windows
+from flowins.measurements.adaptive_noise import covering_sample, imu_windows, steady_window
 from flowins.measurements.registry import MeasurementKind, NavigationContext, register
 from flowins.state import STATE
 
@@ -82,8 +82,10 @@ class VehicleSettings:
     mounting: Literal["given", "fit"] = "given"
     fit_max_residual: float = bounded(0.25, above=0.0, maximum=1.0)
     #: not a config key: the learned network that scales both σs at each update from the IMU's
-    #: recent readings (:class:`~flowins.measurements.adaptive_noise.AdaptiveNoise`, two outputs),
-    #: set from a checkpoint or while training (``model.adaptive=[vehicle]``); None: constant σs
+    #: recent readings (:class:`~flowins.measurements.adaptive_noise.AdaptiveNoise`: factors
+    #: ``(E, 2)``, or factors and the mounting's offsets at each update ``(E, 2)``, pitch then yaw
+    #: in rad, the car's slip and its pitch under acceleration), set from a checkpoint or while
+    #: training (``model.adaptive=[vehicle]``); None: constant σs and the mounting above
     noise_model: Any = None
 
     def __post_init__(self) -> None:
@@ -103,12 +105,16 @@ class VehicleSettings:
         """``E (2, 3)``: the IMU's left and up unit axes as rows, with no mounting turn (float64)."""
         return self.axes()[1:]
 
-    def vehicle_from_imu(self, like: Tensor) -> Tensor:
-        """``C_cb (3, 3)`` in ``like``'s dtype and device: IMU-frame vectors into the vehicle's frame."""
+    def vehicle_from_imu(self, like: Tensor, offset_rad: Tensor | None = None) -> Tensor:
+        """``C_cb (3, 3)`` in ``like``'s dtype and device: IMU-frame vectors into the vehicle's frame;
+        with ``offset_rad (R, 2)`` (pitch, yaw added to the mounting's) one per row, ``(R, 3, 3)``."""
         A = _axes(self.forward_axis, self.up_axis, like.dtype, like.device)
-        if _zero(self.mount_pitch_rad) and _zero(self.mount_yaw_rad):
+        if offset_rad is None and _zero(self.mount_pitch_rad) and _zero(self.mount_yaw_rad):
             return A
         pitch, yaw = scalar_like(self.mount_pitch_rad, like), scalar_like(self.mount_yaw_rad, like)
+        if offset_rad is not None:
+            offset_rad = offset_rad.to(like)
+            pitch, yaw = pitch + offset_rad[..., 0], yaw + offset_rad[..., 1]
         return quat.to_matrix(quat.from_euler(torch.zeros_like(pitch), pitch, yaw)) @ A
 
     def lever_arm(self, like: Tensor) -> Tensor | None:
@@ -150,17 +156,18 @@ def body_velocity_jacobians(q: Tensor, v: Tensor) -> tuple[Tensor, Tensor, Tenso
 def constraint_terms(mean: Tensor, gyro_rps: Tensor, C_cb: Tensor, lever_c: Tensor | None) -> tuple[Tensor, Tensor]:
     """``(h (..., 2), H (..., 2, D))`` of the pseudo-measurement (module docstring) at the states
     ``mean (..., D)`` with the gyroscope's readings ``gyro_rps (..., 3)``: the sideways and
-    vertical velocity of the non-slipping point in the vehicle frame, and its Jacobian."""
+    vertical velocity of the non-slipping point in the vehicle frame, and its Jacobian.
+    ``C_cb`` is ``(3, 3)`` or one per state, ``(..., 3, 3)``."""
     v_b, d_v, d_q = body_velocity_jacobians(mean[..., STATE.q], mean[..., STATE.v])
-    E = C_cb[1:]  # (2, 3): the vehicle's left and up axes in the IMU frame
-    h = v_b @ E.transpose(-1, -2)
+    E = C_cb[..., 1:, :]  # (..., 2, 3): the vehicle's left and up axes in the IMU frame
+    h = (E @ v_b.unsqueeze(-1)).squeeze(-1)
     H = mean.new_zeros(*mean.shape[:-1], 2, mean.shape[-1])
     H[..., STATE.v] = E @ d_v
     H[..., STATE.q] = E @ d_q
     if lever_c is not None:
-        omega_c = (gyro_rps - mean[..., STATE.b_w]) @ C_cb.transpose(-1, -2)
+        omega_c = (C_cb @ (gyro_rps - mean[..., STATE.b_w]).unsqueeze(-1)).squeeze(-1)
         h = h + torch.linalg.cross(omega_c, lever_c.expand_as(omega_c))[..., 1:]
-        H[..., STATE.b_w] = (quat.skew(lever_c) @ C_cb)[1:]  # ∂(C ω × r)/∂b_w = [r]ₓ C
+        H[..., STATE.b_w] = (quat.skew(lever_c) @ C_cb)[..., 1:, :]  # ∂(C ω × r)/∂b_w = [r]ₓ C
     return h, H
 
 
@@ -175,6 +182,9 @@ class VehicleUpdate(RowBatchEvent):
     name: str = "vehicle constraint"
     #: ``(2,)`` factors on the σs from the settings' ``noise_model``; None: the σs as they are
     sigma_scale: Tensor | None = None
+    #: ``(2,)`` pitch and yaw (rad) added to the mounting at this update, from the settings'
+    #: ``noise_model``; None: the mounting as it is
+    mount_offset_rad: Tensor | None = None
 
     def batch_key(self) -> Hashable:
         """Updates with the same settings (one run's, or one config's for a batch) act together."""
@@ -182,15 +192,14 @@ class VehicleUpdate(RowBatchEvent):
 
     @classmethod
     def place(cls, updates: list[VehicleUpdate], like: Tensor) -> list[VehicleUpdate]:
-        """The updates with their gyroscope readings (and σ factors, where they have them) in
-        ``like``'s dtype and device: one copy each, each update's a view of it."""
+        """The updates with their gyroscope readings (and σ factors and mounting offsets, where
+        they have them) in ``like``'s dtype and device: one copy each, each update's a view of it."""
         if all(u.gyro_rps.dtype == like.dtype and u.gyro_rps.device == like.device for u in updates):
             return list(updates)
         gyro = torch.stack([u.gyro_rps for u in updates]).to(like)
-        scaled = [i for i, u in enumerate(updates) if u.sigma_scale is not None]
-        scale = torch.stack([updates[i].sigma_scale for i in scaled]).to(like) if scaled else None
-        where = {i: j for j, i in enumerate(scaled)}
-        return [dataclasses.replace(u, gyro_rps=gyro[i], sigma_scale=None if i not in where else scale[where[i]])
+        fields = {"sigma_scale": [u.sigma_scale for u in updates], "mount_offset_rad": [u.mount_offset_rad for u in updates]}
+        placed = {name: _placed(values, like) for name, values in fields.items()}
+        return [dataclasses.replace(u, gyro_rps=gyro[i], **{name: p[i] for name, p in placed.items()})
                 for i, u in enumerate(updates)]
 
     @classmethod
@@ -200,7 +209,10 @@ class VehicleUpdate(RowBatchEvent):
         mean, _ = chain.newest(rows)
         r = mean.shape[0]
         gyro = torch.stack([e.gyro_rps for e in events]).to(mean)
-        h, H = constraint_terms(mean, gyro, settings.vehicle_from_imu(mean), settings.lever_arm(mean))
+        offset = None  # one settings: every update with its offsets, or none
+        if events[0].mount_offset_rad is not None:
+            offset = torch.stack([e.mount_offset_rad for e in events]).to(mean)
+        h, H = constraint_terms(mean, gyro, settings.vehicle_from_imu(mean, offset), settings.lever_arm(mean))
         sigma = torch.stack([scalar_like(s, mean) for s in (settings.lateral_sigma_mps, settings.vertical_sigma_mps)])
         sigma = sigma.expand(r, 2)
         if events[0].sigma_scale is not None:  # one settings: all of them scaled, or none
@@ -208,6 +220,18 @@ class VehicleUpdate(RowBatchEvent):
         update_rows(chain, rows, H=H.unsqueeze(1), residual=-h.unsqueeze(1),
                     noise_cov=torch.diag_embed(sigma**2).unsqueeze(1), likelihood=False,
                     infos=[{"kind": "vehicle", "name": e.name} for e in events])
+
+
+def _placed(values: list[Tensor | None], like: Tensor) -> list[Tensor | None]:
+    """``values`` in ``like``'s dtype and device, those that are tensors as views of one copy."""
+    present = [i for i, v in enumerate(values) if v is not None]
+    if not present:
+        return list(values)
+    copy = torch.stack([values[i] for i in present]).to(like)
+    out: list[Tensor | None] = [None] * len(values)
+    for j, i in enumerate(present):
+        out[i] = copy[j]
+    return out
 
 
 @cached_constant
@@ -326,11 +350,16 @@ def vehicle_events(stream: VehicleConstraint, settings: VehicleSettings, context
     step = 1.0 / settings.rate_hz
     times = torch.arange(context.t_start_s + step, context.t_end_s + 1e-9, step, dtype=torch.float64)
     gyro = gyro_at(context.imu.t_s, context.imu.gyro_rps, times)
-    scale = [None] * len(times)
+    scale = offset = [None] * len(times)
     if settings.noise_model is not None and len(times):
         imu = context.imu
-        scale = settings.noise_model(imu_windows(imu.t_s, imu.acc_mps2, imu.gyro_rps, times))
-    return [VehicleUpdate(t, settings, gyro[i], sigma_scale=scale[i]) for i, t in enumerate(times.tolist())]
+        windows = imu_windows(imu.t_s, imu.acc_mps2, imu.gyro_rps, times)
+        steady = steady_window(settings.vehicle_from_imu(windows)[2].detach())  # the car's up axis in the IMU frame
+        scale = settings.noise_model(windows, steady)
+        if isinstance(scale, tuple):  # factors and the mounting's offsets
+            scale, offset = scale
+    return [VehicleUpdate(t, settings, gyro[i], sigma_scale=scale[i], mount_offset_rad=offset[i])
+            for i, t in enumerate(times.tolist())]
 
 
 register(MeasurementKind("vehicle", VehicleSettings, vehicle_events, default_stream=VehicleConstraint))

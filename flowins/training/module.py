@@ -104,6 +104,7 @@ class FilterLearner(pl.LightningModule):
         self.loss = model.loss
         self.segment_s = tuple(model.segment_s)
         self.lr = model.lr
+        self.adaptive_lr = model.adaptive_lr
         self.lr_final = self.lr if model.lr_final is None else model.lr_final
         self.warmup_steps = model.warmup_steps
         self.accumulate = model.accumulate_windows
@@ -140,7 +141,7 @@ class FilterLearner(pl.LightningModule):
                                    "innovation_weight": self.innovation_weight,
                                    "innovation_learns": sorted(self.innovation_learns),
                                    "noise_level": self.noise_level, "loss": self.loss,
-                                   "segment_s": list(self.segment_s), "lr": self.lr,
+                                   "segment_s": list(self.segment_s), "lr": self.lr, "adaptive_lr": self.adaptive_lr,
                                    "lr_final": self.lr_final, "warmup_steps": self.warmup_steps,
                                    "accumulate_windows": self.accumulate, "average_epochs": self.average_epochs,
                                    "gradient_clip": self.gradient_clip,
@@ -148,10 +149,16 @@ class FilterLearner(pl.LightningModule):
                                    "reference": self.reference, "learned": params.learned})
 
     def configure_optimizers(self):
-        learned = [p for p in self.params.parameters() if p.requires_grad]
-        if not learned:
+        networks = {id(p) for p in self.params.adaptive.parameters()}
+        learned = [p for p in self.params.parameters() if p.requires_grad and id(p) not in networks]
+        weights = [p for p in self.params.adaptive.parameters() if p.requires_grad]
+        if not learned and not weights:
             raise ValueError("model: every parameter is frozen; nothing to learn")
-        return torch.optim.Adam(learned, lr=self.lr)
+        # the networks' weights on the same schedule at their own rate: a step of lr = 0.2 in
+        # every weight at once saturates the networks' outputs at their bounds
+        groups = [{"params": learned, "scale": 1.0}] if learned else []
+        groups += [{"params": weights, "scale": self.adaptive_lr / self.lr}] if weights else []
+        return torch.optim.Adam(groups, lr=self.lr)
 
     # ------------------------------------------------------------------ training
     def training_step(self, batch: TrainingSequence | list[TrainingSequence], batch_idx: int) -> None:
@@ -260,7 +267,7 @@ class FilterLearner(pl.LightningModule):
         rate = learning_rate(self.optimizer_steps, self.current_epoch, lr=self.lr, lr_final=self.lr_final,
                              warmup_steps=self.warmup_steps, epochs=self.trainer.max_epochs)
         for group in opt.optimizer.param_groups if hasattr(opt, "optimizer") else opt.param_groups:
-            group["lr"] = rate
+            group["lr"] = rate * group.get("scale", 1.0)
         self.clip_gradients(opt, gradient_clip_val=self.gradient_clip, gradient_clip_algorithm="norm")
         opt.step()
         opt.zero_grad()

@@ -122,6 +122,9 @@ ADDED_NAMES: frozenset[str] = frozenset({"vehicle_lateral_sigma_mps", "vehicle_v
                                          "vehicle_lever_up_m"})
 #: the measurement kinds whose σs a learned network may set (``model.adaptive``): kind -> its σs
 ADAPTIVE_KINDS: dict[str, int] = {"vehicle": 2}
+#: the kinds whose network may also set angles (``model.adaptive_angles_rad``): kind -> how many
+#: (the vehicle constraint's mounting pitch and yaw at each update)
+ADAPTIVE_ANGLES: dict[str, int] = {"vehicle": 2}
 #: signed parameters: name -> (step u per unit of the coordinate, largest magnitude W), in the
 #: parameter's units (the module docstring); W stays inside VehicleSettings' own limits
 SIGNED: dict[str, tuple[float, float]] = {
@@ -189,6 +192,11 @@ class ModelSettings:
         adaptive: measurement kinds whose σs a learned network sets at each update
             (:data:`ADAPTIVE_KINDS`; :class:`~flowins.measurements.adaptive_noise.AdaptiveNoise`).
         adaptive_decades: each of its factors within ``10^±adaptive_decades`` of the σ.
+        adaptive_angles_rad: > 0: the vehicle network also sets the mounting's pitch and yaw at
+            each update (the car's pitch under acceleration, its slip in a turn), each within
+            ``±adaptive_angles_rad`` of the mounting (:data:`ADAPTIVE_ANGLES`); 0: σs only.
+        adaptive_lr: the networks' weights' learning rate at the start, on ``lr``'s schedule
+            (warm-up and decay alike).
         checkpoint: a ``train.py`` checkpoint whose learned values the filter uses.
         select_flow_gate: probabilities ``p`` whose χ²₁ quantiles compete, after training, as
             the flow gate's threshold of the chosen validation's parameters (each one more
@@ -218,6 +226,8 @@ class ModelSettings:
     bounds: dict[str, float | None] = bounded({})
     adaptive: tuple[str, ...] = ()
     adaptive_decades: float = bounded(1.0, above=0.0)
+    adaptive_angles_rad: float = bounded(0.0, minimum=0.0, maximum=0.5)
+    adaptive_lr: float = bounded(0.01, minimum=1e-12)
     checkpoint: str | None = None
     select_flow_gate: tuple[float, ...] = bounded((), above=0.0, below=1.0)
     recheck_while_training: bool = True
@@ -381,6 +391,8 @@ class FilterParameters(nn.Module):
         adaptive: the measurement kinds whose σs a learned network sets at each update
             (:data:`ADAPTIVE_KINDS`; :class:`~flowins.measurements.adaptive_noise.AdaptiveNoise`),
             within ``adaptive_decades`` of the σs above; learned unless ``learn_adaptive`` is False.
+        adaptive_angles_rad: > 0: the networks of :data:`ADAPTIVE_ANGLES`' kinds also set angles
+            within ``±adaptive_angles_rad`` (rad); a kind -> bound mapping sets it per kind.
 
     Attributes:
         raw: the coordinates ``a``, one 0-dim float64 ``nn.Parameter`` each (0 at the start).
@@ -392,12 +404,22 @@ class FilterParameters(nn.Module):
     def __init__(self, start: Mapping[str, float], learn: Iterable[str] | None = None, *,
                  bounds: Mapping[str, float | None] | None = None,
                  ceilings: Mapping[str, float] | None = None, adaptive: Iterable[str] = (),
-                 adaptive_decades: float = 1.0, learn_adaptive: bool = True) -> None:
+                 adaptive_decades: float = 1.0, adaptive_angles_rad: float | Mapping[str, float] = 0.0,
+                 learn_adaptive: bool = True) -> None:
         super().__init__()
         if unknown := sorted(set(adaptive) - set(ADAPTIVE_KINDS)):
             raise ValueError(f"FilterParameters: adaptive noise for {unknown}; expected kinds from {list(ADAPTIVE_KINDS)}")
-        self.adaptive = nn.ModuleDict({kind: AdaptiveNoise(ADAPTIVE_KINDS[kind], decades=adaptive_decades)
-                                       for kind in sorted(set(adaptive))})
+        angles = (adaptive_angles_rad if isinstance(adaptive_angles_rad, Mapping)
+                  else {kind: float(adaptive_angles_rad) for kind in ADAPTIVE_ANGLES})
+
+        def network(kind: str) -> AdaptiveNoise:
+            bound = float(angles.get(kind, 0.0))
+            if bound and kind not in ADAPTIVE_ANGLES:
+                raise ValueError(f"FilterParameters: angles for {kind}; expected kinds from {list(ADAPTIVE_ANGLES)}")
+            return AdaptiveNoise(ADAPTIVE_KINDS[kind], decades=adaptive_decades,
+                                 angles=ADAPTIVE_ANGLES[kind] if bound else 0, angle_bound_rad=bound or 0.05)
+
+        self.adaptive = nn.ModuleDict({kind: network(kind) for kind in sorted(set(adaptive))})
         self.adaptive.requires_grad_(learn_adaptive)
         bounds = dict(bounds or {})
         missing = [n for n in NAMES if n not in start]
@@ -569,9 +591,17 @@ class FilterParameters(nn.Module):
                              "a bound > 0 decades, inf for none)")
         # a checkpoint without ceilings was learned without them: its values stay as they were
         ceiling = {n: float(found["ceiling"][n]) for n in NAMES if _plain_number(found["ceiling"].get(n))}
+        angles = {}  # a network that sets angles keeps their bound as a buffer
+        for kind, weights in networks.items():
+            bound_rad = weights.get("angle_bound_rad")
+            if bound_rad is not None:
+                if not (plausible(bound_rad) and 0 < float(bound_rad) <= 0.5):
+                    raise ValueError(f"model.checkpoint: {path}: the adaptive network for {kind} has angle_bound_rad="
+                                     f"{bound_rad!r}; expected one number in (0, 0.5] rad")
+                angles[kind] = float(bound_rad)
         module = cls({n: float(center[n]) for n in NAMES}, learn=(),
                      bounds={n: None if math.isinf(float(bound[n])) else float(bound[n]) for n in NAMES},
-                     ceilings=ceiling, adaptive=networks, learn_adaptive=False)
+                     ceilings=ceiling, adaptive=networks, adaptive_angles_rad=angles, learn_adaptive=False)
         with torch.no_grad():
             for n in NAMES:
                 module.raw[n].copy_(raw[n].reshape(()))

@@ -8,7 +8,7 @@ import torch
 
 from flowins.data.simulate.drive import AUTOMOTIVE_IMU, DriveConfig, drive_sequence
 from flowins.ins.mechanization import ProcessNoise
-from flowins.measurements.adaptive_noise import AdaptiveNoise, imu_windows
+from flowins.measurements.adaptive_noise import RECENT_SAMPLES, AdaptiveNoise, imu_windows, steady_window
 from flowins.measurements.vehicle import VehicleSettings
 from flowins.navigation import NavigationConfig, NavigationRun, navigate
 from flowins.state import STATE
@@ -105,3 +105,113 @@ def test_a_checkpoint_keeps_the_network_and_evaluate_uses_it(tmp_path, short_dri
         from flowins.training.parameters import ModelSettings
         ModelSettings(adaptive=("zupt",))
     assert math.isfinite(float(_loss(short_drive, loaded.adaptive["vehicle"]).detach()))
+
+
+# ------------------------------------------------------------------ the mounting's angles
+def test_angles_start_at_zero_stay_within_their_bound_and_vanish_on_the_steady_window():
+    net = AdaptiveNoise(angles=2, angle_bound_rad=0.03)
+    windows = torch.randn(7, 6, 100, dtype=F64, generator=torch.Generator().manual_seed(5))
+    factors, angles = net(windows)
+    assert torch.equal(factors, torch.ones(7, 2, dtype=F64)) and torch.equal(angles, torch.zeros(7, 2, dtype=F64))
+    with torch.no_grad():
+        for p in net.parameters():
+            p.normal_(0.0, 30.0, generator=torch.Generator().manual_seed(6))
+    _, angles = net(windows)
+    assert angles.abs().max() <= 0.03 and angles.std() > 1e-3
+    up = torch.tensor([0.1, -0.2, 0.97], dtype=F64)
+    steady = steady_window(up)
+    assert steady.shape == (1, 6, 100) and torch.equal(steady[0, 3:, 0], up) and not steady[0, :3].any()
+    _, at_steady = net(steady.expand(3, 6, 100), steady)
+    assert torch.equal(at_steady, torch.zeros(3, 2, dtype=F64))  # whatever the weights
+    moderate = AdaptiveNoise(angles=2, angle_bound_rad=0.03)
+    with torch.no_grad():
+        for p in moderate.parameters():
+            p.normal_(0.0, 0.01, generator=torch.Generator().manual_seed(6))
+    _, absolute = moderate(windows)
+    _, relative = moderate(windows, steady)
+    assert not torch.allclose(relative, absolute)
+
+
+def test_the_recent_path_is_a_linear_map_of_the_last_readings_mean():
+    """With the convolutions' head at zero the angles are A tanh(W r / A), r the mean of the last
+    RECENT_SAMPLES readings: a closed form."""
+    net = AdaptiveNoise(angles=2, angle_bound_rad=0.05)
+    W = torch.tensor([[0.0, 0.0, 0.0, -0.1, 0.0, 0.0], [0.0, 0.0, 0.2, 0.0, 0.05, 0.0]], dtype=F64)
+    with torch.no_grad():
+        net.recent.weight.copy_(W)
+        for p in (*net.conv1.parameters(), *net.conv2.parameters()):
+            p.normal_(0.0, 1.0, generator=torch.Generator().manual_seed(7))
+    windows = torch.randn(4, 6, 100, dtype=F64, generator=torch.Generator().manual_seed(8))
+    r = windows[..., -RECENT_SAMPLES:].mean(-1)
+    _, angles = net(windows)
+    assert torch.allclose(angles, 0.05 * torch.tanh(r @ W.T / 0.05), rtol=0, atol=1e-15)
+
+
+def _drive_loss(seq, model, **settings) -> torch.Tensor:
+    e = AUTOMOTIVE_IMU
+    noise = ProcessNoise(acc_noise=e.acc_noise, gyro_noise=e.gyro_noise)
+    vehicle = VehicleSettings(mode="on", rate_hz=5.0, lateral_sigma_mps=0.05, vertical_sigma_mps=0.05,
+                              noise_model=model, **settings)
+    result = navigate(NavigationRun(seq.imu, seq.gnss), config=NavigationConfig(noise=noise,
+                                                                                 measurements={"vehicle": vehicle}))
+    return result.filter.node_mean[-1, STATE.v].pow(2).sum()
+
+
+def test_constant_angles_from_the_network_are_the_mounting_they_add_to(short_drive):
+    """An offset of (pitch, yaw) at every update runs as the mounting turned by it: the same
+    filter, by another code path (one matrix per update against the settings' one)."""
+    offset = torch.tensor([0.02, -0.03], dtype=F64)
+
+    def constant(windows, steady=None):
+        return torch.ones(len(windows), 2, dtype=F64), offset.expand(len(windows), 2)
+
+    with torch.no_grad():
+        by_offset = _drive_loss(short_drive, constant, mount_pitch_rad=0.01)
+        by_mounting = _drive_loss(short_drive, None, mount_pitch_rad=0.03, mount_yaw_rad=-0.03)
+        plain = _drive_loss(short_drive, None, mount_pitch_rad=0.01)
+    assert float(by_offset) == pytest.approx(float(by_mounting), rel=1e-10)
+    assert float(by_offset) != pytest.approx(float(plain), rel=1e-3)
+
+
+def test_the_angles_gradient_through_the_filter_is_the_finite_difference(short_drive):
+    net = AdaptiveNoise(angles=2, angle_bound_rad=0.05)
+    with torch.no_grad():
+        net.recent.weight.normal_(0.0, 0.05, generator=torch.Generator().manual_seed(9))
+    loss = _drive_loss(short_drive, net, lever_forward_m=-1.2)
+    (grad,) = torch.autograd.grad(loss, net.recent.weight)
+    h = 1e-6
+    for i, j in ((0, 3), (1, 4), (1, 2)):
+        with torch.no_grad():
+            net.recent.weight[i, j] += h
+            up = float(_drive_loss(short_drive, net, lever_forward_m=-1.2))
+            net.recent.weight[i, j] -= 2 * h
+            down = float(_drive_loss(short_drive, net, lever_forward_m=-1.2))
+            net.recent.weight[i, j] += h
+        assert float(grad[i, j]) == pytest.approx((up - down) / (2 * h), rel=1e-4, abs=1e-12), (i, j)
+    assert grad.abs().max() > 0
+
+
+def test_a_checkpoint_keeps_the_angles_and_their_bound(tmp_path):
+    from flowins.config import build
+    from flowins.training.module import FilterLearner
+    from flowins.training.parameters import FilterParameters, ModelSettings, starting_values
+
+    params = FilterParameters(starting_values(NavigationConfig()), learn=["acc_noise"], adaptive=["vehicle"],
+                              adaptive_angles_rad=0.04)
+    with torch.no_grad():
+        for p in params.adaptive.parameters():
+            p.normal_(0.0, 0.3, generator=torch.Generator().manual_seed(10))
+    path = tmp_path / "angles.ckpt"
+    torch.save({"state_dict": FilterLearner(params, NavigationConfig(), methods=["ins"]).state_dict()}, path)
+    loaded = FilterParameters.from_checkpoint(path).adaptive["vehicle"]
+    assert loaded.angles == 2 and float(loaded.angle_bound_rad) == 0.04
+    windows = torch.randn(5, 6, 100, dtype=F64, generator=torch.Generator().manual_seed(11))
+    for a, b in zip(loaded(windows), params.adaptive["vehicle"](windows)):
+        assert torch.equal(a, b.detach())
+    state = torch.load(path, weights_only=True)
+    state["state_dict"]["params.adaptive.vehicle.angle_bound_rad"] = torch.tensor(2.0, dtype=F64)
+    torch.save(state, path)
+    with pytest.raises(ValueError, match=r"angle_bound_rad=.*expected one number in \(0, 0.5\] rad"):
+        FilterParameters.from_checkpoint(path)
+    with pytest.raises(ValueError, match="model.adaptive_angles_rad"):
+        build(ModelSettings, {"adaptive_angles_rad": 0.7}, "model")

@@ -284,3 +284,36 @@ def test_the_recheck_is_off_in_the_training_steps_only_where_the_model_says():
             assert float(step.softness) == pytest.approx(softness)
         else:
             assert step.mode == "off"
+
+
+def test_the_adaptive_network_steps_at_its_own_rate_and_the_constant_parameters_at_lr(tmp_path):
+    """``model.adaptive_lr``: Adam's first step moves a weight by its group's rate against its
+    gradient's sign (``|Δ| = rate`` wherever the gradient is not tiny), so after one window the
+    network's zero-started head and linear path sit within ``adaptive_lr`` of 0, reaching it, and
+    the learned σs' coordinates within ``lr``, reaching it."""
+    import torch
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+    from pathlib import Path
+
+    from flowins.data.simulate.drive import DriveConfig, simulate_drive
+    from flowins.jobs.train import run
+
+    folder = tmp_path / "drive"
+    simulate_drive(folder, DriveConfig(duration_s=24.0, outage_s=0.0))
+    configs = str(Path(__file__).resolve().parents[2] / "configs")
+    with initialize_config_dir(config_dir=configs, version_base="1.3"):
+        cfg = OmegaConf.to_container(compose("train", overrides=[
+            "experiment=real_vehicle", "imu=simulated_drive", f"output_dir={tmp_path / 'out'}",
+            f"cache_dir={tmp_path / 'cache'}", "progress=false", "logger=csv", f"data.train=[{{path: {folder}}}]",
+            f"data.val=[{{path: {folder}}}]", "window_s=30.0", "trainer.max_epochs=1", "model.warmup_steps=0",
+            "model.lr=0.05", "model.adaptive_lr=0.002", "model.adaptive=[vehicle]", "model.adaptive_angles_rad=0.05",
+            "filter.measurements.vehicle.lateral_sigma_mps=0.1", "filter.measurements.vehicle.vertical_sigma_mps=0.1",
+            "model.learn=[vehicle_lateral_sigma_mps,vehicle_vertical_sigma_mps]"]), resolve=True)
+    run(cfg)
+    state = torch.load(tmp_path / "out" / "checkpoints" / "last.ckpt", weights_only=False)["state_dict"]
+    for name in ("head.weight", "head.bias", "recent.weight"):
+        moved = state[f"params.adaptive.vehicle.{name}"].abs()
+        assert float(moved.max()) == pytest.approx(0.002, rel=1e-6) and bool((moved <= 0.002 * (1 + 1e-9)).all()), name
+    for name in ("vehicle_lateral_sigma_mps", "vehicle_vertical_sigma_mps"):
+        assert abs(float(state[f"params.raw.{name}"])) == pytest.approx(0.05, rel=1e-6), name
