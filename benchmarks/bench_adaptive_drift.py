@@ -14,7 +14,10 @@ For each recording, which the checkpoint's training and selection must not have 
 searches the vehicle constraint's two constant σs on that recording's own filter drift (KITTI's
 translational %, 100-800 m, ``metrics.json``'s ``filter_drift``; a coordinate search in log10
 steps as ``bench_noise_bound.py`` searches, from ``--start-sigma``): the best a constant σ can
-do there, tuned on the data it is scored on. Then it runs each checkpoint
+do there, tuned on the data it is scored on. The constant runs take the checkpoints' bias and
+scale walks (``imu.acc_bias_walk``, ``imu.gyro_bias_walk``, ``filter.acc_scale_walk``: a
+checkpoint brings ``model.start``'s, which the IMU preset's need not be), so that the network
+is the one difference. Then it runs each checkpoint
 (``model.checkpoint=...``: its learned σs and its network) on the same recording. It prints
 them, filter and smoother RMSE beside the drift, and ends with one line per checkpoint,
 ``RESULT run=<i> constant_drift=<%> adaptive_drift=<%> change=<%> recordings=<n>`` (means over
@@ -31,8 +34,22 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_noise_bound import coordinate_search, run_once  # noqa: E402
 
 from flowins.jobs.cli import user_errors  # noqa: E402
+from flowins.training.parameters import FilterParameters  # noqa: E402
 
 SIGMAS = {"lat": "filter.measurements.vehicle.lateral_sigma_mps", "up": "filter.measurements.vehicle.vertical_sigma_mps"}
+#: a checkpoint's learned values the constant runs take too: name -> evaluate.py key
+WALKS = {"acc_bias_walk": "imu.acc_bias_walk", "gyro_bias_walk": "imu.gyro_bias_walk",
+         "acc_scale_walk": "filter.acc_scale_walk"}
+
+
+def checkpoint_walks(checkpoints: list[Path]) -> list[str]:
+    """The overrides that give a run the checkpoints' walks (all checkpoints must agree)."""
+    values = [FilterParameters.from_checkpoint(c).values() for c in checkpoints]
+    walks = {k: values[0][k] for k in WALKS}
+    if differ := [str(c) for c, v in zip(checkpoints, values) if any(v[k] != walks[k] for k in WALKS)]:
+        raise ValueError(f"{', '.join(differ)}: bias walks other than {checkpoints[0]}'s {walks}; expected "
+                         "checkpoints of one configuration")
+    return [f"{WALKS[k]}={v:.17g}" for k, v in walks.items()]
 
 
 def _metrics(folder: Path, out: Path, overrides: list[str]) -> dict:
@@ -66,6 +83,8 @@ def main() -> None:
     if missing := [str(c) for c in args.checkpoints if not c.is_file()]:
         raise ValueError(f"{', '.join(missing)}: no such checkpoint; expected train.py best.ckpt files")
     base = list(args.overrides)
+    walks = checkpoint_walks(args.checkpoints)
+    print(f"constant σs with the checkpoints' walks: {' '.join(walks)}", flush=True)
     steps = [float(s) for s in args.steps.split(",")]
     constant_drifts: list[float] = []
     adaptive_drifts: list[list[float]] = [[] for _ in args.checkpoints]
@@ -79,12 +98,12 @@ def main() -> None:
 
         for folder in args.recordings:
             def score(values: dict[str, float]) -> float:
-                return _drift(run(folder, [f"{SIGMAS[k]}={values[k]:.17g}" for k in SIGMAS]))
+                return _drift(run(folder, walks + [f"{SIGMAS[k]}={values[k]:.17g}" for k in SIGMAS]))
 
             start = {k: args.start_sigma for k in SIGMAS}
             best, values, evals = coordinate_search(score, start, list(SIGMAS), steps, rounds=args.rounds,
                                                     max_evals=args.max_evals)
-            constant = run(folder, [f"{SIGMAS[k]}={values[k]:.17g}" for k in SIGMAS])
+            constant = run(folder, walks + [f"{SIGMAS[k]}={values[k]:.17g}" for k in SIGMAS])
             constant_drifts.append(_drift(constant))
             print(f"{folder}: constant σs searched on it ({evals} runs: σ_lat {values['lat']:.4g}, σ_up "
                   f"{values['up']:.4g} m/s): filter / smoother {constant['filter_rmse_m']:.2f} / "

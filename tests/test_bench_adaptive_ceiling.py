@@ -32,22 +32,3 @@ def test_the_hand_form_reads_the_car_s_axes_and_the_last_fifth_of_a_second(forwa
     torch.testing.assert_close(f[0], torch.tensor(expected, dtype=torch.float64), rtol=1e-12, atol=0)
     torch.testing.assert_close(f[1], torch.ones(2, dtype=torch.float64), rtol=0, atol=0)
 
-
-def test_the_drift_bench_names_a_missing_checkpoint_and_recording(repo_module, tmp_path, monkeypatch, capsys):
-    import sys
-
-    import pytest
-
-    bench = repo_module("benchmarks/bench_adaptive_drift.py")
-    monkeypatch.setattr(sys, "argv", ["bench_adaptive_drift.py", "--checkpoint", str(tmp_path / "none.ckpt"),
-                                      str(tmp_path), "imu=simulated_drive"])
-    with pytest.raises(SystemExit):
-        bench.main()
-    assert "none.ckpt: no such checkpoint" in capsys.readouterr().err
-    ckpt = tmp_path / "a.ckpt"
-    ckpt.write_bytes(b"")
-    monkeypatch.setattr(sys, "argv", ["bench_adaptive_drift.py", "--checkpoint", str(ckpt), str(tmp_path / "gone"),
-                                      "imu=simulated_drive"])
-    with pytest.raises(SystemExit):
-        bench.main()
-    assert "gone: no such recording folder" in capsys.readouterr().err

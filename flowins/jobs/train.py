@@ -53,7 +53,8 @@ def run(cfg: Mapping[str, Any]) -> dict[str, Any]:
     params = FilterParameters(start, learn, bounds=setup.parameters.bounds, adaptive=settings.model.adaptive,
                               adaptive_decades=settings.model.adaptive_decades,
                               adaptive_angles_rad=settings.model.adaptive_angles_rad)
-    log.info(f"learning {len(params.learned)} parameters: {', '.join(params.learned)}")
+    log.info(f"learning {len(params.learned)} parameters: {', '.join(params.learned)}" if params.learned else
+             "learning no constant parameter (model.learn=[]): every one kept at its start")
     for kind, network in params.adaptive.items():
         log.info(f"learning adaptive noise for {kind}: {sum(p.numel() for p in network.parameters())} weights "
                  f"(flowins/measurements/adaptive_noise.py), factors within 10^±{settings.model.adaptive_decades:g}"
