@@ -31,15 +31,14 @@ import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_noise_bound import coordinate_search, run_once  # noqa: E402
+from bench_noise_bound import PARAMS, coordinate_search, run_once  # noqa: E402
 
 from flowins.jobs.cli import user_errors  # noqa: E402
 from flowins.training.parameters import FilterParameters  # noqa: E402
 
 SIGMAS = {"lat": "filter.measurements.vehicle.lateral_sigma_mps", "up": "filter.measurements.vehicle.vertical_sigma_mps"}
-#: a checkpoint's learned values the constant runs take too: name -> evaluate.py key
-WALKS = {"acc_bias_walk": "imu.acc_bias_walk", "gyro_bias_walk": "imu.gyro_bias_walk",
-         "acc_scale_walk": "filter.acc_scale_walk"}
+#: a checkpoint's learned values the constant runs take too (their keys: ``PARAMS``)
+WALKS = ("acc_bias_walk", "gyro_bias_walk", "acc_scale_walk")
 
 
 def checkpoint_walks(checkpoints: list[Path]) -> list[str]:
@@ -49,7 +48,7 @@ def checkpoint_walks(checkpoints: list[Path]) -> list[str]:
     if differ := [str(c) for c, v in zip(checkpoints, values) if any(v[k] != walks[k] for k in WALKS)]:
         raise ValueError(f"{', '.join(differ)}: bias walks other than {checkpoints[0]}'s {walks}; expected "
                          "checkpoints of one configuration")
-    return [f"{WALKS[k]}={v:.17g}" for k, v in walks.items()]
+    return [f"{PARAMS[k]}={v:.17g}" for k, v in walks.items()]
 
 
 def _metrics(folder: Path, out: Path, overrides: list[str]) -> dict:

@@ -32,6 +32,7 @@ PARAMS = {  # name: config key
     "gyro_noise": "imu.gyro_noise",
     "acc_bias_walk": "imu.acc_bias_walk",
     "gyro_bias_walk": "imu.gyro_bias_walk",
+    "acc_scale_walk": "filter.acc_scale_walk",
     "gnss_noise_scale": "filter.gnss_noise_scale",
     "vehicle_lateral_sigma_mps": "filter.measurements.vehicle.lateral_sigma_mps",
     "vehicle_vertical_sigma_mps": "filter.measurements.vehicle.vertical_sigma_mps",
