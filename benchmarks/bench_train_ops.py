@@ -16,12 +16,21 @@ cuda`` gives one run's seconds and operations per frame).
 batched filter runs that many rows (the window repeated, as ``data.batch_size`` sequences times the
 methods make rows): the time per row says how much a larger batch would gain there.
 
+``--compile`` times the step ``train.py`` takes by default (the window under ``ins_dense`` and
+``ins_gnss_dense``, two rows of one batched pass, forward and backward) eagerly and with
+``filter.compile=true`` (:mod:`flowins.filter.compiling`: the flow frames' update through inductor,
+its backward with it), ``--repeats`` rounds that run each once, interleaved (this machine's speed
+drifts): the first compiled step's time (it compiles), the medians, their ratio, and how far the
+loss and the gradients of the two ways lie apart (the still start of the walks magnifies rounding:
+docs/performance.md).
+
     python benchmarks/bench_train_ops.py [--window 20] [--points 128] [--method ins_dense]
-                                         [--device cpu|cuda] [--rows 2,8,32]
+                                         [--device cpu|cuda] [--rows 2,8,32] [--compile [--repeats 3]]
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from pathlib import Path
 
@@ -62,7 +71,12 @@ def main() -> None:
     parser.add_argument("--method", default="ins_dense")
     parser.add_argument("--device", default="cpu", help="where the filter's unroll runs: cpu | cuda | cuda:N")
     parser.add_argument("--rows", default="", help="comma-separated row counts whose batched step is also timed")
+    parser.add_argument("--compile", action="store_true",
+                        help="also time train.py's default step eagerly and with filter.compile=true, interleaved")
+    parser.add_argument("--repeats", type=int, default=3, help="--compile: the timed rounds")
     args = parser.parse_args()
+    if args.repeats < 1:
+        raise SystemExit(f"error: --repeats {args.repeats}: expected at least 1")
     device = check_device(args.device, "--device")
     try:
         row_counts = [int(r) for r in args.rows.split(",") if r.strip()]
@@ -73,8 +87,9 @@ def main() -> None:
     with hydra.initialize_config_dir(config_dir=CONFIGS, version_base="1.3"):
         cfg = OmegaConf.to_container(hydra.compose("train", overrides=["output_dir=/tmp"]), resolve=True)
     cfg["flow"]["device"] = str(device)  # the walk's flow on the same device (cached for both)
+    pair = ["ins_dense", "ins_gnss_dense"]  # --compile: train.py's default rows
     seq = load_training_sequence({"seed": 1, "duration_s": 60.0}, {**cfg, "flow": flow_config(cfg, moments=True)},
-                                 methods=[args.method])
+                                 methods=sorted({args.method, *(pair if args.compile else [])}))
     cfg["filter"]["flow"]["n_points"] = args.points
     setup = training_setup(cfg, [seq], recorded=False)
     _, start, learn = setup.parameters
@@ -135,9 +150,44 @@ def main() -> None:
         seconds = batched_step(count)
         print(f"a step of {count:3d} rows: {seconds:6.2f} s, {seconds / count:6.3f} s per row "
               f"({seconds / rows['training step'][1]:.2f}x one row's step)")
+    if args.compile:
+        compare_compiled(seq, params, setup.filter.navigation, pair, i_b, args.repeats)
     ratio = sum(rows["training step"][0].values()) / max(1, sum(rows["filter alone"][0].values()))
     print(f"RESULT training_ops_per_frame={sum(rows['training step'][0].values()) / frames:.0f} "
           f"filter_ops_per_frame={sum(rows['filter alone'][0].values()) / frames:.0f} ratio={ratio:.1f}")
+
+
+def compare_compiled(seq, params: FilterParameters, navigation, methods: list[str], i_b: int, repeats: int) -> None:
+    """A step of ``methods`` (one row each) on the window eagerly and with ``filter.compile=true``:
+    the first compiled step's seconds, then ``repeats`` interleaved rounds, their medians and ratio,
+    and the two ways' largest differences of the loss and of each gradient (relative)."""
+    import statistics
+
+    learned = [q for q in params.parameters() if q.requires_grad]
+
+    def step(compile: str) -> tuple[float, torch.Tensor, list[torch.Tensor]]:
+        t0 = time.perf_counter()
+        config = dataclasses.replace(params.apply(navigation, training=True, device=torch.device("cpu")), compile=compile)
+        results = run_windows([seq] * len(methods), methods, config, [(0, i_b)] * len(methods),
+                              dropout_p=params.value("dropout_p"))
+        loss = sum(window_loss(r.track, seq.truth).loss for r in results)
+        grads = torch.autograd.grad(loss, learned, allow_unused=True)
+        return time.perf_counter() - t0, loss.detach(), [g for g in grads if g is not None]
+
+    eager_s, eager_loss, eager_grads = step("false")
+    first_s, loss, grads = step("true")
+    print(f"a step of {' + '.join(methods)}: eager {eager_s:.2f} s (its first), compiled {first_s:.2f} s "
+          "(its first: it compiles)")
+    times: dict[str, list[float]] = {"false": [], "true": []}
+    for _ in range(repeats):
+        for how in times:
+            times[how].append(step(how)[0])
+    eager, compiled = statistics.median(times["false"]), statistics.median(times["true"])
+    apart = max(float((g - e).abs().max() / e.abs().max().clamp_min(1e-300)) for g, e in zip(grads, eager_grads))
+    print(f"  eager {' '.join(f'{t:.2f}' for t in times['false'])} s, compiled {' '.join(f'{t:.2f}' for t in times['true'])} s "
+          f"(medians {eager:.2f} / {compiled:.2f} s: {eager / compiled:.2f}x); loss {float(eager_loss):.6g} eager, "
+          f"{float(loss):.6g} compiled; gradients apart by up to {apart:.1e} of their largest entry")
+    print(f"RESULT compiled_step_speedup={eager / compiled:.2f} first_compiled_step_s={first_s:.1f}")
 
 
 if __name__ == "__main__":

@@ -16,8 +16,10 @@ where it cannot) or ``auto`` (compile where it can, eager elsewhere, saying whic
 Compiling costs minutes per shape on a 2-core CPU (docs/performance.md), so a step's inputs
 are padded to a few fixed shapes (:func:`bucket`) and each compiled function is kept for the
 process: the cost is paid once per shape, and inductor's cache on disk
-(``TORCHINDUCTOR_CACHE_DIR``) shortens it in a later process. Passes that carry a gradient
-(training) run eagerly.
+(``TORCHINDUCTOR_CACHE_DIR``) shortens it in a later process. A pass that carries a gradient
+(a training step) runs its steps compiled too, forward and backward (AOT autograd traces the
+backward with the forward), except on CUDA, where its steps run eagerly (CUDA graphs replayed
+before a backward that still needs the previous replay's memory are not supported here).
 """
 from __future__ import annotations
 
@@ -59,8 +61,10 @@ class Compiler:
         return self.backend is not None
 
     def __call__(self, fn: Callable, *args: Any, **kwargs: Any) -> Any:
-        """``fn(*args, **kwargs)``, compiled where this compiler is on and nothing needs a gradient."""
-        if not self.enabled or (torch.is_grad_enabled() and _needs_grad(args, kwargs)):
+        """``fn(*args, **kwargs)``, compiled where this compiler is on (with CUDA graphs, only where
+        nothing needs a gradient)."""
+        if not self.enabled or (self.mode == "reduce-overhead" and torch.is_grad_enabled()
+                                and _needs_grad(args, kwargs)):
             return fn(*args, **kwargs)
         args, kwargs = map_tensors(_fixed_layout, (args, kwargs))
         how = (fn, self.backend, self.mode)

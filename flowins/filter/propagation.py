@@ -309,7 +309,9 @@ def propagate_batched(
     # each node interval's steps, padded with identity steps (one gather of F and W together)
     steps = torch.cat((torch.stack((F, W), dim=-3).reshape(B * K, 2, CORE_DIM, CORE_DIM), _identity_step(F.dtype, F.device)))
     grouped = steps[plan.group.reshape(-1)].unflatten(0, plan.group.shape)  # (B, m, L, 2, 19, 19)
-    Phi_core, S_core = _interval_compose(grouped[..., 0, :, :], grouped[..., 1, :, :])
+    # unbound, not indexed: the backward of one unbind stacks both gradients, where each index's
+    # would fill a zero tensor of the whole gather
+    Phi_core, S_core = _interval_compose(*grouped.unbind(-3))
     Phi, S = embed_core(Phi_core, dim=dim)[0], pad_core(S_core, dim=dim)  # (B, m, D, D)
     covs = _node_covariances(P0, Phi, S)
     # node means: the state after each node's step, the start for a padding node (step -1)

@@ -106,7 +106,8 @@ class _Run(NamedTuple):
     acc: Tensor  # (S, 3) the reading driving each step
     gyro: Tensor
     dt: Tensor  # (S,)
-    variances: Tensor  # (S, 15) the steps' process noise variances
+    scales: Tensor  # (S, 15) the steps' process noise variances over the squared densities (no gradient)
+    squared: Tensor  # (15,) the squared densities (the parameters' gradient)
     segments: list[Segment]
     early: list  # events at the start time
 
@@ -180,7 +181,10 @@ def run_filters(
     flat = None if B == 1 and not compiled else [
         torch.cat([getattr(plan, name) for plan in plans] + [zero])
         for name, zero in (("acc", like.new_zeros(1, 3)), ("gyro", like.new_zeros(1, 3)),
-                           ("dt", like.new_zeros(1)), ("variances", like.new_zeros(1, NOISE_DIM)))]
+                           ("dt", like.new_zeros(1)), ("scales", like.new_zeros(1, NOISE_DIM)))]
+    # the steps' noise, segment by segment: the densities times the steps' scales
+    # (ProcessNoise.variance_scales), so that no segment's gradient passes through all steps
+    squared = torch.stack([plan.squared for plan in plans]).unsqueeze(1)  # (B, 1, 15)
     count = max(len(plan.segments) for plan in plans)
     steps = _place_steps([_segment_steps(plans, offsets, k, compiled=compiled) for k in range(count)], device)
     for k in track_progress(range(count), total=count, description=description, unit="update", enabled=progress):
@@ -188,10 +192,11 @@ def run_filters(
         nodes, index, node_steps, extra, compile_this = steps[k]
         if index is None:
             first, last = segments[0].first, segments[0].last
-            acc, gyro, dt, variances = (getattr(plans[0], name)[first:last + 1].unsqueeze(0)
-                                        for name in ("acc", "gyro", "dt", "variances"))
+            acc, gyro, dt, scales = (getattr(plans[0], name)[first:last + 1].unsqueeze(0)
+                                     for name in ("acc", "gyro", "dt", "scales"))
         else:
-            acc, gyro, dt, variances = (part[index] for part in flat)
+            acc, gyro, dt, scales = (part[index] for part in flat)
+        variances = squared * scales
         if jacobians == "analytic":
             propagate = functools.partial(chain.compiler, propagate_batched) if compile_this else propagate_batched
             out = propagate(chain.mean, chain.cov, acc, gyro, dt, nodes._replace(real=[]), variances=variances,
@@ -372,7 +377,8 @@ def _prepare(run: FilterInput, output_every: int, dtype: torch.dtype, device: to
             j += 1
         segments.append(Segment(start, end, steps, times, plan.events_by_step.get(end, [])))
         start = end + 1
-    return _Run(t0, acc, gyro, dt, noise.variances(dt), segments, [e for e in events if e.time_s <= t0])
+    return _Run(t0, acc, gyro, dt, noise.variance_scales(dt), noise.squared_densities(dtype, device), segments,
+                [e for e in events if e.time_s <= t0])
 
 
 class _Schedule(NamedTuple):

@@ -153,19 +153,32 @@ class ProcessNoise:
     def variances(self, dt_s: Tensor) -> Tensor:
         """The diagonal of :meth:`covariance`, ``(..., 15)``: the squared densities times
         ``1/Δt`` (``density``; 0 for a ``Δt = 0`` padding step, whose Jacobian column is zero
-        anyway) or ``Δt`` (``paper``) for the white inputs, times ``Δt`` for the walks."""
-        dt = dt_s.unsqueeze(-1)
+        anyway) or ``Δt`` (``paper``) for the white inputs, times ``Δt`` for the walks:
+        :meth:`squared_densities` times :meth:`variance_scales`."""
+        return self.squared_densities(dt_s.dtype, dt_s.device) * self.variance_scales(dt_s)
+
+    def squared_densities(self, dtype: torch.dtype, device: torch.device | str) -> Tensor:
+        """``σ²`` per noise axis ``(15,)`` in the NOISE layout: the part of :meth:`variances` that
+        carries the parameters' gradient."""
         values = (self.acc_noise, self.gyro_noise, self.acc_bias_walk, self.gyro_bias_walk, self.acc_scale_walk)
         if any(isinstance(v, Tensor) for v in values):
-            squared = _squared_densities(values, dt_s.dtype, dt_s.device)  # (15,)
-        else:  # plain numbers: built once
-            squared = _cached_squared_densities(tuple(float(v) for v in values), dt_s.dtype, dt_s.device)
+            return _squared_densities(values, dtype, device)
+        return _cached_squared_densities(tuple(float(v) for v in values), dtype, device)  # plain numbers: built once
+
+    def variance_scales(self, dt_s: Tensor) -> Tensor:
+        """``(..., 15)``: what :meth:`squared_densities` is multiplied by for steps ``Δt`` ``(...)``,
+        a function of the steps alone (no parameter, so no gradient): ``1/Δt`` (``density``; 0 for
+        ``Δt = 0``) or ``Δt`` (``paper``) for the white inputs, ``Δt`` for the walks. A pass keeps
+        these for all its steps and multiplies each segment's by the densities, so that the
+        gradient of each segment's noise reaches the parameters without passing through an
+        array of every step (whose backward would fill that whole array once per segment)."""
+        dt = dt_s.unsqueeze(-1)
         if self.discretization == "density":
             # white input noise sampled over Δt has variance σ²/Δt (0 for Δt = 0, gradient included)
             white_scale = (dt > 0) / dt.clamp_min(torch.finfo(dt.dtype).tiny)
         else:
             white_scale = dt
-        return squared * torch.where(_WHITE_INPUTS.to(dt_s.device), white_scale, dt)
+        return torch.where(_WHITE_INPUTS.to(dt_s.device), white_scale, dt)
 
 
 #: which of the 15 noise axes are white inputs (accelerometer, gyroscope) rather than walks

@@ -109,12 +109,15 @@ class AdaptiveNoise(nn.Module):
         taken relative to those of ``steady (1, 6, S)`` where given (the readings of a car going
         straight at a constant speed on a level road: no slip and no pitch there, whatever the
         weights; the mounting's constant part is the mounting's, ``mount_*_rad``)."""
-        z, y = self._outputs(windows)
+        with_steady = steady is not None and self.angles
+        # the steady reference in the same call as the windows: a convolution's rounding may depend
+        # on its batch's size, a row's within one call does not
+        z, y = self._outputs(torch.cat((windows, steady.to(windows)), 0) if with_steady else windows)
+        if with_steady:
+            z, y = z[:-1], y[:-1] - y[-1:]
         scale = self.decades * math.log(10.0)
         factors = torch.exp(scale * torch.tanh(z / scale))
         if not self.angles:
             return factors
-        if steady is not None:
-            y = y - self._outputs(steady)[1]
         bound = self.angle_bound_rad
         return factors, bound * torch.tanh(y / bound)

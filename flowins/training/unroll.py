@@ -39,6 +39,7 @@ from flowins.evaluation.metrics import (
     trajectory_errors,
 )
 from flowins.filter.chain import NodeTrack
+from flowins.filter.compiling import compiler_for
 from flowins.filter.runner import FilterInput, run_filters
 from flowins.filter.smoother import rts_smooth_batch
 from flowins.flow.pairs import FlowPairs
@@ -206,7 +207,8 @@ def run_windows(
         mean0, cov0 = (setup.mean0, setup.cov0) if first else start
         inputs.append(FilterInput(imu.t_s[i_a : i_b + 1], imu.acc_mps2[i_a : i_b + 1], imu.gyro_rps[i_a : i_b + 1],
                                   mean0, cov0, events))
-    tracks = run_filters(inputs, **config.filter_settings(), likelihood=likelihood)
+    tracks = run_filters(inputs, **config.filter_settings(), likelihood=likelihood,
+                         compiler=compiler_for(config.compile, config.device))
     smoothed = rts_smooth_batch(smoother_tracks(inputs, tracks, config)[0], marginal=STATE_DIM) if smooth else None
     return [WindowResult(track.in_final_frame(marginal=STATE_DIM), track.node_mean[-1], track.node_cov[-1], track.nll, track.nll_count,
                          None if smoothed is None else smoothed[i])

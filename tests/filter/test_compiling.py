@@ -191,3 +191,65 @@ def test_a_pass_of_every_event_kind_with_every_step_compiled_equals_the_eager_pa
         assert {"flow", "gnss", "zero_velocity", "vehicle"} <= kinds, kinds
         updates = sum(e.get("kind") in ("gnss", "zero_velocity", "vehicle") for e in eager[0].log)
         assert compiler.calls >= updates + 20 and compiler.compiles <= 8, compiler
+
+
+def _training_pass(runs, compiler, scale_value, acc_value):
+    """Loss and gradients of a pass over ``runs`` whose flow noise scale and accelerometer noise
+    density are tensors that carry a gradient (as a training step's are)."""
+    from flowins.measurements.flow_update import FlowFrame
+
+    scale = torch.tensor(scale_value, dtype=torch.float64, requires_grad=True)
+    acc = torch.tensor(acc_value, dtype=torch.float64, requires_grad=True)
+    learned = []
+    for run in runs:
+        events = [dataclasses.replace(e, update=dataclasses.replace(e.update, sigma_scale=scale))
+                  if isinstance(e, FlowFrame) else e for e in run.events]
+        learned.append(dataclasses.replace(run, events=events))
+    tracks = run_filters(learned, noise=ProcessNoise(acc_noise=acc), likelihood=True, compiler=compiler)
+    loss = sum(t.node_mean[:, :6].square().sum() + t.node_cov.diagonal(dim1=-2, dim2=-1).sum() + t.nll
+               for t in tracks)
+    return loss.detach(), torch.autograd.grad(loss, (scale, acc))
+
+
+def _gradients_agree(repo_module, *, backend: str, all_steps: bool, rtol: float) -> None:
+    """The two runs of every event kind as one batch, at two sets of parameter values: the compiled
+    pass's loss and gradients against the eager pass's, and nothing compiled at the second values."""
+    frames = repo_module("tests/measurements/test_flow_frames.py")
+    runs = []
+    for end_s in (7.0, 6.0):
+        run, events = frames._every_event_kind(end_s)
+        runs.append(dataclasses.replace(run, events=events))
+    torch._dynamo.reset()
+    compiling._COMPILED.clear()
+    for scale, acc in ((1.0, 3e-3), (1.7, 8e-3)):
+        compiler = Compiler(backend, reason="test", all_steps=all_steps)
+        want_loss, want = _training_pass(runs, None, scale, acc)
+        got_loss, got = _training_pass(runs, compiler, scale, acc)
+        assert compiler.calls >= 10, compiler
+        torch.testing.assert_close(got_loss, want_loss, rtol=rtol, atol=0)
+        for g, w in zip(got, want, strict=True):
+            assert float(w.abs()) > 0
+            torch.testing.assert_close(g, w, rtol=rtol, atol=0)
+        if scale != 1.0:  # other values, the same shapes: nothing compiled again
+            assert compiler.compiles == 0, compiler
+
+
+def test_a_pass_with_a_gradient_through_its_compiled_flow_frames_gives_the_eager_gradients(repo_module):
+    """A training pass (its noise parameters carry a gradient) runs its flow frames compiled, as
+    ``filter.compile`` does on a CPU: two runs of every event kind in one batch (the flow frames
+    iterated, gated, with the recovery; one row at a frame the other lacks, padded), through
+    ``torch.compile(fullgraph=True)`` with a backend that needs no compiler. The loss and the
+    gradients of the flow noise scale and the accelerometer noise density equal the eager pass's to
+    1e-9, relative; the next step's parameter values compile nothing new."""
+    _gradients_agree(repo_module, backend="eager", all_steps=False, rtol=1e-9)
+
+
+@pytest.mark.slow
+def test_a_pass_with_a_gradient_through_every_compiled_step_gives_the_eager_gradients(repo_module):
+    """As above, with the backward traced by AOT autograd as inductor traces it (``aot_eager``), and
+    every step compiled (``Compiler.all_steps``): the propagation between events and the GNSS
+    fixes' (with a reset), the zero-velocity and the vehicle updates too, their steps, nodes, rows
+    and blocks padded to fixed shapes. The padded sums round apart from eager's, which the
+    gradients magnify: they agree to 1e-7, relative (3e-8 seen); the flow frames alone to 1e-9."""
+    _gradients_agree(repo_module, backend="aot_eager", all_steps=True, rtol=1e-7)
+    _gradients_agree(repo_module, backend="aot_eager", all_steps=False, rtol=1e-9)
