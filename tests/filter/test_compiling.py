@@ -160,13 +160,9 @@ def test_compiling_does_not_print_what_tracing_says_about_cached_constants():
     assert not [w for w in seen if "lru_cache" in str(w.message)], [str(w.message) for w in seen]
 
 
-def test_a_pass_of_every_event_kind_with_every_step_compiled_equals_the_eager_pass(repo_module):
-    """``Compiler.all_steps`` (what CUDA runs): the flow frames, the propagation and every other
-    event's gated update (GNSS fixes with a reset, a zero-velocity and two vehicle updates) through
-    ``torch.compile(fullgraph=True)`` with a backend that needs no compiler, alone and as a batch of
-    two runs whose events differ (one row at a fix the other lacks: the update's rows and blocks
-    padded to a fixed shape): the same nodes, transitions and logs as eager to 1e-9, a shape per
-    kind of step, not one per call."""
+def _two_runs_of_every_event_kind(repo_module) -> list:
+    """The runs of every event kind ending at 7 s and at 6 s (their events differ), with nothing
+    compiled yet in this process."""
     frames = repo_module("tests/measurements/test_flow_frames.py")
     runs = []
     for end_s in (7.0, 6.0):
@@ -174,6 +170,17 @@ def test_a_pass_of_every_event_kind_with_every_step_compiled_equals_the_eager_pa
         runs.append(dataclasses.replace(run, events=events))
     torch._dynamo.reset()
     compiling._COMPILED.clear()
+    return runs
+
+
+def test_a_pass_of_every_event_kind_with_every_step_compiled_equals_the_eager_pass(repo_module):
+    """``Compiler.all_steps`` (what CUDA runs): the flow frames, the propagation and every other
+    event's gated update (GNSS fixes with a reset, a zero-velocity and two vehicle updates) through
+    ``torch.compile(fullgraph=True)`` with a backend that needs no compiler, alone and as a batch of
+    two runs whose events differ (one row at a fix the other lacks: the update's rows and blocks
+    padded to a fixed shape): the same nodes, transitions and logs as eager to 1e-9, a shape per
+    kind of step, not one per call."""
+    runs = _two_runs_of_every_event_kind(repo_module)
     for batch in (runs[:1], runs):
         compiler = Compiler("eager", reason="test", all_steps=True)
         with torch.inference_mode():
@@ -214,13 +221,7 @@ def _training_pass(runs, compiler, scale_value, acc_value):
 def _gradients_agree(repo_module, *, backend: str, all_steps: bool, rtol: float) -> None:
     """The two runs of every event kind as one batch, at two sets of parameter values: the compiled
     pass's loss and gradients against the eager pass's, and nothing compiled at the second values."""
-    frames = repo_module("tests/measurements/test_flow_frames.py")
-    runs = []
-    for end_s in (7.0, 6.0):
-        run, events = frames._every_event_kind(end_s)
-        runs.append(dataclasses.replace(run, events=events))
-    torch._dynamo.reset()
-    compiling._COMPILED.clear()
+    runs = _two_runs_of_every_event_kind(repo_module)
     for scale, acc in ((1.0, 3e-3), (1.7, 8e-3)):
         compiler = Compiler(backend, reason="test", all_steps=all_steps)
         want_loss, want = _training_pass(runs, None, scale, acc)
