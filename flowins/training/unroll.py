@@ -447,7 +447,9 @@ def sequences_errors(seqs: Sequence[TrainingSequence], method: str | Sequence[st
     equal work, each part one batch in a worker process of its own with one thread
     (:mod:`flowins.parallel`; as :func:`~flowins.navigation.navigate_batch` splits a batch): the
     held-out validations of ``train.py`` use every core. A part is another batch, so its RMSE
-    differs from the one-process batch's by rounding."""
+    differs from the one-process batch's by rounding. The workers run eagerly whatever
+    ``filter.compile`` says (each validation's workers are new processes, which would compile
+    every shape again); in this process the steps run as it says."""
     methods = [method] * len(seqs) if isinstance(method, str) else list(method)
     if len(methods) != len(seqs):
         raise ValueError(f"sequences_errors: {len(methods)} methods for {len(seqs)} sequences; expected one per sequence")
@@ -457,7 +459,9 @@ def sequences_errors(seqs: Sequence[TrainingSequence], method: str | Sequence[st
         # a line per validation would crowd train.py's story: debug level
         log.debug("held-out RMSE: %d runs in %d worker processes (filter.workers=%d)", len(seqs), len(parts),
                   config.workers)
-        task = functools.partial(_sequences_errors_here, config=dataclasses.replace(config, workers=1),
+        # eagerly there: the workers start afresh at every validation, and would compile its shapes
+        # again each time (filter.compile; minutes a validation, where the pass takes seconds)
+        task = functools.partial(_sequences_errors_here, config=dataclasses.replace(config, workers=1, compile="false"),
                                  dropout_p=dropout_p, smoother=smoother)
         return run_parts(task, parts, seqs, methods)
     return _sequences_errors_here(seqs, methods, config, dropout_p=dropout_p, smoother=smoother)
