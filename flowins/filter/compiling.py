@@ -23,10 +23,12 @@ before a backward that still needs the previous replay's memory are not supporte
 """
 from __future__ import annotations
 
+import logging
 import os
 import shutil
 import time
 import warnings
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -34,6 +36,8 @@ from typing import Any
 import torch
 
 SETTINGS = ("false", "true", "auto")
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -73,6 +77,11 @@ class Compiler:
             compiled = _COMPILED[how] = torch.compile(fn, fullgraph=True, dynamic=False, backend=self.backend,
                                                       mode=self.mode)
         self.calls += 1
+        shapes, seen = _signature(args, kwargs), _SEEN.setdefault(compiled, set())
+        if shapes not in seen:  # a step not met yet at these shapes: it compiles now, for minutes on a CPU
+            seen.add(shapes)
+            log.info("filter steps: compiling %s with %s for %s (once per shape in a process; minutes on a CPU)",
+                     _name(fn), self.backend, _describe(shapes))
         graphs = _graphs()
         start = time.perf_counter()
         with warnings.catch_warnings():
@@ -84,8 +93,10 @@ class Compiler:
                 out = compiled(*args, **kwargs)
         compiled_now = _graphs() - graphs
         if compiled_now:  # a shape (or setting) not met yet in this process: this call compiled
-            self.compile_s += time.perf_counter() - start
+            spent = time.perf_counter() - start
+            self.compile_s += spent
             self.compiles += compiled_now
+            log.info("filter steps: %s compiled in %.1f s", _name(fn), spent)
         return out
 
     def describe(self) -> str:
@@ -99,6 +110,29 @@ class Compiler:
 #: each step's compiled function by (function, backend, mode), for the process: a later run
 #: with the shapes met before compiles nothing
 _COMPILED: dict[tuple, Callable] = {}
+
+
+#: per compiled step, the inputs' shapes it has met (:func:`_signature`), to say when it compiles
+_SEEN: weakref.WeakKeyDictionary[Callable, set[tuple]] = weakref.WeakKeyDictionary()
+
+
+def _signature(args: tuple, kwargs: dict) -> tuple:
+    """The shape, dtype, device and gradient of every tensor in a step's inputs, in order, and
+    whether gradients are on: what makes a compiled step compile again (its settings aside)."""
+    found: list = []
+    map_tensors(lambda t: found.append((tuple(t.shape), t.dtype, t.device.type, t.requires_grad)) or t, (args, kwargs))
+    return torch.is_grad_enabled(), tuple(found)
+
+
+def _describe(signature: tuple) -> str:
+    """The largest of a step's input shapes (its batch and point counts show there), for the log."""
+    grad, tensors = signature
+    largest = max(tensors, key=lambda t: (len(t[0]), t[0]), default=((), None, "", False))[0]
+    return f"inputs up to {tuple(largest)}" + (", with gradients" if grad and any(t[3] for t in tensors) else "")
+
+
+def _name(fn: Callable) -> str:
+    return getattr(fn, "__qualname__", getattr(fn, "__name__", repr(fn)))
 
 
 def _quiet_tracing() -> None:

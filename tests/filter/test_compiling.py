@@ -1,6 +1,7 @@
 """``filter.compile`` (:mod:`flowins.filter.compiling`): which compiler a setting gives, and a
 filter pass whose flow frames run through ``torch.compile`` against the eager pass."""
 import dataclasses
+import logging
 
 import pytest
 import torch
@@ -119,6 +120,26 @@ def test_a_run_reports_its_steps_where_compiling_was_asked(monkeypatch):
     monkeypatch.setenv("CXX", "no-such-compiler-flowins")
     steps = navigate(run, config=NavigationConfig(compile="auto")).filter_steps
     assert steps.startswith("filter steps: eager") and "no C++ compiler" in steps
+
+
+def test_a_step_says_when_it_compiles_a_shape_and_what_that_took(caplog):
+    """Compiling takes minutes on a CPU, with nothing else on the job's output: the log says so
+    before the call that compiles a shape (naming the step and its largest input) and after it,
+    and says nothing for a shape met before."""
+    def doubled(x, y):
+        return x * 2 + y.sum()
+
+    compiler = Compiler("eager", reason="test")
+    with caplog.at_level(logging.INFO, logger="flowins"):
+        for rows in (3, 3, 5):
+            compiler(doubled, torch.ones(rows, 2), torch.ones(4))
+    lines = [r.getMessage() for r in caplog.records if r.name == "flowins.filter.compiling"]
+    assert [line.split(" for ")[0] for line in lines if "compiling" in line] == [
+        "filter steps: compiling test_a_step_says_when_it_compiles_a_shape_and_what_that_took.<locals>.doubled "
+        "with eager"] * 2, lines
+    assert "inputs up to (3, 2)" in lines[0] and "inputs up to (5, 2)" in lines[2], lines
+    assert len(lines) == 4 and all(" compiled in " in line for line in lines[1::2]), lines
+    assert compiler.compiles == 2
 
 
 def test_copied_clones_every_tensor_through_named_tuples_dicts_and_lists():
