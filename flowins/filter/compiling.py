@@ -23,6 +23,7 @@ before a backward that still needs the previous replay's memory are not supporte
 """
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import shutil
@@ -80,10 +81,11 @@ class Compiler:
         shapes, seen = _signature(args, kwargs), _SEEN.setdefault(compiled, set())
         if shapes not in seen:  # a step not met yet at these shapes: it compiles now, for minutes on a CPU
             seen.add(shapes)
-            log.info("filter steps: compiling %s with %s for %s (once per shape in a process; minutes on a CPU)",
-                     _name(fn), self.backend, _describe(shapes))
+            log.info("filter steps: compiling %s (shape %d of it in this process) with %s for %s (once per shape "
+                     "in a process; minutes on a CPU)", _name(fn), len(seen), self.backend, _describe(shapes))
         graphs = _graphs()
         start = time.perf_counter()
+        _quiet_inductor()
         with warnings.catch_warnings():
             _quiet_tracing()
             if self.mode == "reduce-overhead":  # CUDA graphs: a new step; its outputs live in the graph's
@@ -96,7 +98,9 @@ class Compiler:
             spent = time.perf_counter() - start
             self.compile_s += spent
             self.compiles += compiled_now
-            log.info("filter steps: %s compiled in %.1f s", _name(fn), spent)
+            log.info("filter steps: %s compiled in %.1f s%s", _name(fn), spent,
+                     "; its backward compiles at the first backward pass" if shapes[0] and _needs_grad(args, kwargs)
+                     else "")
         return out
 
     def describe(self) -> str:
@@ -140,8 +144,14 @@ def _quiet_tracing() -> None:
     function and per internal call it meets (dozens of lines on a job's output): that dynamo traces
     through a ``functools`` cache (flowins caches only constants that are pure functions of their
     hashable arguments, :func:`~flowins.constants.cached_constant`, so tracing the function is
-    exact) and inductor's own deprecation warnings."""
+    exact)."""
     warnings.filterwarnings("ignore", message="Dynamo detected a call to a `functools.lru_cache`", category=UserWarning)
+
+
+@functools.cache
+def _quiet_inductor() -> None:
+    """Silence inductor's own deprecation warnings for the process, once: a step's backward
+    compiles in a backward pass, outside the step's call."""
     warnings.filterwarnings("ignore", category=FutureWarning, module=r"torch\._inductor")
 
 

@@ -205,6 +205,11 @@ def _flow_update(chain: BatchChain, rows: list[int], frames: list[FlowFrame]) ->
     pad = chain.rows - r if compiled else 0
     step_rows = list(rows) + [rows[0]] * pad
     mean, cov = chain.newest(step_rows)
+    if compiled and cov.requires_grad and not mean.requires_grad and torch.is_grad_enabled():
+        # a training window's first frames: its mean (detached at the window's start, no update yet)
+        # carries no gradient where its covariance does, and a compiled step guards on that, so it
+        # would compile a second shape; a leaf of the same values gives the parameters the same gradients
+        mean = mean.detach().requires_grad_()
     lengths = [frame.count_t for frame in frames]
     frame_points = [frame.points for frame in frames]
     if pad:

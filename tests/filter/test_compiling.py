@@ -134,12 +134,18 @@ def test_a_step_says_when_it_compiles_a_shape_and_what_that_took(caplog):
         for rows in (3, 3, 5):
             compiler(doubled, torch.ones(rows, 2), torch.ones(4))
     lines = [r.getMessage() for r in caplog.records if r.name == "flowins.filter.compiling"]
+    name = "test_a_step_says_when_it_compiles_a_shape_and_what_that_took.<locals>.doubled"
     assert [line.split(" for ")[0] for line in lines if "compiling" in line] == [
-        "filter steps: compiling test_a_step_says_when_it_compiles_a_shape_and_what_that_took.<locals>.doubled "
-        "with eager"] * 2, lines
+        f"filter steps: compiling {name} (shape {k} of it in this process) with eager" for k in (1, 2)], lines
     assert "inputs up to (3, 2)" in lines[0] and "inputs up to (5, 2)" in lines[2], lines
-    assert len(lines) == 4 and all(" compiled in " in line for line in lines[1::2]), lines
+    assert len(lines) == 4 and all(" compiled in " in line and "backward" not in line for line in lines[1::2]), lines
     assert compiler.compiles == 2
+    caplog.clear()  # with a gradient: its backward compiles later, in the backward pass, and the log says so
+    with caplog.at_level(logging.INFO, logger="flowins"):
+        compiler(doubled, torch.ones(3, 2, requires_grad=True), torch.ones(4))
+    lines = [r.getMessage() for r in caplog.records if r.name == "flowins.filter.compiling"]
+    assert "shape 3 of it" in lines[0] and "with gradients" in lines[0], lines
+    assert lines[1].endswith("; its backward compiles at the first backward pass"), lines
 
 
 def test_copied_clones_every_tensor_through_named_tuples_dicts_and_lists():
@@ -237,6 +243,25 @@ def _training_pass(runs, compiler, scale_value, acc_value):
     loss = sum(t.node_mean[:, :6].square().sum() + t.node_cov.diagonal(dim1=-2, dim2=-1).sum() + t.nll
                for t in tracks)
     return loss.detach(), torch.autograd.grad(loss, (scale, acc))
+
+
+def test_a_window_whose_first_frames_mean_has_no_gradient_compiles_one_shape(repo_module):
+    """A training window starts from the detached state of the one before: at its first flow
+    frames the mean carries no gradient while the covariance does (the process noise is learned).
+    The compiled step still meets one shape in the pass, not one for each, and its loss and
+    gradients are the eager pass's."""
+    frames = repo_module("tests/measurements/test_flow_frames.py")
+    run, _, _ = frames._flow_run(5.0, 6.0, 40, 3, own_camera=False)
+    torch._dynamo.reset()
+    compiling._COMPILED.clear()
+    assert not run.mean0.requires_grad
+    compiler = Compiler("eager", reason="test")
+    want_loss, want = _training_pass([run], None, 1.0, 3e-3)
+    got_loss, got = _training_pass([run], compiler, 1.0, 3e-3)
+    assert compiler.calls >= 5 and compiler.compiles == 1, compiler
+    torch.testing.assert_close(got_loss, want_loss, rtol=1e-9, atol=0)
+    for g, w in zip(got, want, strict=True):
+        torch.testing.assert_close(g, w, rtol=1e-9, atol=0)
 
 
 def _gradients_agree(repo_module, *, backend: str, all_steps: bool, rtol: float) -> None:
