@@ -99,8 +99,7 @@ class Compiler:
             self.compile_s += spent
             self.compiles += compiled_now
             log.info("filter steps: %s compiled in %.1f s%s", _name(fn), spent,
-                     "; its backward compiles at the first backward pass" if shapes[0] and _needs_grad(args, kwargs)
-                     else "")
+                     "; its backward compiles at the first backward pass" if _with_gradients(shapes) else "")
         return out
 
     def describe(self) -> str:
@@ -130,9 +129,14 @@ def _signature(args: tuple, kwargs: dict) -> tuple:
 
 def _describe(signature: tuple) -> str:
     """The largest of a step's input shapes (its batch and point counts show there), for the log."""
+    largest = max(signature[1], key=lambda t: (len(t[0]), t[0]), default=((), None, "", False))[0]
+    return f"inputs up to {tuple(largest)}" + (", with gradients" if _with_gradients(signature) else "")
+
+
+def _with_gradients(signature: tuple) -> bool:
+    """Whether a call of that :func:`_signature` carries a gradient (gradients on, an input needing one)."""
     grad, tensors = signature
-    largest = max(tensors, key=lambda t: (len(t[0]), t[0]), default=((), None, "", False))[0]
-    return f"inputs up to {tuple(largest)}" + (", with gradients" if grad and any(t[3] for t in tensors) else "")
+    return grad and any(t[3] for t in tensors)
 
 
 def _name(fn: Callable) -> str:
