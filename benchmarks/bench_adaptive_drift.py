@@ -22,10 +22,20 @@ is the one difference. Then it runs each checkpoint
 them, filter and smoother RMSE beside the drift, and ends with one line per checkpoint,
 ``RESULT run=<i> constant_drift=<%> adaptive_drift=<%> change=<%> recordings=<n>`` (means over
 the recordings; issue 62 asks for a change of -25 % or less).
+
+``--simulator-law`` adds a run whose angles are the simulated car's own: the slip and pitch that
+the drive simulator ties to the lateral and forward acceleration (``slip_per_lateral_rad``,
+``pitch_per_acceleration_rad`` in each drive's ``metadata.yaml``), set as the first checkpoint's
+network's linear map of the recent specific force, its walks and σs kept and its σ factors held
+at 1 (or, one run per ``--law-factors F_LAT,F_UP``, at those). No network that reads the IMU
+knows the car's law better, so these runs are the most the mounting's angles can give with
+those σs; each ends with ``RESULT run=law[F_LAT,F_UP] ...``. Drives whose laws differ are
+refused.
 """
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import tempfile
 from pathlib import Path
@@ -33,7 +43,12 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_noise_bound import PARAMS, coordinate_search, run_once  # noqa: E402
 
+import torch  # noqa: E402
+
+from flowins.constants import STANDARD_GRAVITY_MPS2  # noqa: E402
+from flowins.data.csvio import load_yaml  # noqa: E402
 from flowins.jobs.cli import user_errors  # noqa: E402
+from flowins.measurements.vehicle import VehicleSettings  # noqa: E402
 from flowins.training.parameters import FilterParameters  # noqa: E402
 
 SIGMAS = {"lat": "filter.measurements.vehicle.lateral_sigma_mps", "up": "filter.measurements.vehicle.vertical_sigma_mps"}
@@ -49,6 +64,64 @@ def checkpoint_walks(checkpoints: list[Path]) -> list[str]:
         raise ValueError(f"{', '.join(differ)}: bias walks other than {checkpoints[0]}'s {walks}; expected "
                          "checkpoints of one configuration")
     return [f"{PARAMS[k]}={v:.17g}" for k, v in walks.items()]
+
+
+def simulator_law(recordings: list[Path]) -> tuple[float, float]:
+    """The drives' slip and pitch per m/s² of lateral and forward acceleration (rad), from their
+    ``metadata.yaml`` (all drives must agree)."""
+    laws = {}
+    for folder in recordings:
+        data, _ = load_yaml(folder / "metadata.yaml") if (folder / "metadata.yaml").is_file() else (None, None)
+        config = ((data or {}).get("simulation") or {}).get("config") or {}
+        if not {"slip_per_lateral_rad", "pitch_per_acceleration_rad"} <= set(config):
+            raise ValueError(f"{folder / 'metadata.yaml'}: no simulation.config.slip_per_lateral_rad and "
+                             "pitch_per_acceleration_rad; --simulator-law expects drives of flowins.data.simulate "
+                             "--scenario drive")
+        laws[folder] = (float(config["slip_per_lateral_rad"]), float(config["pitch_per_acceleration_rad"]))
+    if len(set(laws.values())) > 1:
+        raise ValueError(f"--simulator-law: the drives' laws differ ({laws}); expected drives of one car")
+    return next(iter(laws.values()))
+
+
+def law_checkpoint(checkpoint: Path, slip: float, pitch: float, factors: tuple[float, float], out: Path) -> Path:
+    """A copy of ``checkpoint`` whose vehicle network sets the car's own angles: its head's weights
+    at zero (the σ factors ``factors`` at every update, no angle of its own) and its linear map of
+    the last 0.2 s's mean specific force (g, IMU axes) giving a yaw of ``slip`` · g rad per g of
+    lateral force and a pitch of ``-pitch`` · g rad per g of forward force (nose down when
+    braking), along the car's axes (x forward, z up, as the drive simulator's) turned by the
+    checkpoint's mounting."""
+    state = torch.load(checkpoint, map_location="cpu", weights_only=True)
+    weights = state["state_dict"]
+    prefix = "params.adaptive.vehicle."
+    if prefix + "recent.weight" not in weights:
+        raise ValueError(f"{checkpoint}: its vehicle network sets no angles; --simulator-law expects a checkpoint of "
+                         "model.adaptive_angles_rad > 0 (experiment=adaptive_vehicle)")
+    values = FilterParameters.from_checkpoint(checkpoint).values()
+    like = weights[prefix + "recent.weight"]
+    C_cb = VehicleSettings(mount_pitch_rad=values["vehicle_mount_pitch_rad"],
+                           mount_yaw_rad=values["vehicle_mount_yaw_rad"]).vehicle_from_imu(like)
+    scale = float(weights[prefix + "decades"]) * math.log(10.0)  # factor = exp(scale tanh(bias / scale))
+    if bad := [f for f in factors if not (f > 0 and abs(math.log(f)) < scale)]:
+        raise ValueError(f"--law-factors: {bad}; expected numbers within the network's bound "
+                         f"({math.exp(-scale):g}, {math.exp(scale):g}), exclusive")
+    weights[prefix + "head.weight"].zero_()
+    bias = weights[prefix + "head.bias"]
+    bias.zero_()
+    bias[:2] = torch.tensor([scale * math.atanh(math.log(f) / scale) for f in factors], dtype=bias.dtype)
+    recent = torch.zeros_like(like)  # (2 angles: pitch, yaw; 6 readings: gyro, then specific force in g)
+    recent[0, 3:] = -pitch * STANDARD_GRAVITY_MPS2 * C_cb[0]
+    recent[1, 3:] = slip * STANDARD_GRAVITY_MPS2 * C_cb[1]
+    weights[prefix + "recent.weight"] = recent
+    torch.save(state, out)
+    return out
+
+
+def _factor_pair(text: str) -> tuple[float, float]:
+    try:
+        lateral, vertical = (float(x) for x in text.split(","))
+    except ValueError:
+        raise ValueError(f"--law-factors {text!r}; expected F_LAT,F_UP, two σ factors such as 1,0.5") from None
+    return lateral, vertical
 
 
 def _metrics(folder: Path, out: Path, overrides: list[str]) -> dict:
@@ -69,6 +142,12 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--max-evals", type=int, default=40, help="per recording")
     parser.add_argument("--start-sigma", type=float, default=1.0, help="both constant σs' start (m/s)")
+    parser.add_argument("--simulator-law", action="store_true",
+                        help="add a run with the simulated car's own slip and pitch law as the first checkpoint's "
+                             "angles, its σ factors 1")
+    parser.add_argument("--law-factors", action="append", metavar="F_LAT,F_UP",
+                        help="with --simulator-law: the law's run with these constant σ factors instead of 1,1; "
+                             "again for more runs")
     parser.add_argument("items", nargs="+", metavar="RECORDING | OVERRIDE",
                         help="drives neither training nor selection saw, then evaluate.py overrides for every "
                              "run (KEY=VALUE: imu=..., filter...)")
@@ -85,10 +164,21 @@ def main() -> None:
     walks = checkpoint_walks(args.checkpoints)
     print(f"constant σs with the checkpoints' walks: {' '.join(walks)}", flush=True)
     steps = [float(s) for s in args.steps.split(",")]
+    if args.law_factors and not args.simulator_law:
+        raise ValueError("--law-factors: only with --simulator-law")
+    law = simulator_law(args.recordings) if args.simulator_law else None
+    law_factors = [_factor_pair(x) for x in args.law_factors or ["1,1"]] if law else []
     constant_drifts: list[float] = []
-    adaptive_drifts: list[list[float]] = [[] for _ in args.checkpoints]
+    labels = [str(i) for i in range(len(args.checkpoints))] + [f"law[{a:g},{b:g}]" for a, b in law_factors]
+    adaptive_drifts: list[list[float]] = [[] for _ in labels]
     with tempfile.TemporaryDirectory() as tmp:
         count = 0
+        runs = list(args.checkpoints)
+        for k, factors in enumerate(law_factors):
+            runs.append(law_checkpoint(args.checkpoints[0], *law, factors, Path(tmp) / f"law{k}.ckpt"))
+            print(f"run {labels[len(args.checkpoints) + k]}: {args.checkpoints[0]} with the drives' own slip "
+                  f"{law[0]:g} and pitch {law[1]:g} rad per m/s² as its angles, its σ factors {factors[0]:g} "
+                  f"(lateral) and {factors[1]:g} (vertical)", flush=True)
 
         def run(folder: Path, overrides: list[str]) -> dict:
             nonlocal count
@@ -107,15 +197,15 @@ def main() -> None:
             print(f"{folder}: constant σs searched on it ({evals} runs: σ_lat {values['lat']:.4g}, σ_up "
                   f"{values['up']:.4g} m/s): filter / smoother {constant['filter_rmse_m']:.2f} / "
                   f"{constant['smoother_rmse_m']:.2f} m, drift {_drift(constant):.3f} %", flush=True)
-            for i, checkpoint in enumerate(args.checkpoints):
+            for i, checkpoint in enumerate(runs):
                 adaptive = run(folder, [f"model.checkpoint={checkpoint}"])
                 adaptive_drifts[i].append(_drift(adaptive))
-                print(f"{folder}: run {i} ({checkpoint}): filter / smoother {adaptive['filter_rmse_m']:.2f} / "
+                print(f"{folder}: run {labels[i]} ({checkpoint}): filter / smoother {adaptive['filter_rmse_m']:.2f} / "
                       f"{adaptive['smoother_rmse_m']:.2f} m, drift {_drift(adaptive):.3f} %", flush=True)
     c = sum(constant_drifts) / len(constant_drifts)
-    for i, drifts in enumerate(adaptive_drifts):
+    for label, drifts in zip(labels, adaptive_drifts):
         a = sum(drifts) / len(drifts)
-        print(f"RESULT run={i} constant_drift={c:.3f}% adaptive_drift={a:.3f}% change={100 * (a / c - 1):+.1f}% "
+        print(f"RESULT run={label} constant_drift={c:.3f}% adaptive_drift={a:.3f}% change={100 * (a / c - 1):+.1f}% "
               f"recordings={len(args.recordings)}")
 
 
