@@ -16,7 +16,7 @@ second process finds inductor's code in its cache) and the largest difference of
 
     python benchmarks/bench_compile.py [--step flow|frame|propagation] [--batch 1 8] [--points 256]
                                        [--imu-steps 10] [--backend inductor] [--repeats 50] [--cpp-wrapper]
-                                       [--eigen eigh|jacobi]
+                                       [--eigen eigh|jacobi] [--max-fusion-size N]
 
 ``--cpp-wrapper``: inductor writes the code that calls its kernels in C++ too (its Python
 wrapper runs about 2,200 statements per call of the frame step: allocations, kernel calls,
@@ -25,6 +25,11 @@ frees), at the cost of a longer compile.
 ``--eigen jacobi`` triangulates the flow points by Jacobi rotations
 (:func:`flowins.linalg.jacobi_right_singular`, what a GPU runs) instead of ``eigh``, eager and
 compiled alike.
+
+``--max-fusion-size N``: the most nodes inductor fuses into one kernel
+(``torch._inductor.config.max_fusion_size``, 64 by default): a longer chain of elementwise
+operations, as the Jacobi rotations are, is otherwise cut into several kernels that write their
+intermediates out.
 
 ``--backend eager`` checks only that the step is one graph (``fullgraph=True``: any graph
 break is an error), which needs no compiler.
@@ -134,6 +139,8 @@ def main() -> None:
                         help="inductor's C++ wrapper (torch._inductor.config.cpp_wrapper) instead of its Python one")
     parser.add_argument("--eigen", choices=("eigh", "jacobi"), default="eigh",
                         help="how the flow points are triangulated (flowins.geometry.triangulation.solve_dlt)")
+    parser.add_argument("--max-fusion-size", type=int, default=None,
+                        help="inductor's largest fusion (torch._inductor.config.max_fusion_size; its default 64)")
     args = parser.parse_args()
     if args.eigen != "eigh":  # before anything is traced: the flow model looks solve_dlt up at each call
         import functools
@@ -146,6 +153,10 @@ def main() -> None:
         from torch._inductor import config as inductor
 
         inductor.cpp_wrapper = True
+    if args.max_fusion_size is not None:
+        from torch._inductor import config as inductor
+
+        inductor.max_fusion_size = args.max_fusion_size
     if args.step == "flow":
         what, fn, make = f"flow_iteration, {args.points} points a frame", step, lambda b: frame(b, args.points)
     elif args.step == "frame":
@@ -155,7 +166,9 @@ def main() -> None:
         what, fn, make = (f"propagate_batched, {args.imu_steps} IMU steps to one node", propagation,
                           lambda b: imu_run(b, args.imu_steps))
     print(f"{what}, float64, {torch.get_num_threads()} threads, backend {args.backend}"
-          + (", C++ wrapper" if args.cpp_wrapper else "") + (f", triangulation by {args.eigen}" if args.step != "propagation" else ""))
+          + (", C++ wrapper" if args.cpp_wrapper else "")
+          + (f", fusions up to {args.max_fusion_size} nodes" if args.max_fusion_size is not None else "")
+          + (f", triangulation by {args.eigen}" if args.step != "propagation" else ""))
     for batch in args.batch:
         inputs = make(batch)
         with torch.inference_mode():
