@@ -86,3 +86,31 @@ def test_the_command_line_writes_the_drive_it_describes(tmp_path, capsys):
     expected, _ = drive_sequence(DriveConfig(duration_s=40.0, outage_s=10.0, seed=3))
     torch.testing.assert_close(written.imu.gyro_rps, expected.imu.gyro_rps, rtol=0, atol=0)
     assert len(written.gnss) == len(expected.gnss) and "written to" in capsys.readouterr().out
+
+
+def test_the_slopes_scale_the_roads_grade_and_zero_gives_a_flat_road(tmp_path, capsys):
+    """The velocity's climb angle against the closed form ``scale · Σ a sin(2π t / T + φ)``; at
+    scale 0 the ground truth stays at its start height and the car's x axis is level where it does
+    not accelerate (no pitch law, no bumps); the command line's ``--slopes`` sets it and names a
+    bad value."""
+    from flowins.data.simulate.__main__ import main
+    from flowins.data.simulate.drive import _GRADE
+
+    t = torch.linspace(0.0, 300.0, 3001, dtype=F64)
+    grade = sum(a * torch.sin(2 * math.pi * t / T + p) for a, T, p in _GRADE)
+    for scale in (0.0, 1.0, 2.5):
+        v = Drive(DriveConfig(grade_scale=scale, bump_height_m=0.0)).velocity(t)
+        climb = torch.atan2(v[..., 2], v[..., :2].norm(dim=-1))
+        torch.testing.assert_close(climb, scale * grade, atol=1e-12, rtol=0)
+    flat = Drive(DriveConfig(grade_scale=0.0, bump_height_m=0.0, pitch_per_acceleration_rad=0.0))
+    assert float(flat.position(t)[..., 2].abs().max()) < 1e-9
+    assert float(flat.rotation(t)[..., 2, 0].abs().max()) < 1e-12  # body x has no up component
+    assert main([str(tmp_path / "d"), "--scenario", "drive", "--duration", "40", "--outage", "10", "--slopes", "0",
+                 "--bumps", "0"]) == 0
+    written = simulate_drive(tmp_path / "d", DriveConfig(duration_s=40.0, outage_s=10.0, grade_scale=0.0,
+                                                         bump_height_m=0.0))  # read back: the same simulation
+    heights = written.groundtruth.pos_m[:, 2]
+    assert float((heights - heights[0]).abs().max()) < 1e-6
+    capsys.readouterr()
+    assert main([str(tmp_path / "e"), "--scenario", "drive", "--duration", "40", "--outage", "10", "--slopes", "-1"]) == 2
+    assert "DriveConfig.grade_scale=-1.0; expected a factor in [0, 10]" in capsys.readouterr().err

@@ -49,6 +49,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="drive: the car's nose into a turn per m/s² of lateral acceleration (0: no slip)")
     parser.add_argument("--pitch", type=float, default=drive.pitch_per_acceleration_rad, metavar="RAD_PER_MPS2",
                         help="drive: the car's nose up per m/s² of forward acceleration (0: none)")
+    parser.add_argument("--slopes", type=float, default=drive.grade_scale, metavar="SCALE",
+                        help="drive: the road's slopes (up to about 0.03 rad) times this (0: a flat road)")
     parser.add_argument("--bumps", type=float, default=drive.bump_height_m, metavar="M",
                         help=f"drive: bumps this high every {drive.bump_every_s:g} s (0: a smooth road)")
     args = parser.parse_args(argv)
@@ -59,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
             config = DriveConfig(duration_s=args.duration, seed=args.seed, outage_s=args.outage,
                                  imu_mount_pitch_rad=pitch, imu_mount_yaw_rad=yaw, imu_lever_m=tuple(args.lever),
                                  slip_per_lateral_rad=args.slip, pitch_per_acceleration_rad=args.pitch,
-                                 bump_height_m=args.bumps)
+                                 bump_height_m=args.bumps, grade_scale=args.slopes)
             sequence = simulate_drive(args.out, config, overwrite=args.overwrite)
         else:
             config = _config(args)

@@ -74,6 +74,8 @@ class DriveConfig:
     slip_per_lateral_rad: float = 0.005
     #: the car's nose up by this per m/s² of forward acceleration (down when braking)
     pitch_per_acceleration_rad: float = 0.01
+    #: the road's slopes (a sum of sinusoids up to about 0.03 rad) times this: 0 for a flat road
+    grade_scale: float = 1.0
     #: bumps in the road: this high, one every ``bump_every_s``, each ``exp(-(Δt / bump_width_s)²)`` in time
     bump_height_m: float = 0.03
     bump_every_s: float = 15.0
@@ -102,6 +104,9 @@ class DriveConfig:
             raise ValueError(f"DriveConfig.imperfections={self.imperfections!r}; expected an Imperfections")
         if self.duration_s < 20.0:
             raise ValueError(f"DriveConfig.duration_s={self.duration_s}; expected >= 20 s")
+        if not 0.0 <= self.grade_scale <= 10.0:
+            raise ValueError(f"DriveConfig.grade_scale={self.grade_scale}; expected a factor in [0, 10] on the road's "
+                             "slopes (0: a flat road)")
         if not (self.bump_every_s > 0.0 and self.bump_width_s > 0.0 and self.bump_height_m >= 0.0):
             raise ValueError(f"DriveConfig: bump_height_m={self.bump_height_m}, bump_every_s={self.bump_every_s}, "
                              f"bump_width_s={self.bump_width_s}; expected a height >= 0 and times > 0")
@@ -152,7 +157,7 @@ class Drive:
 
     def _track(self, t: Tensor) -> tuple[Tensor, Tensor]:
         """``(grade, heading)`` rad of the velocity."""
-        return _waves(t, _GRADE), self.config.heading_rad + _wave_integral(t, _YAW_RATE)
+        return self.config.grade_scale * _waves(t, _GRADE), self.config.heading_rad + _wave_integral(t, _YAW_RATE)
 
     def _angles(self, t: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """The car's roll, pitch and yaw: the track's, rolled and slipped by the lateral
