@@ -149,13 +149,11 @@ def main() -> None:
         from flowins.geometry.triangulation import solve_dlt
 
         flow_model.solve_dlt = functools.partial(solve_dlt, eigen=args.eigen)
-    if args.cpp_wrapper:
-        from torch._inductor import config as inductor
+    from torch._inductor import config as inductor
 
+    if args.cpp_wrapper:
         inductor.cpp_wrapper = True
     if args.max_fusion_size is not None:
-        from torch._inductor import config as inductor
-
         inductor.max_fusion_size = args.max_fusion_size
     if args.step == "flow":
         what, fn, make = f"flow_iteration, {args.points} points a frame", step, lambda b: frame(b, args.points)
