@@ -30,7 +30,10 @@ network's linear map of the recent specific force, its walks and σs kept and it
 at 1 (or, one run per ``--law-factors F_LAT,F_UP``, at those). No network that reads the IMU
 knows the car's law better, so these runs are the most the mounting's angles can give with
 those σs; each ends with ``RESULT run=law[F_LAT,F_UP] ...``. Drives whose laws differ are
-refused.
+refused. With ``--law-acceleration`` the law reads the car's acceleration, the specific force
+less gravity by the filter's attitude at each update (``model.adaptive_compensate_gravity``), as
+the simulator's law does; without, the specific force, in which a slope looks like an
+acceleration.
 """
 from __future__ import annotations
 
@@ -83,13 +86,16 @@ def simulator_law(recordings: list[Path]) -> tuple[float, float]:
     return next(iter(laws.values()))
 
 
-def law_checkpoint(checkpoint: Path, slip: float, pitch: float, factors: tuple[float, float], out: Path) -> Path:
+def law_checkpoint(checkpoint: Path, slip: float, pitch: float, factors: tuple[float, float], out: Path,
+                   acceleration: bool = False) -> Path:
     """A copy of ``checkpoint`` whose vehicle network sets the car's own angles: its head's weights
     at zero (the σ factors ``factors`` at every update, no angle of its own) and its linear map of
     the last 0.2 s's mean specific force (g, IMU axes) giving a yaw of ``slip`` · g rad per g of
     lateral force and a pitch of ``-pitch`` · g rad per g of forward force (nose down when
     braking), along the car's axes (x forward, z up, as the drive simulator's) turned by the
-    checkpoint's mounting."""
+    checkpoint's mounting. With ``acceleration`` the map reads the car's acceleration (the
+    specific force less gravity by the filter's attitude, ``compensate_gravity``), as the
+    simulator's law does; without, the specific force."""
     state = torch.load(checkpoint, map_location="cpu", weights_only=True)
     weights = state["state_dict"]
     prefix = "params.adaptive.vehicle."
@@ -112,6 +118,9 @@ def law_checkpoint(checkpoint: Path, slip: float, pitch: float, factors: tuple[f
     recent[0, 3:] = -pitch * STANDARD_GRAVITY_MPS2 * C_cb[0]
     recent[1, 3:] = slip * STANDARD_GRAVITY_MPS2 * C_cb[1]
     weights[prefix + "recent.weight"] = recent
+    weights.pop(prefix + "compensate_gravity", None)
+    if acceleration:
+        weights[prefix + "compensate_gravity"] = torch.tensor(1.0, dtype=like.dtype)
     torch.save(state, out)
     return out
 
@@ -148,6 +157,9 @@ def main() -> None:
     parser.add_argument("--law-factors", action="append", metavar="F_LAT,F_UP",
                         help="with --simulator-law: the law's run with these constant σ factors instead of 1,1; "
                              "again for more runs")
+    parser.add_argument("--law-acceleration", action="store_true",
+                        help="with --simulator-law: the law reads the car's acceleration (the specific force less "
+                             "gravity by the filter's attitude), not the specific force")
     parser.add_argument("items", nargs="+", metavar="RECORDING | OVERRIDE",
                         help="drives neither training nor selection saw, then evaluate.py overrides for every "
                              "run (KEY=VALUE: imu=..., filter...)")
@@ -164,8 +176,8 @@ def main() -> None:
     walks = checkpoint_walks(args.checkpoints)
     print(f"constant σs with the checkpoints' walks: {' '.join(walks)}", flush=True)
     steps = [float(s) for s in args.steps.split(",")]
-    if args.law_factors and not args.simulator_law:
-        raise ValueError("--law-factors: only with --simulator-law")
+    if (args.law_factors or args.law_acceleration) and not args.simulator_law:
+        raise ValueError("--law-factors, --law-acceleration: only with --simulator-law")
     law = simulator_law(args.recordings) if args.simulator_law else None
     law_factors = [_factor_pair(x) for x in args.law_factors or ["1,1"]] if law else []
     constant_drifts: list[float] = []
@@ -175,10 +187,12 @@ def main() -> None:
         count = 0
         runs = list(args.checkpoints)
         for k, factors in enumerate(law_factors):
-            runs.append(law_checkpoint(args.checkpoints[0], *law, factors, Path(tmp) / f"law{k}.ckpt"))
+            runs.append(law_checkpoint(args.checkpoints[0], *law, factors, Path(tmp) / f"law{k}.ckpt",
+                                       acceleration=args.law_acceleration))
+            reads = "acceleration" if args.law_acceleration else "specific force"
             print(f"run {labels[len(args.checkpoints) + k]}: {args.checkpoints[0]} with the drives' own slip "
-                  f"{law[0]:g} and pitch {law[1]:g} rad per m/s² as its angles, its σ factors {factors[0]:g} "
-                  f"(lateral) and {factors[1]:g} (vertical)", flush=True)
+                  f"{law[0]:g} and pitch {law[1]:g} rad per m/s² (of the {reads}) as its angles, its σ factors "
+                  f"{factors[0]:g} (lateral) and {factors[1]:g} (vertical)", flush=True)
 
         def run(folder: Path, overrides: list[str]) -> dict:
             nonlocal count

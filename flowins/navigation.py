@@ -246,7 +246,8 @@ def prepare_navigation(run: NavigationRun, *, config: NavigationConfig = Navigat
         clones = config.tracks.window
         events = events + track_frames(run.tracks, run.camera, config.tracks, t_min_s=start.t_s, t_max_s=t_end_s,
                                        name=run.tracks.name)
-    context = NavigationContext(t_start_s=start.t_s, t_end_s=t_end_s, frame=frame, dtype=config.dtype, imu=imu)
+    context = NavigationContext(t_start_s=start.t_s, t_end_s=t_end_s, frame=frame, dtype=config.dtype, imu=imu,
+                                gravity_mps2=float(config.gravity_mps2))
     events += registered_events(run.streams, config.measurements, context)
     like = {"dtype": config.dtype, "device": torch.device(config.device)}
     mean0, cov0 = with_window(start.mean.to(**like), start.cov.to(**like), clones,

@@ -52,14 +52,16 @@ def run(cfg: Mapping[str, Any]) -> dict[str, Any]:
     tuned, start, learn = setup.parameters
     params = FilterParameters(start, learn, bounds=setup.parameters.bounds, adaptive=settings.model.adaptive,
                               adaptive_decades=settings.model.adaptive_decades,
-                              adaptive_angles_rad=settings.model.adaptive_angles_rad)
+                              adaptive_angles_rad=settings.model.adaptive_angles_rad,
+                              adaptive_compensate_gravity=settings.model.adaptive_compensate_gravity)
     log.info(f"learning {len(params.learned)} parameters: {', '.join(params.learned)}" if params.learned else
              "learning no constant parameter (model.learn=[]): every one kept at its start")
     for kind, network in params.adaptive.items():
         log.info(f"learning adaptive noise for {kind}: {sum(p.numel() for p in network.parameters())} weights "
                  f"(flowins/measurements/adaptive_noise.py), factors within 10^±{settings.model.adaptive_decades:g}"
                  + (f", the mounting's pitch and yaw within ±{settings.model.adaptive_angles_rad:g} rad"
-                    if network.angles else ""))
+                    if network.angles else "")
+                 + (" from the car's acceleration (the filter's attitude)" if network.compensates_gravity else ""))
     module = FilterLearner(params, setup.filter.navigation, methods=methods, model=settings.model,
                            window_s=settings.window_s, curriculum_window_s=settings.curriculum_window_s or (),
                            reference={"start": start, "hand-tuned": tuned}, output_dir=str(out))

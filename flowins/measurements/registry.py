@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from flowins.config import build
+from flowins.constants import STANDARD_GRAVITY_MPS2
 
 if TYPE_CHECKING:
     from flowins.data.streams import ImuStream
@@ -39,6 +40,8 @@ class NavigationContext:
     dtype: torch.dtype
     #: the run's IMU readings (a kind whose model needs them, such as the vehicle constraint's lever arm)
     imu: ImuStream | None = None
+    #: gravity's magnitude (m/s²) the run's filter takes
+    gravity_mps2: float = STANDARD_GRAVITY_MPS2
 
 
 @dataclass(frozen=True)

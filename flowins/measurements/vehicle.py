@@ -41,11 +41,12 @@ import torch
 from torch import Tensor
 
 from flowins.config import bounded, check_fields
-from flowins.constants import cached_constant, scalar_like
+from flowins.constants import STANDARD_GRAVITY_MPS2, cached_constant, scalar_like
 from flowins.filter.chain import BatchChain, RowBatchEvent
 from flowins.filter.updater import update_rows
 from flowins.geometry import quaternion as quat
-from flowins.measurements.adaptive_noise import covering_sample, imu_windows, steady_window
+from flowins.measurements.adaptive_noise import (acceleration_g, covering_sample, imu_windows, recent_force_g,
+                                                 steady_window)
 from flowins.measurements.registry import MeasurementKind, NavigationContext, register
 from flowins.state import STATE
 
@@ -185,6 +186,13 @@ class VehicleUpdate(RowBatchEvent):
     #: ``(2,)`` pitch and yaw (rad) added to the mounting at this update, from the settings'
     #: ``noise_model``; None: the mounting as it is
     mount_offset_rad: Tensor | None = None
+    #: a ``noise_model`` that reads the car's acceleration (``compensates_gravity``): its angles'
+    #: outputs before the acceleration's part ``(2,)`` and the mean specific force of the last
+    #: 0.2 s ``(3,)`` (g, IMU axes), the angles set at the update with the filter's attitude
+    angle_input: Tensor | None = None
+    recent_force_g: Tensor | None = None
+    #: gravity (m/s²) the acceleration is taken with
+    gravity_mps2: float = STANDARD_GRAVITY_MPS2
 
     def batch_key(self) -> Hashable:
         """Updates with the same settings (one run's, or one config's for a batch) act together."""
@@ -197,7 +205,8 @@ class VehicleUpdate(RowBatchEvent):
         if all(u.gyro_rps.dtype == like.dtype and u.gyro_rps.device == like.device for u in updates):
             return list(updates)
         gyro = torch.stack([u.gyro_rps for u in updates]).to(like)
-        fields = {"sigma_scale": [u.sigma_scale for u in updates], "mount_offset_rad": [u.mount_offset_rad for u in updates]}
+        fields = {name: [getattr(u, name) for u in updates]
+                  for name in ("sigma_scale", "mount_offset_rad", "angle_input", "recent_force_g")}
         placed = {name: _placed(values, like) for name, values in fields.items()}
         return [dataclasses.replace(u, gyro_rps=gyro[i], **{name: p[i] for name, p in placed.items()})
                 for i, u in enumerate(updates)]
@@ -212,6 +221,12 @@ class VehicleUpdate(RowBatchEvent):
         offset = None  # one settings: every update with its offsets, or none
         if events[0].mount_offset_rad is not None:
             offset = torch.stack([e.mount_offset_rad for e in events]).to(mean)
+        elif events[0].angle_input is not None:  # the angles read the car's acceleration at this attitude
+            force = torch.stack([e.recent_force_g for e in events]).to(mean)
+            acceleration = acceleration_g(force, mean[..., STATE.q], events[0].gravity_mps2,
+                                          acc_bias_mps2=mean[..., STATE.b_a], acc_scale=mean[..., STATE.T_a])
+            offset = settings.noise_model.bounded_angles(torch.stack([e.angle_input for e in events]).to(mean),
+                                                         acceleration)
         h, H = constraint_terms(mean, gyro, settings.vehicle_from_imu(mean, offset), settings.lever_arm(mean))
         sigma = torch.stack([scalar_like(s, mean) for s in (settings.lateral_sigma_mps, settings.vertical_sigma_mps)])
         sigma = sigma.expand(r, 2)
@@ -355,7 +370,14 @@ def vehicle_events(stream: VehicleConstraint, settings: VehicleSettings, context
         imu = context.imu
         windows = imu_windows(imu.t_s, imu.acc_mps2, imu.gyro_rps, times)
         steady = steady_window(settings.vehicle_from_imu(windows)[2].detach())  # the car's up axis in the IMU frame
-        scale = settings.noise_model(windows, steady)
+        network = settings.noise_model
+        if getattr(network, "compensates_gravity", False):  # angles at each update, from the filter's attitude
+            scale, y = network.split(windows, steady)
+            force = recent_force_g(windows)
+            return [VehicleUpdate(t, settings, gyro[i], sigma_scale=scale[i], angle_input=y[i],
+                                  recent_force_g=force[i], gravity_mps2=context.gravity_mps2)
+                    for i, t in enumerate(times.tolist())]
+        scale = network(windows, steady)
         if isinstance(scale, tuple):  # factors and the mounting's offsets
             scale, offset = scale
     return [VehicleUpdate(t, settings, gyro[i], sigma_scale=scale[i], mount_offset_rad=offset[i])

@@ -64,7 +64,7 @@ The parameters (units of the filter config, ``configs/filter/default.yaml``):
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Collection, Iterable, Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
@@ -195,6 +195,9 @@ class ModelSettings:
         adaptive_angles_rad: > 0: the vehicle network also sets the mounting's pitch and yaw at
             each update (the car's pitch under acceleration, its slip in a turn), each within
             ``±adaptive_angles_rad`` of the mounting (:data:`ADAPTIVE_ANGLES`); 0: σs only.
+        adaptive_compensate_gravity: the angles read the car's acceleration, the specific force
+            less gravity by the filter's attitude at each update, not the specific force, in
+            which a slope looks like an acceleration (needs ``adaptive_angles_rad > 0``).
         adaptive_lr: the networks' weights' learning rate at the start, on ``lr``'s schedule
             (warm-up and decay alike).
         checkpoint: a ``train.py`` checkpoint whose learned values the filter uses.
@@ -227,6 +230,7 @@ class ModelSettings:
     adaptive: tuple[str, ...] = ()
     adaptive_decades: float = bounded(1.0, above=0.0)
     adaptive_angles_rad: float = bounded(0.0, minimum=0.0, maximum=0.5)
+    adaptive_compensate_gravity: bool = False
     adaptive_lr: float = bounded(0.01, minimum=1e-12)
     checkpoint: str | None = None
     select_flow_gate: tuple[float, ...] = bounded((), above=0.0, below=1.0)
@@ -235,6 +239,10 @@ class ModelSettings:
     def __post_init__(self) -> None:
         if unknown := sorted(set(self.adaptive) - set(ADAPTIVE_KINDS)):
             raise ValueError(f"model.adaptive: {unknown}; expected kinds from {list(ADAPTIVE_KINDS)}")
+        if self.adaptive_compensate_gravity and not (self.adaptive_angles_rad > 0
+                                                     and set(self.adaptive) & set(ADAPTIVE_ANGLES)):
+            raise ValueError("model.adaptive_compensate_gravity=true: it acts on the angles; expected "
+                             f"model.adaptive with one of {list(ADAPTIVE_ANGLES)} and model.adaptive_angles_rad > 0")
         for name, value in self.start.items():
             if name not in NAMES:
                 raise ValueError(f"model.start.{name}: unknown parameter; expected names from {', '.join(NAMES)}")
@@ -393,6 +401,9 @@ class FilterParameters(nn.Module):
             within ``adaptive_decades`` of the σs above; learned unless ``learn_adaptive`` is False.
         adaptive_angles_rad: > 0: the networks of :data:`ADAPTIVE_ANGLES`' kinds also set angles
             within ``±adaptive_angles_rad`` (rad); a kind -> bound mapping sets it per kind.
+        adaptive_compensate_gravity: those angles read the car's acceleration, not the specific
+            force (:class:`~flowins.measurements.adaptive_noise.AdaptiveNoise`); a collection of
+            kinds sets it per kind.
 
     Attributes:
         raw: the coordinates ``a``, one 0-dim float64 ``nn.Parameter`` each (0 at the start).
@@ -405,7 +416,7 @@ class FilterParameters(nn.Module):
                  bounds: Mapping[str, float | None] | None = None,
                  ceilings: Mapping[str, float] | None = None, adaptive: Iterable[str] = (),
                  adaptive_decades: float = 1.0, adaptive_angles_rad: float | Mapping[str, float] = 0.0,
-                 learn_adaptive: bool = True) -> None:
+                 adaptive_compensate_gravity: bool | Collection[str] = False, learn_adaptive: bool = True) -> None:
         super().__init__()
         if unknown := sorted(set(adaptive) - set(ADAPTIVE_KINDS)):
             raise ValueError(f"FilterParameters: adaptive noise for {unknown}; expected kinds from {list(ADAPTIVE_KINDS)}")
@@ -416,8 +427,11 @@ class FilterParameters(nn.Module):
             bound = float(angles.get(kind, 0.0))
             if bound and kind not in ADAPTIVE_ANGLES:
                 raise ValueError(f"FilterParameters: angles for {kind}; expected kinds from {list(ADAPTIVE_ANGLES)}")
+            compensate = (kind in adaptive_compensate_gravity if not isinstance(adaptive_compensate_gravity, bool)
+                          else adaptive_compensate_gravity and bool(bound))
             return AdaptiveNoise(ADAPTIVE_KINDS[kind], decades=adaptive_decades,
-                                 angles=ADAPTIVE_ANGLES[kind] if bound else 0, angle_bound_rad=bound or 0.05)
+                                 angles=ADAPTIVE_ANGLES[kind] if bound else 0, angle_bound_rad=bound or 0.05,
+                                 compensate_gravity=compensate)
 
         self.adaptive = nn.ModuleDict({kind: network(kind) for kind in sorted(set(adaptive))})
         self.adaptive.requires_grad_(learn_adaptive)
@@ -601,7 +615,8 @@ class FilterParameters(nn.Module):
                 angles[kind] = float(bound_rad)
         module = cls({n: float(center[n]) for n in NAMES}, learn=(),
                      bounds={n: None if math.isinf(float(bound[n])) else float(bound[n]) for n in NAMES},
-                     ceilings=ceiling, adaptive=networks, adaptive_angles_rad=angles, learn_adaptive=False)
+                     ceilings=ceiling, adaptive=networks, adaptive_angles_rad=angles, learn_adaptive=False,
+                     adaptive_compensate_gravity={kind for kind, w in networks.items() if "compensate_gravity" in w})
         with torch.no_grad():
             for n in NAMES:
                 module.raw[n].copy_(raw[n].reshape(()))

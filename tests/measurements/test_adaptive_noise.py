@@ -1,12 +1,14 @@
 """Adaptive noise: the IMU windows, the bounded factors, the gradient through the filter and a checkpoint."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
 import torch
 
 from flowins.data.simulate.drive import AUTOMOTIVE_IMU, DriveConfig, drive_sequence
+from flowins.geometry import quaternion as quat
 from flowins.ins.mechanization import ProcessNoise
 from flowins.measurements.adaptive_noise import RECENT_SAMPLES, AdaptiveNoise, imu_windows, steady_window
 from flowins.measurements.vehicle import VehicleSettings
@@ -215,3 +217,173 @@ def test_a_checkpoint_keeps_the_angles_and_their_bound(tmp_path):
         FilterParameters.from_checkpoint(path)
     with pytest.raises(ValueError, match="model.adaptive_angles_rad"):
         build(ModelSettings, {"adaptive_angles_rad": 0.7}, "model")
+
+
+# ------------------------------------------------------------------ angles from the car's acceleration
+
+def test_the_acceleration_is_the_specific_force_less_gravity_in_the_imus_axes():
+    """On a simulated car on a sloped road, with the true attitude: the specific force less gravity
+    is the velocity's rate in the IMU's axes (a central difference), for the filter's gravity."""
+    from flowins.data.simulate.drive import Drive
+    from flowins.measurements.adaptive_noise import acceleration_g
+
+    car = Drive(DriveConfig(grade_scale=3.0, imu_mount_pitch_rad=0.03, imu_mount_yaw_rad=-0.02))
+    t = torch.linspace(5.0, 200.0, 60, dtype=F64)
+    g = 9.79
+    force, _ = car.imu(t, gravity_mps2=g)
+    h = 1e-5
+    rate = (car.velocity(t + h) - car.velocity(t - h)) / (2 * h)
+    q = car.quaternion(t)
+    expected = quat.rotate(quat.conjugate(q), rate) / 9.80665
+    got = acceleration_g(force / 9.80665, q, g)
+    assert torch.allclose(got, expected, rtol=0, atol=1e-8)  # a difference's error: 2e-9 at h = 1e-5 s
+    slope_part = quat.rotate(quat.conjugate(q), torch.tensor([0.0, 0.0, g], dtype=F64).expand(60, 3))[:, 0]
+    assert slope_part.abs().max() > 0.2  # the specific force's forward part holds g sin(slope): not small
+    batch = acceleration_g((force / 9.80665).reshape(3, 20, 3), q.reshape(3, 20, 4), g)
+    assert torch.allclose(batch.reshape(60, 3), got, rtol=0, atol=1e-15)
+    # an accelerometer that reads f / T_a + b_a (the mechanization's model), corrected by both
+    bias = torch.tensor([0.05, -0.03, 0.08], dtype=F64)
+    scale = torch.tensor([1.01, 0.98, 1.02], dtype=F64)
+    measured = (force / scale + bias) / 9.80665
+    corrected = acceleration_g(measured, q, g, acc_bias_mps2=bias.expand(60, 3), acc_scale=scale.expand(60, 3))
+    assert torch.allclose(corrected, got, rtol=0, atol=1e-14)
+    assert (acceleration_g(measured, q, g) - got).abs().max() > 1e-3
+
+
+def _acceleration_network(bound: float = 0.05, seed: int = 12) -> AdaptiveNoise:
+    net = AdaptiveNoise(angles=2, angle_bound_rad=bound, compensate_gravity=True)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.normal_(0.0, 0.1, generator=torch.Generator().manual_seed(seed))
+    return net
+
+
+def test_an_acceleration_network_adds_the_acceleration_where_the_specific_force_was():
+    """Closed form: angles ``A tanh((y_head + W_w ω̄ + W_f a) / A)`` relative to the steady car's
+    (whose acceleration is 0); ``split`` then ``bounded_angles`` is ``forward``; without the
+    acceleration it refuses."""
+    net = _acceleration_network()
+    assert net.compensates_gravity and not AdaptiveNoise(angles=2).compensates_gravity
+    windows = torch.randn(5, 6, 100, dtype=F64, generator=torch.Generator().manual_seed(13))
+    accel = torch.randn(5, 3, dtype=F64, generator=torch.Generator().manual_seed(14)) * 0.2
+    steady = steady_window(torch.tensor([0.0, 0.0, 1.0], dtype=F64))
+    factors, angles = net(windows, steady, accel)
+    plain = AdaptiveNoise(angles=2, angle_bound_rad=0.05)
+    plain.load_state_dict({k: v for k, v in net.state_dict().items() if k != "compensate_gravity"})
+    W = net.recent.weight.detach()
+    with torch.no_grad():  # the head's part (unbounded), by the network without its linear path
+        plain.recent.weight.zero_()
+        head_factors, head = plain.split(windows, steady)
+    gyro_mean = windows[:, :3, -RECENT_SAMPLES:].mean(-1)
+    y = head + gyro_mean @ W[:, :3].T + accel @ W[:, 3:].T
+    assert torch.allclose(angles, 0.05 * torch.tanh(y / 0.05), rtol=0, atol=1e-12)
+    assert torch.equal(factors, head_factors) and head.abs().min() > 1e-3
+    f, y_split = net.split(windows, steady)
+    assert torch.equal(net.bounded_angles(y_split, accel), angles) and torch.equal(f, factors)
+    _, at_steady = net(steady.expand(2, 6, 100), steady, torch.zeros(2, 3, dtype=F64))
+    assert torch.equal(at_steady, torch.zeros(2, 2, dtype=F64))
+    with pytest.raises(ValueError, match="expected acceleration"):
+        net(windows, steady)
+    with pytest.raises(ValueError, match="compensate_gravity=True without angles"):
+        AdaptiveNoise(compensate_gravity=True)
+
+
+def _law_network(slip: float, pitch: float, *, compensate: bool) -> AdaptiveNoise:
+    """The simulated car's slip and pitch law on the recent force (g) along x (forward), y (left)."""
+    net = AdaptiveNoise(angles=2, angle_bound_rad=0.1, compensate_gravity=compensate)
+    with torch.no_grad():
+        net.recent.weight[0, 3] = -pitch * 9.80665
+        net.recent.weight[1, 4] = slip * 9.80665
+    return net
+
+
+def test_on_a_sloped_road_the_acceleration_law_sets_the_cars_own_pitch_through_the_filter():
+    """Through the filter on a car whose pitch follows its forward acceleration, on a sloped road:
+    the law read from the acceleration at each update (the filter's attitude) is the simulated
+    car's pitch, ``-k a_forward``, within 1.5 mrad RMS (the filter's attitude and bias errors, the
+    IMU's noise), with an accelerometer 0.2 m/s² off too (the filter's bias estimate corrects
+    it); read from the specific force, the slope (up to 0.09 rad here, ``k g sin(slope)``: up to
+    18 mrad) throws it off by more than 6."""
+    from flowins.data.simulate.drive import _SPEED, _wave_rate
+    from flowins.measurements.adaptive_noise import AdaptiveNoise as Net
+
+    from flowins.data.synthetic import Imperfections
+
+    config = DriveConfig(duration_s=90.0, outage_s=0.0, grade_scale=3.0, slip_per_lateral_rad=0.0,
+                         pitch_per_acceleration_rad=0.02, bump_height_m=0.0)
+    sequences = {"plain": drive_sequence(config)[0],  # and an accelerometer off by 0.2 m/s² forward
+                 "biased": drive_sequence(dataclasses.replace(
+                     config, imperfections=Imperfections(acc_bias_mps2=(0.2, 0.0, 0.0))))[0]}
+    seen: list[torch.Tensor] = []
+    original = Net.bounded_angles
+
+    def spy(self, y, acceleration=None):
+        out = original(self, y, acceleration)
+        seen.append(out.detach())
+        return out
+
+    e = AUTOMOTIVE_IMU
+    noise = ProcessNoise(acc_noise=e.acc_noise, gyro_noise=e.gyro_noise)
+    errors = {}
+    for case, compensate in (("plain", True), ("plain", False), ("biased", True)):
+        seq = sequences[case]
+        seen.clear()
+        vehicle = VehicleSettings(mode="on", rate_hz=1.0, lateral_sigma_mps=0.1, vertical_sigma_mps=0.1,
+                                  noise_model=_law_network(0.0, 0.02, compensate=compensate))
+        with pytest.MonkeyPatch.context() as mp, torch.no_grad():
+            mp.setattr(Net, "bounded_angles", spy)
+            navigate(NavigationRun(seq.imu, seq.gnss), config=NavigationConfig(noise=noise,
+                                                                              measurements={"vehicle": vehicle}))
+        pitch = torch.cat(seen)[:, 0]
+        t = torch.arange(1, len(pitch) + 1, dtype=F64) + float(seq.imu.t_s[0])
+        truth = -0.02 * _wave_rate(t - 0.1, _SPEED)  # the last 0.2 s's mean: at its middle
+        errors[case, compensate] = (pitch - truth)[20:].pow(2).mean().sqrt()  # once the filter has settled
+    assert errors["plain", True] < 1.5e-3 and errors["plain", False] > 6e-3, errors
+    assert errors["biased", True] < 1.5e-3, errors  # the filter's bias estimate taken out (4 mrad if not)
+
+
+def test_an_acceleration_networks_gradient_through_the_filter_is_the_finite_difference(short_drive):
+    """Through the filter, where the angles read the filter's attitude and bias at each update:
+    d(loss)/d(the acceleration columns of the linear path) by autograd equals a central difference."""
+    net = AdaptiveNoise(angles=2, angle_bound_rad=0.05, compensate_gravity=True)
+    with torch.no_grad():
+        net.recent.weight.normal_(0.0, 0.05, generator=torch.Generator().manual_seed(15))
+    loss = _drive_loss(short_drive, net, lever_forward_m=-1.2)
+    (grad,) = torch.autograd.grad(loss, net.recent.weight)
+    h = 1e-6
+    for i, j in ((0, 3), (1, 4), (0, 5), (1, 2)):
+        with torch.no_grad():
+            net.recent.weight[i, j] += h
+            up = float(_drive_loss(short_drive, net, lever_forward_m=-1.2))
+            net.recent.weight[i, j] -= 2 * h
+            down = float(_drive_loss(short_drive, net, lever_forward_m=-1.2))
+            net.recent.weight[i, j] += h
+        assert float(grad[i, j]) == pytest.approx((up - down) / (2 * h), rel=1e-4, abs=1e-12), (i, j)
+    assert grad[:, 3:].abs().min() > 0
+
+
+def test_a_checkpoint_keeps_an_acceleration_network_and_settings_refuse_it_without_angles(tmp_path):
+    from flowins.training.module import FilterLearner
+    from flowins.training.parameters import FilterParameters, ModelSettings, starting_values
+
+    params = FilterParameters(starting_values(NavigationConfig()), learn=["acc_noise"], adaptive=["vehicle"],
+                              adaptive_angles_rad=0.04, adaptive_compensate_gravity=True)
+    network = params.adaptive["vehicle"]
+    assert network.compensates_gravity
+    with torch.no_grad():
+        for p in params.adaptive.parameters():
+            p.normal_(0.0, 0.3, generator=torch.Generator().manual_seed(16))
+    path = tmp_path / "acceleration.ckpt"
+    torch.save({"state_dict": FilterLearner(params, NavigationConfig(), methods=["ins"]).state_dict()}, path)
+    loaded = FilterParameters.from_checkpoint(path).adaptive["vehicle"]
+    assert loaded.compensates_gravity and float(loaded.angle_bound_rad) == 0.04
+    windows = torch.randn(5, 6, 100, dtype=F64, generator=torch.Generator().manual_seed(17))
+    accel = torch.randn(5, 3, dtype=F64, generator=torch.Generator().manual_seed(18)) * 0.1
+    for a, b in zip(loaded(windows, None, accel), network(windows, None, accel)):
+        assert torch.equal(a, b.detach())
+    plain = FilterParameters(starting_values(NavigationConfig()), learn=[], adaptive=["vehicle"], adaptive_angles_rad=0.04)
+    assert not plain.adaptive["vehicle"].compensates_gravity
+    for bad in ({"adaptive": ("vehicle",)}, {"adaptive_angles_rad": 0.05}):
+        with pytest.raises(ValueError, match="model.adaptive_compensate_gravity=true: it acts on the angles"):
+            ModelSettings(adaptive_compensate_gravity=True, **bad)
+    ModelSettings(adaptive=("vehicle",), adaptive_angles_rad=0.05, adaptive_compensate_gravity=True)
