@@ -85,8 +85,9 @@ class VehicleSettings:
     #: not a config key: the learned network that scales both σs at each update from the IMU's
     #: recent readings (:class:`~flowins.measurements.adaptive_noise.AdaptiveNoise`: factors
     #: ``(E, 2)``, or factors and the mounting's offsets at each update ``(E, 2)``, pitch then yaw
-    #: in rad, the car's slip and its pitch under acceleration), set from a checkpoint or while
-    #: training (``model.adaptive=[vehicle]``); None: constant σs and the mounting above
+    #: in rad, the car's slip and its pitch under acceleration; a network that ``compensates_gravity``
+    #: sets them at each update from the filter's state, :class:`VehicleUpdate`), set from a checkpoint
+    #: or while training (``model.adaptive=[vehicle]``); None: constant σs and the mounting above
     noise_model: Any = None
 
     def __post_init__(self) -> None:
