@@ -389,7 +389,7 @@ def filter_setup(cfg: Mapping[str, Any], recordings: Sequence[SensorRecording], 
     log.info(f"learned parameters from {checkpoint}: " + ", ".join(f"{k}={v:.4g}" for k, v in learned.items()))
     for kind, network in params.adaptive.items():
         angles = (f" and its mounting's pitch and yaw within ±{float(network.angle_bound_rad):g} rad"
-                  + (" from the car's acceleration" if network.compensates_gravity else "") if network.angles else "")
+                  + (" (read from the car's acceleration)" if network.compensates_gravity else "") if network.angles else "")
         log.info(f"adaptive noise from {checkpoint}: the {kind} σs{angles} set at each update by a learned network "
                  f"over the IMU's last second ({sum(p.numel() for p in network.parameters())} weights)")
     return FilterSetup(imu, params.apply(navigation, training=False),
