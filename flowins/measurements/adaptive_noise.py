@@ -23,10 +23,11 @@ On a slope the specific force's forward part holds ``g sin(slope)``, which the l
 reads as an acceleration. With ``compensate_gravity`` its specific-force columns read the
 car's acceleration instead, ``a = T_a ⊙ (f̄ - b_a) - C(q)ᵀ (0, 0, g)`` in the IMU's axes (g),
 with the filter's attitude ``q``, accelerometer bias and scale at the update
-(:func:`acceleration_g`): the network's other outputs
-come before the filter runs (:meth:`AdaptiveNoise.split`), the angles at each update
-(:meth:`AdaptiveNoise.bounded_angles`). The state is an input there, as the gyroscope's
-reading is: the update's Jacobian does not differentiate the angles; training does.
+(:func:`acceleration_g`): the network's other outputs come before the filter runs
+(:meth:`AdaptiveNoise.split`), the angles at each update (:meth:`AdaptiveNoise.bounded_angles`).
+The state is an input there, as the gyroscope's reading is: the update's Jacobian does not
+differentiate the angles; training does.
+
 Two strided 1-D convolutions (kernel 9, stride 2, ReLU), a mean over time and a linear head:
 1,042 weights for 8 channels and 2 outputs. The module is float64, as the filter is.
 ``train.py`` learns it through the filter (``model.adaptive=[vehicle]``,
