@@ -58,16 +58,15 @@ def angle_summary(network, windows: torch.Tensor, steady: torch.Tensor, C_cb: to
     specific force along the car's forward (pitch) and left (yaw) axes (``C_cb``'s rows). A
     network that reads the car's acceleration (``compensates_gravity``) takes it at the
     attitudes ``q (E, 4)`` (the recording's reference), and the slopes are against it."""
-    force = recent_force_g(windows)
-    reads = "force"
+    reading, reads = recent_force_g(windows), "force"  # what the linear path reads, in g
     if network.compensates_gravity:
         if q is None:
             return ["  angles: the network reads the car's acceleration, which needs an attitude; the recording "
                     "has no reference orientation"]
-        force, reads = acceleration_g(force, q), "acceleration"
+        reading, reads = acceleration_g(reading, q), "acceleration"
     with torch.no_grad():
-        _, angles = network(windows, steady, force if network.compensates_gravity else None)
-    along = force @ C_cb.T  # (E, 3) in g along the car's axes
+        _, angles = network(windows, steady, reading if network.compensates_gravity else None)
+    along = reading @ C_cb.T  # (E, 3) in g along the car's axes
     levels = torch.tensor([0.1, 0.5, 0.9], dtype=angles.dtype)
     lines = []
     for name, column, axis in (("pitch", 0, 0), ("yaw", 1, 1)):

@@ -366,22 +366,20 @@ def vehicle_events(stream: VehicleConstraint, settings: VehicleSettings, context
     step = 1.0 / settings.rate_hz
     times = torch.arange(context.t_start_s + step, context.t_end_s + 1e-9, step, dtype=torch.float64)
     gyro = gyro_at(context.imu.t_s, context.imu.gyro_rps, times)
-    scale = offset = [None] * len(times)
+    scale = offset = angle_input = force = [None] * len(times)
     if settings.noise_model is not None and len(times):
         imu = context.imu
         windows = imu_windows(imu.t_s, imu.acc_mps2, imu.gyro_rps, times)
         steady = steady_window(settings.vehicle_from_imu(windows)[2].detach())  # the car's up axis in the IMU frame
         network = settings.noise_model
         if getattr(network, "compensates_gravity", False):  # angles at each update, from the filter's attitude
-            scale, y = network.split(windows, steady)
-            force = recent_force_g(windows)
-            return [VehicleUpdate(t, settings, gyro[i], sigma_scale=scale[i], angle_input=y[i],
-                                  recent_force_g=force[i], gravity_mps2=context.gravity_mps2)
-                    for i, t in enumerate(times.tolist())]
-        scale = network(windows, steady)
-        if isinstance(scale, tuple):  # factors and the mounting's offsets
-            scale, offset = scale
-    return [VehicleUpdate(t, settings, gyro[i], sigma_scale=scale[i], mount_offset_rad=offset[i])
+            (scale, angle_input), force = network.split(windows, steady), recent_force_g(windows)
+        else:
+            scale = network(windows, steady)
+            if isinstance(scale, tuple):  # factors and the mounting's offsets
+                scale, offset = scale
+    return [VehicleUpdate(t, settings, gyro[i], sigma_scale=scale[i], mount_offset_rad=offset[i],
+                          angle_input=angle_input[i], recent_force_g=force[i], gravity_mps2=context.gravity_mps2)
             for i, t in enumerate(times.tolist())]
 
 
