@@ -613,6 +613,9 @@ class FilterParameters(nn.Module):
                     raise ValueError(f"model.checkpoint: {path}: the adaptive network for {kind} has angle_bound_rad="
                                      f"{bound_rad!r}; expected one number in (0, 0.5] rad")
                 angles[kind] = float(bound_rad)
+            elif "compensate_gravity" in weights:
+                raise ValueError(f"model.checkpoint: {path}: the adaptive network for {kind} reads the car's "
+                                 "acceleration (compensate_gravity) but sets no angles (no angle_bound_rad)")
         module = cls({n: float(center[n]) for n in NAMES}, learn=(),
                      bounds={n: None if math.isinf(float(bound[n])) else float(bound[n]) for n in NAMES},
                      ceilings=ceiling, adaptive=networks, adaptive_angles_rad=angles, learn_adaptive=False,

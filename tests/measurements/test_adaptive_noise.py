@@ -365,6 +365,12 @@ def test_a_checkpoint_keeps_an_acceleration_network_and_settings_refuse_it_witho
     accel = torch.randn(5, 3, dtype=F64, generator=torch.Generator().manual_seed(18)) * 0.1
     for a, b in zip(loaded(windows, None, accel), network(windows, None, accel)):
         assert torch.equal(a, b.detach())
+    state = torch.load(path, weights_only=True)
+    for key in [k for k in state["state_dict"] if k.endswith(("angle_bound_rad", "recent.weight"))]:
+        del state["state_dict"][key]
+    torch.save(state, tmp_path / "broken.ckpt")
+    with pytest.raises(ValueError, match=r"broken.ckpt: the adaptive network for vehicle reads the car's acceleration"):
+        FilterParameters.from_checkpoint(tmp_path / "broken.ckpt")
     plain = FilterParameters(starting_values(NavigationConfig()), learn=[], adaptive=["vehicle"], adaptive_angles_rad=0.04)
     assert not plain.adaptive["vehicle"].compensates_gravity
     for bad in ({"adaptive": ("vehicle",)}, {"adaptive_angles_rad": 0.05}):
